@@ -1,0 +1,29 @@
+# Two commands do all set-up on a fresh machine (each creates/refreshes .venv itself):
+#   make demo   - the main job on the built-in synthetic default, end to end
+#   make test   - the test suite
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: demo test bench venv clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m teacher.demo
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(PY) bench/teacher.py
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache

@@ -1,0 +1,2 @@
+"""Data layer: dataset readers (7-Scenes, TUM RGB-D, synthetic), geometry conventions,
+file formats and evaluation metrics shared by every stage."""

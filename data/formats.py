@@ -1,0 +1,254 @@
+"""Readers and writers of the files stages exchange (see docs/formats.md).
+
+* TUM trajectories ``timestamp tx ty tz qx qy qz qw`` (``T_world_cam``), read by evo.
+* Relative-pose edges in g2o ``EDGE_SE3:QUAT`` with a 6x6 information matrix (upper
+  triangle, row-major) in the project tangent order (v, w), which is also g2o's
+  (translation, rotation) order; ``gtsam.readG2o`` reads these files. Vertices
+  ``VERTEX_SE3:QUAT`` carry an initial trajectory.
+* ``edges.csv``: per-edge quality figures and status, including failed edges.
+
+Every writer is atomic; every reader validates strictly and raises
+:class:`~data.errors.FormatError` with the file, line and reason.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Optional
+
+import numpy as np
+from numpy.typing import NDArray
+
+from data import geometry as geo
+from data.errors import FormatError
+from data.io import atomic_write
+
+
+# ----------------------------------------------------------------------------------
+# TUM trajectories
+# ----------------------------------------------------------------------------------
+@dataclass
+class Trajectory:
+    """Timestamps (N,) and ``T_world_cam`` poses (N, 4, 4)."""
+
+    timestamps: NDArray[np.float64]
+    poses: NDArray[np.float64]
+
+    def __post_init__(self) -> None:
+        self.timestamps = np.asarray(self.timestamps, dtype=np.float64).reshape(-1)
+        self.poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)
+        if len(self.timestamps) != len(self.poses):
+            raise ValueError(f"{len(self.timestamps)} timestamps but {len(self.poses)} poses")
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def to_evo(self):  # -> evo.core.trajectory.PoseTrajectory3D
+        from evo.core.trajectory import PoseTrajectory3D
+
+        xyz, q_wxyz = geo.evo_pose_arrays(self.poses)
+        return PoseTrajectory3D(positions_xyz=xyz, orientations_quat_wxyz=q_wxyz, timestamps=self.timestamps)
+
+    @classmethod
+    def from_evo(cls, traj) -> "Trajectory":
+        return cls(np.asarray(traj.timestamps), geo.poses_from_evo_arrays(traj.positions_xyz, traj.orientations_quat_wxyz))
+
+
+def write_tum(path: Path, traj: Trajectory) -> None:
+    """Write a TUM trajectory file atomically."""
+    if not (np.all(np.isfinite(traj.timestamps)) and np.all(np.isfinite(traj.poses))):
+        raise FormatError(f"refusing to write non-finite poses to {path}")
+    with atomic_write(path) as fh:
+        fh.write("# timestamp tx ty tz qx qy qz qw  (T_world_cam, metres)\n")
+        for t, T in zip(traj.timestamps, traj.poses):
+            row = geo.T_to_tum(T)
+            fh.write(f"{t:.6f} " + " ".join(f"{x:.9f}" for x in row) + "\n")
+
+
+def read_tum(path: Path) -> Trajectory:
+    """Read a TUM trajectory with evo, then check it is finite, ordered and normalisable."""
+    from evo.tools.file_interface import FileInterfaceException, read_tum_trajectory_file
+
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"missing TUM trajectory file {path}")
+    try:
+        traj = read_tum_trajectory_file(str(path))
+    except (FileInterfaceException, ValueError, IndexError) as exc:
+        raise FormatError(f"{path}: {exc}") from None
+    stamps = np.asarray(traj.timestamps)
+    if not np.all(np.isfinite(traj.positions_xyz)) or not np.all(np.isfinite(stamps)):
+        raise FormatError(f"{path}: non-finite timestamp or position")
+    qn = np.linalg.norm(traj.orientations_quat_wxyz, axis=1)
+    if not np.all(np.isfinite(qn)) or np.any(qn < 1e-6):
+        raise FormatError(f"{path}: zero or non-finite quaternion")
+    if np.any(np.diff(stamps) < 0):
+        raise FormatError(f"{path}: timestamps are not sorted")
+    return Trajectory.from_evo(traj)
+
+
+# ----------------------------------------------------------------------------------
+# g2o edges
+# ----------------------------------------------------------------------------------
+@dataclass
+class Edge:
+    """A relative-pose measurement ``T_i_j`` between frame ids i and j.
+
+    ``cov`` is the 6x6 covariance in the project tangent order (v, w), right
+    perturbation at ``T_i_j`` (``T_true = T_i_j @ exp(delta)``).
+    """
+
+    i: int
+    j: int
+    T_i_j: NDArray[np.float64]
+    cov: NDArray[np.float64]
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def information(self) -> NDArray[np.float64]:
+        return np.linalg.inv(self.cov)
+
+
+def _check_cov(cov: NDArray[np.float64], what: str) -> None:
+    if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
+        raise FormatError(f"{what}: covariance must be a finite 6x6 matrix")
+    if not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-12):
+        raise FormatError(f"{what}: covariance is not symmetric")
+    if np.linalg.eigvalsh(0.5 * (cov + cov.T)).min() <= 0:
+        raise FormatError(f"{what}: covariance is not positive definite")
+
+
+def write_g2o(path: Path, edges: Iterable[Edge], vertices: Optional[dict[int, NDArray[np.float64]]] = None) -> None:
+    """Write ``VERTEX_SE3:QUAT`` lines (id -> ``T_world_cam``) and ``EDGE_SE3:QUAT`` lines."""
+    iu = np.triu_indices(6)
+    buf = io.StringIO()
+    for vid, T in sorted((vertices or {}).items()):
+        buf.write(f"VERTEX_SE3:QUAT {vid} " + " ".join(f"{x:.9f}" for x in geo.T_to_tum(T)) + "\n")
+    for e in edges:
+        what = f"edge {e.i}->{e.j}"
+        _check_cov(np.asarray(e.cov), what)
+        if not geo.is_rigid(e.T_i_j, atol=1e-4):
+            raise FormatError(f"{what}: relative pose is not a finite rigid transform")
+        info = np.linalg.inv(e.cov)
+        info = 0.5 * (info + info.T)
+        pose = " ".join(f"{x:.9f}" for x in geo.T_to_tum(e.T_i_j))
+        inf = " ".join(f"{x:.9g}" for x in info[iu])
+        buf.write(f"EDGE_SE3:QUAT {e.i} {e.j} {pose} {inf}\n")
+    with atomic_write(path) as fh:
+        fh.write(buf.getvalue())
+
+
+def read_g2o(path: Path) -> tuple[list[Edge], dict[int, NDArray[np.float64]]]:
+    """Strictly parse a g2o SE(3) file: (edges, vertices id -> ``T_world_cam``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"missing g2o file {path}")
+    edges: list[Edge] = []
+    vertices: dict[int, NDArray[np.float64]] = {}
+    iu = np.triu_indices(6)
+    with open(path) as fh:
+        for lineno, line in enumerate(fh, 1):
+            toks = line.split()
+            if not toks or toks[0].startswith("#"):
+                continue
+            where = f"{path}:{lineno}"
+            tag = toks[0]
+            if tag == "VERTEX_SE3:QUAT":
+                if len(toks) != 9:
+                    raise FormatError(f"{where}: VERTEX_SE3:QUAT needs 9 fields, got {len(toks)}")
+                vid, vals = _parse_ints(toks[1:2], where)[0], _parse_floats(toks[2:], where)
+                vertices[vid] = _pose_from_vals(vals, where)
+            elif tag == "EDGE_SE3:QUAT":
+                if len(toks) != 31:
+                    raise FormatError(f"{where}: EDGE_SE3:QUAT needs 31 fields, got {len(toks)}")
+                i, j = _parse_ints(toks[1:3], where)
+                vals = _parse_floats(toks[3:], where)
+                T = _pose_from_vals(vals[:7], where)
+                info = np.zeros((6, 6))
+                info[iu] = vals[7:]
+                info = info + np.triu(info, 1).T
+                try:
+                    cov = np.linalg.inv(info)
+                except np.linalg.LinAlgError:
+                    raise FormatError(f"{where}: information matrix is singular") from None
+                cov = 0.5 * (cov + cov.T)
+                if np.linalg.eigvalsh(info).min() <= 0:
+                    raise FormatError(f"{where}: information matrix is not positive definite")
+                edges.append(Edge(i, j, T, cov))
+            elif tag == "FIX":
+                continue
+            else:
+                raise FormatError(f"{where}: unknown g2o tag {tag!r} (expected VERTEX_SE3:QUAT or EDGE_SE3:QUAT)")
+    return edges, vertices
+
+
+def _parse_ints(toks: list[str], where: str) -> list[int]:
+    try:
+        return [int(t) for t in toks]
+    except ValueError:
+        raise FormatError(f"{where}: expected integer ids, got {' '.join(toks)}") from None
+
+
+def _parse_floats(toks: list[str], where: str) -> NDArray[np.float64]:
+    try:
+        vals = np.array([float(t) for t in toks])
+    except ValueError:
+        raise FormatError(f"{where}: expected numbers") from None
+    if not np.all(np.isfinite(vals)):
+        raise FormatError(f"{where}: non-finite value")
+    return vals
+
+
+def _pose_from_vals(vals: NDArray[np.float64], where: str) -> NDArray[np.float64]:
+    try:
+        return geo.tum_to_T(vals)
+    except ValueError as exc:
+        raise FormatError(f"{where}: {exc}") from None
+
+
+# ----------------------------------------------------------------------------------
+# edges.csv sidecar
+# ----------------------------------------------------------------------------------
+EDGE_CSV_COLUMNS = [
+    "i", "j", "t_i", "t_j", "status", "matches", "inliers", "inlier_ratio", "rmse_px",
+    "trans_m", "rot_deg",
+]
+
+
+def write_edges_csv(path: Path, rows: Iterable[dict]) -> None:
+    """Write the per-edge sidecar (columns :data:`EDGE_CSV_COLUMNS`)."""
+    with atomic_write(path) as fh:
+        w = csv.DictWriter(fh, fieldnames=EDGE_CSV_COLUMNS, extrasaction="ignore", lineterminator="\n")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: _fmt(r.get(k, "")) for k in EDGE_CSV_COLUMNS})
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return "nan" if math.isnan(v) else f"{v:.6g}"
+    return str(v)
+
+
+def read_edges_csv(path: Path) -> list[dict]:
+    """Read ``edges.csv``; numeric columns are converted, ``status`` stays a string."""
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"missing edge table {path}")
+    out = []
+    with open(path, newline="") as fh:
+        reader = csv.DictReader(fh)
+        if reader.fieldnames is None or not {"i", "j", "status"} <= set(reader.fieldnames):
+            raise FormatError(f"{path}: header must contain i, j and status")
+        for lineno, r in enumerate(reader, 2):
+            try:
+                row = {k: (v if k == "status" else (int(v) if k in ("i", "j", "matches", "inliers") else float(v)))
+                       for k, v in r.items() if v != ""}
+            except (TypeError, ValueError):
+                raise FormatError(f"{path}:{lineno}: malformed row") from None
+            out.append(row)
+    return out

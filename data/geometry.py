@@ -1,0 +1,244 @@
+"""The one module that converts between geometry conventions.
+
+Every quaternion re-ordering, se(3) ordering and covariance permutation in the project
+lives here; docs/conventions.md states the conventions in words. Summary:
+
+* Poses are 4x4 float64 homogeneous matrices named by their frames: ``T_world_cam``
+  maps camera coordinates into the world. ``T_a_c = T_a_b @ T_b_c``.
+* The relative pose between frames i and j is ``T_i_j = inv(T_world_i) @ T_world_j``.
+* The project's se(3) vector is the paper's ``xi = (v, w)``: translation part first
+  (``v``, the *tangent* translation, i.e. ``V^-1 t``), rotation vector second (``w``).
+  ``T = se3_exp(xi)``; the perturbation convention is right (body frame):
+  ``T_true = T_est @ se3_exp(delta)``.
+* Quaternions in files (TUM, g2o) are ``(qx, qy, qz, qw)``; scipy uses the same order.
+  GTSAM's ``Rot3.Quaternion`` takes ``(w, x, y, z)``; evo stores ``(w, x, y, z)``.
+* GTSAM's Pose3 tangent is ``(w, v)`` (rotation first), also right perturbation, so a
+  6x6 covariance converts between the two by a fixed permutation (:func:`cov_to_gtsam`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+Mat4 = NDArray[np.float64]
+
+#: Permutation taking a project-order vector (v, w) to GTSAM order (w, v).
+_PERM_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])
+#: Below this angle (rad) series expansions replace the closed forms.
+_SMALL_ANGLE = 1e-4
+
+
+# ----------------------------------------------------------------------------------
+# basic SE(3) helpers
+# ----------------------------------------------------------------------------------
+def make_T(R: ArrayLike, t: ArrayLike) -> Mat4:
+    """Build a 4x4 transform from a 3x3 rotation and a translation (3,)."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, dtype=np.float64)
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def inv_T(T: ArrayLike) -> Mat4:
+    """Inverse of a rigid transform (exact, no general matrix inverse)."""
+    T = np.asarray(T, dtype=np.float64)
+    R = T[:3, :3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ T[:3, 3]
+    return out
+
+
+def relative_pose(T_world_i: ArrayLike, T_world_j: ArrayLike) -> Mat4:
+    """``T_i_j = inv(T_world_i) @ T_world_j`` (pose of frame j seen from frame i)."""
+    return inv_T(T_world_i) @ np.asarray(T_world_j, dtype=np.float64)
+
+
+def is_rigid(T: ArrayLike, atol: float = 1e-5) -> bool:
+    """True if ``T`` is a finite 4x4 rigid transform (orthonormal, det +1)."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return bool(
+        np.allclose(R.T @ R, np.eye(3), atol=atol)
+        and abs(np.linalg.det(R) - 1.0) < atol
+        and np.allclose(T[3], [0, 0, 0, 1], atol=atol)
+    )
+
+
+def orthonormalize(T: ArrayLike) -> Mat4:
+    """Project the rotation block of ``T`` onto SO(3) (SVD), keep the translation."""
+    T = np.array(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    return make_T(R, T[:3, 3])
+
+
+# ----------------------------------------------------------------------------------
+# quaternions (file order x, y, z, w)
+# ----------------------------------------------------------------------------------
+def quat_xyzw_to_R(q_xyzw: ArrayLike) -> NDArray[np.float64]:
+    """Rotation matrix from a quaternion in file order ``(qx, qy, qz, qw)``.
+
+    The quaternion is normalised; ``q`` and ``-q`` give the same rotation.
+    """
+    q = np.asarray(q_xyzw, dtype=np.float64)
+    n = np.linalg.norm(q)
+    if not np.isfinite(n) or n < 1e-12:
+        raise ValueError(f"invalid quaternion {q.tolist()}")
+    return Rotation.from_quat(q / n).as_matrix()
+
+
+def R_to_quat_xyzw(R: ArrayLike) -> NDArray[np.float64]:
+    """Quaternion ``(qx, qy, qz, qw)`` of a rotation matrix, with ``qw >= 0``."""
+    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
+    return -q if q[3] < 0 else q
+
+
+def tum_to_T(row: ArrayLike) -> Mat4:
+    """``T_world_cam`` from the 7 pose entries of a TUM row ``tx ty tz qx qy qz qw``."""
+    row = np.asarray(row, dtype=np.float64)
+    return make_T(quat_xyzw_to_R(row[3:7]), row[:3])
+
+
+def T_to_tum(T: ArrayLike) -> NDArray[np.float64]:
+    """The 7 pose entries ``tx ty tz qx qy qz qw`` of a TUM row."""
+    T = np.asarray(T, dtype=np.float64)
+    return np.concatenate([T[:3, 3], R_to_quat_xyzw(T[:3, :3])])
+
+
+def quat_xyzw_to_wxyz(q_xyzw: ArrayLike) -> NDArray[np.float64]:
+    """Re-order a quaternion from file order to ``(w, x, y, z)`` (GTSAM, evo)."""
+    x, y, z, w = np.asarray(q_xyzw, dtype=np.float64)
+    return np.array([w, x, y, z])
+
+
+def quat_wxyz_to_xyzw(q_wxyz: ArrayLike) -> NDArray[np.float64]:
+    """Re-order a quaternion from ``(w, x, y, z)`` to file order ``(x, y, z, w)``."""
+    w, x, y, z = np.asarray(q_wxyz, dtype=np.float64)
+    return np.array([x, y, z, w])
+
+
+# ----------------------------------------------------------------------------------
+# so(3) / se(3) exp and log, project order xi = (v, w)
+# ----------------------------------------------------------------------------------
+def hat(w: ArrayLike) -> NDArray[np.float64]:
+    """Skew-symmetric matrix of a 3-vector."""
+    x, y, z = np.asarray(w, dtype=np.float64)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def _V_coeffs(theta: float) -> tuple[float, float]:
+    """Coefficients (b, c) of ``V = I + b W + c W^2`` with series near theta = 0."""
+    if theta < _SMALL_ANGLE:
+        t2 = theta * theta
+        return 0.5 - t2 / 24.0, 1.0 / 6.0 - t2 / 120.0
+    return (1.0 - np.cos(theta)) / theta**2, (theta - np.sin(theta)) / theta**3
+
+
+def _V_inv(w: NDArray[np.float64]) -> NDArray[np.float64]:
+    theta = float(np.linalg.norm(w))
+    W = hat(w)
+    if theta < _SMALL_ANGLE:
+        d = 1.0 / 12.0 + theta * theta / 720.0
+    else:
+        half = 0.5 * theta
+        d = (1.0 - half * np.cos(half) / np.sin(half)) / theta**2
+    return np.eye(3) - 0.5 * W + d * (W @ W)
+
+
+def se3_exp(xi: ArrayLike) -> Mat4:
+    """Exponential map of ``xi = (v, w)`` (project order) to a 4x4 transform."""
+    xi = np.asarray(xi, dtype=np.float64).reshape(6)
+    v, w = xi[:3], xi[3:]
+    theta = float(np.linalg.norm(w))
+    R = Rotation.from_rotvec(w).as_matrix()
+    W = hat(w)
+    b, c = _V_coeffs(theta)
+    V = np.eye(3) + b * W + c * (W @ W)
+    return make_T(R, V @ v)
+
+
+def se3_log(T: ArrayLike) -> NDArray[np.float64]:
+    """Logarithm ``xi = (v, w)`` of a rigid transform (``v = V^-1 t``, not raw ``t``).
+
+    The rotation vector comes from scipy, which is accurate near 0 and near pi.
+    """
+    T = np.asarray(T, dtype=np.float64)
+    w = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    v = _V_inv(w) @ T[:3, 3]
+    return np.concatenate([v, w])
+
+
+def rotation_angle_deg(T: ArrayLike) -> float:
+    """Rotation angle of a transform's rotation block, degrees."""
+    R = np.asarray(T, dtype=np.float64)[:3, :3]
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.degrees(np.arccos(c)))
+
+
+# ----------------------------------------------------------------------------------
+# covariances and GTSAM
+# ----------------------------------------------------------------------------------
+def vec_to_gtsam(xi: ArrayLike) -> NDArray[np.float64]:
+    """Re-order a tangent vector from project order (v, w) to GTSAM order (w, v)."""
+    return np.asarray(xi, dtype=np.float64)[..., _PERM_TO_GTSAM]
+
+
+def vec_from_gtsam(xi_g: ArrayLike) -> NDArray[np.float64]:
+    """Re-order a tangent vector from GTSAM order (w, v) to project order (v, w)."""
+    inv = np.argsort(_PERM_TO_GTSAM)
+    return np.asarray(xi_g, dtype=np.float64)[..., inv]
+
+
+def cov_to_gtsam(cov: ArrayLike) -> NDArray[np.float64]:
+    """6x6 covariance (or information) from project order (v, w) to GTSAM (w, v).
+
+    Both are right-perturbation tangents at the same pose, so only the order changes.
+    """
+    c = np.asarray(cov, dtype=np.float64)
+    p = _PERM_TO_GTSAM
+    return c[np.ix_(p, p)]
+
+
+def cov_from_gtsam(cov_g: ArrayLike) -> NDArray[np.float64]:
+    """6x6 covariance (or information) from GTSAM order (w, v) to project order (v, w)."""
+    c = np.asarray(cov_g, dtype=np.float64)
+    inv = np.argsort(_PERM_TO_GTSAM)
+    return c[np.ix_(inv, inv)]
+
+
+def to_gtsam_pose3(T: ArrayLike):  # -> gtsam.Pose3
+    """A ``gtsam.Pose3`` from a 4x4 transform (imports gtsam lazily)."""
+    import gtsam
+
+    return gtsam.Pose3(orthonormalize(T))
+
+
+def from_gtsam_pose3(pose) -> Mat4:
+    """4x4 transform from a ``gtsam.Pose3``."""
+    return np.asarray(pose.matrix(), dtype=np.float64)
+
+
+def evo_pose_arrays(T_list: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(positions (N, 3), quaternions (N, 4) in evo's ``w x y z`` order) of poses."""
+    Ts = np.asarray(T_list, dtype=np.float64)
+    xyz = Ts[:, :3, 3].copy()
+    q = Rotation.from_matrix(Ts[:, :3, :3]).as_quat()  # x y z w
+    return xyz, q[:, [3, 0, 1, 2]]
+
+
+def poses_from_evo_arrays(xyz: ArrayLike, q_wxyz: ArrayLike) -> NDArray[np.float64]:
+    """(N, 4, 4) poses from evo's positions and ``w x y z`` quaternions."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    q = np.asarray(q_wxyz, dtype=np.float64)
+    out = np.tile(np.eye(4), (len(xyz), 1, 1))
+    out[:, :3, :3] = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()
+    out[:, :3, 3] = xyz
+    return out

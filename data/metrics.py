@@ -1,0 +1,87 @@
+"""Trajectory metrics. ATE and RPE come from evo; only the paper's se(3) L2 error, which
+evo lacks, is computed here.
+
+All functions take two :class:`~data.formats.Trajectory` objects whose poses are
+``T_world_cam`` at the *same* timestamps (the project writes trajectories frame by frame,
+so no association is needed; :func:`associate` handles foreign files).
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+from numpy.typing import NDArray
+
+from data import geometry as geo
+from data.errors import VOError
+from data.formats import Trajectory
+
+
+def associate(gt: Trajectory, est: Trajectory, max_diff: float = 0.01) -> tuple[Trajectory, Trajectory]:
+    """Match poses by timestamp with evo (``max_diff`` seconds)."""
+    from evo.core import sync
+
+    try:
+        r, e = sync.associate_trajectories(gt.to_evo(), est.to_evo(), max_diff=max_diff)
+    except sync.SyncException as exc:
+        raise VOError(f"cannot associate trajectories: {exc}") from None
+    return Trajectory.from_evo(r), Trajectory.from_evo(e)
+
+
+def _check(gt: Trajectory, est: Trajectory) -> None:
+    if len(gt) != len(est):
+        raise VOError(f"trajectories differ in length ({len(gt)} vs {len(est)}); associate them first")
+    if len(gt) < 2:
+        raise VOError("need at least two poses to evaluate a trajectory")
+
+
+def ate_rmse(gt: Trajectory, est: Trajectory) -> float:
+    """ATE RMSE in metres after SE(3) Umeyama alignment without scale (evo APE)."""
+    from evo.core import metrics
+
+    _check(gt, est)
+    ref, e = gt.to_evo(), est.to_evo()
+    e = copy.deepcopy(e)
+    e.align(ref, correct_scale=False)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, e))
+    return float(ape.get_statistic(metrics.StatisticsType.rmse))
+
+
+def rpe_rmse(gt: Trajectory, est: Trajectory, delta: int = 1) -> tuple[float, float]:
+    """RPE RMSE (translation metres, rotation degrees) over frame pairs ``delta`` apart (evo)."""
+    from evo.core import metrics
+
+    _check(gt, est)
+    if delta >= len(gt):
+        return float("nan"), float("nan")
+    ref, e = gt.to_evo(), est.to_evo()
+    out = []
+    for rel in (metrics.PoseRelation.translation_part, metrics.PoseRelation.rotation_angle_deg):
+        rpe = metrics.RPE(rel, delta=delta, delta_unit=metrics.Unit.frames, all_pairs=False)
+        rpe.process_data((ref, e))
+        out.append(float(rpe.get_statistic(metrics.StatisticsType.rmse)))
+    return out[0], out[1]
+
+
+def se3_l2_errors(gt_rel: NDArray[np.float64], est_rel: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The paper's local metric per pair: ``||log(T_gt_rel) - log(T_est_rel)||_2`` with
+    ``log`` in the project se(3) order (v, w). Inputs are (N, 4, 4) relative poses."""
+    return np.array([np.linalg.norm(geo.se3_log(g) - geo.se3_log(e)) for g, e in zip(gt_rel, est_rel)])
+
+
+def relative_poses(poses: NDArray[np.float64], delta: int = 1) -> NDArray[np.float64]:
+    """``T_k_{k+delta}`` for every k of an (N, 4, 4) ``T_world_cam`` array."""
+    return np.array([geo.relative_pose(poses[k], poses[k + delta]) for k in range(len(poses) - delta)])
+
+
+def trajectory_report(gt: Trajectory, est: Trajectory) -> dict[str, float]:
+    """The metric keys every stage's ``report.json`` carries (see docs/formats.md)."""
+    t, r = rpe_rmse(gt, est, 1)
+    return {
+        "ate_rmse_m": ate_rmse(gt, est),
+        "rpe_trans_rmse_m": t,
+        "rpe_rot_rmse_deg": r,
+        "se3_l2_mean": float(np.mean(se3_l2_errors(relative_poses(gt.poses), relative_poses(est.poses)))),
+    }

@@ -1,0 +1,141 @@
+"""Microsoft 7-Scenes reader (also reads the project's synthetic scenes, which use its layout).
+
+Layout: ``<scene>/seq-XX/frame-NNNNNN.color.png`` (or ``.color.jpg``),
+``frame-NNNNNN.depth.png`` (uint16 millimetres; 0 and 65535 invalid),
+``frame-NNNNNN.pose.txt`` (4x4 ``T_world_cam``, metres). ``<scene>/TrainSplit.txt`` and
+``TestSplit.txt`` list ``sequence1``-style names (-> ``seq-01``). Intrinsics come from
+``camera-intrinsics.txt`` (3x3 matrix, or ``fx fy cx cy [w h]``) in the sequence folder or the
+scene folder, else the dataset's 585/585/320/240 at 640x480. Frames are at 30 Hz.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+from numpy.typing import NDArray
+
+from data.errors import DataError
+from data.geometry import is_rigid, orthonormalize
+from data.sequence import Intrinsics, Sequence, read_depth, read_rgb
+
+DEFAULT_INTRINSICS = Intrinsics(585.0, 585.0, 320.0, 240.0, 640, 480)
+FPS = 30.0
+DEPTH_SCALE = 1000.0  # raw units per metre
+_FRAME_RE = re.compile(r"^frame-(\d{6})\.depth\.png$")
+
+
+def read_intrinsics_file(path: Path, width: int = 640, height: int = 480) -> Intrinsics:
+    """Parse a ``camera-intrinsics.txt``: a 3x3 camera matrix, or ``fx fy cx cy [w h]``."""
+    try:
+        vals = np.array(Path(path).read_text().split(), dtype=np.float64)
+    except ValueError:
+        raise DataError(f"{path}: intrinsics must be numbers") from None
+    if not np.all(np.isfinite(vals)):
+        raise DataError(f"{path}: non-finite intrinsics")
+    if vals.size == 9:
+        K = vals.reshape(3, 3)
+        return Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height)
+    if vals.size in (4, 6):
+        w, h = (int(vals[4]), int(vals[5])) if vals.size == 6 else (width, height)
+        return Intrinsics(*vals[:4], w, h)
+    raise DataError(f"{path}: expected a 3x3 matrix or 'fx fy cx cy [w h]', got {vals.size} numbers")
+
+
+def read_pose_file(path: Path) -> NDArray[np.float64]:
+    """A 4x4 ``T_world_cam`` from a 7-Scenes ``.pose.txt``; clear error if missing or bad."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"missing pose file {path}")
+    try:
+        T = np.array(path.read_text().split(), dtype=np.float64)
+    except ValueError:
+        raise DataError(f"pose file {path} must contain 16 numbers") from None
+    if T.size != 16:
+        raise DataError(f"pose file {path} must contain 16 numbers, got {T.size}")
+    T = T.reshape(4, 4)
+    if not np.all(np.isfinite(T)):
+        raise DataError(f"pose file {path} contains non-finite values")
+    if not is_rigid(T, atol=1e-2):
+        raise DataError(f"pose file {path} is not a rigid transform")
+    return orthonormalize(T)
+
+
+class SevenScenesSequence(Sequence):
+    """One ``seq-XX`` folder of a 7-Scenes-layout scene."""
+
+    def __init__(self, seq_dir: Path, name: Optional[str] = None) -> None:
+        seq_dir = Path(seq_dir)
+        if not seq_dir.is_dir():
+            raise DataError(f"sequence folder {seq_dir} does not exist")
+        ids = sorted(int(m.group(1)) for p in seq_dir.iterdir() if (m := _FRAME_RE.match(p.name)))
+        if not ids:
+            raise DataError(f"sequence folder {seq_dir} has no frame-NNNNNN.depth.png files")
+        self.root = seq_dir
+        self._color_ext = self._find_color_ext(seq_dir, ids[0])
+        intr = DEFAULT_INTRINSICS
+        for cand in (seq_dir / "camera-intrinsics.txt", seq_dir.parent / "camera-intrinsics.txt"):
+            if cand.is_file():
+                intr = read_intrinsics_file(cand)
+                break
+        gt = None
+        if (seq_dir / f"frame-{ids[0]:06d}.pose.txt").is_file():
+            gt = np.stack([read_pose_file(seq_dir / f"frame-{k:06d}.pose.txt") for k in ids])
+        ids_arr = np.asarray(ids, dtype=np.int64)
+        super().__init__(name or f"{seq_dir.parent.name}-{seq_dir.name}", intr, ids_arr / FPS, ids_arr, gt)
+
+    @staticmethod
+    def _find_color_ext(seq_dir: Path, first: int) -> str:
+        for ext in (".color.png", ".color.jpg"):
+            if (seq_dir / f"frame-{first:06d}{ext}").is_file():
+                return ext
+        raise DataError(f"no colour image frame-{first:06d}.color.png/.jpg in {seq_dir}")
+
+    def _read_rgb(self, pos: int) -> NDArray[np.uint8]:
+        fid = int(self.frame_ids[pos])
+        return read_rgb(self.root / f"frame-{fid:06d}{self._color_ext}", self.intrinsics)
+
+    def _read_depth(self, pos: int) -> NDArray[np.float32]:
+        fid = int(self.frame_ids[pos])
+        return read_depth(self.root / f"frame-{fid:06d}.depth.png", DEPTH_SCALE, self.intrinsics, invalid=(0, 65535))
+
+
+def _split_names(scene_dir: Path, split: str) -> list[str]:
+    files = {"train": ["TrainSplit.txt"], "test": ["TestSplit.txt"], "all": ["TrainSplit.txt", "TestSplit.txt"]}
+    if split not in files:
+        raise DataError(f"unknown split {split!r} (train, test, all)")
+    names: list[str] = []
+    for fname in files[split]:
+        f = scene_dir / fname
+        if not f.is_file():
+            raise DataError(f"scene folder {scene_dir} has no {fname}")
+        for tok in f.read_text().split():
+            m = re.fullmatch(r"sequence(\d+)", tok.strip())
+            if not m:
+                raise DataError(f"{f}: expected lines like 'sequence1', got {tok!r}")
+            names.append(f"seq-{int(m.group(1)):02d}")
+    return names
+
+
+def open_scene_folder(scene_dir: Path, split: str = "all") -> list[SevenScenesSequence]:
+    """Sequences of a 7-Scenes scene folder for a split (``train``, ``test`` or ``all``).
+
+    Without split files, ``all`` opens every ``seq-*`` folder.
+    """
+    scene_dir = Path(scene_dir)
+    has_splits = (scene_dir / "TrainSplit.txt").is_file() or (scene_dir / "TestSplit.txt").is_file()
+    if has_splits:
+        names = _split_names(scene_dir, split)
+    elif split == "all":
+        names = sorted(p.name for p in scene_dir.glob("seq-*") if p.is_dir())
+    else:
+        raise DataError(f"scene folder {scene_dir} has no TrainSplit.txt/TestSplit.txt for --split {split}")
+    if not names:
+        raise DataError(f"scene folder {scene_dir} has no sequences")
+    return [SevenScenesSequence(scene_dir / n) for n in names]
+
+
+def is_sequence_folder(path: Path) -> bool:
+    return Path(path).is_dir() and any(_FRAME_RE.match(p.name) for p in Path(path).iterdir())
