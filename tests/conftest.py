@@ -1,0 +1,46 @@
+"""Shared fixtures. Real data lives beside the project in ../shared/data (never copied).
+
+Tests that need it call :func:`require_real_data` (or use the ``real_data`` fixture): they
+skip with a reason when it is absent, and fail when ``VO_REQUIRE_REAL_DATA=1``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("VO_SHARED_DATA", REPO.parent / "shared" / "data"))
+REDKITCHEN = SHARED_DATA / "7scenes" / "redkitchen" / "seq-sample"
+TUM_FR1_XYZ = SHARED_DATA / "tum" / "rgbd_dataset_freiburg1_xyz"
+
+
+def require_real_data(path: Path) -> Path:
+    """Return ``path`` if it exists; otherwise skip (or fail under VO_REQUIRE_REAL_DATA=1)."""
+    if path.exists():
+        return path
+    msg = f"real data not found at {path} (see ../shared/data/README.md)"
+    if os.environ.get("VO_REQUIRE_REAL_DATA") == "1":
+        pytest.fail(msg + " and VO_REQUIRE_REAL_DATA=1")
+    pytest.skip(msg)
+
+
+@pytest.fixture(scope="session")
+def redkitchen() -> Path:
+    """Path of the real 7-Scenes redkitchen sample sequence."""
+    return require_real_data(REDKITCHEN)
+
+
+@pytest.fixture(scope="session")
+def tum_fr1_xyz() -> Path:
+    """Path of the real TUM fr1/xyz text files."""
+    return require_real_data(TUM_FR1_XYZ)
+
+
+@pytest.fixture(autouse=True)
+def _isolated_cache(tmp_path_factory, monkeypatch):
+    """Synthetic renders go to a per-session temporary cache, never to the user's."""
+    cache = tmp_path_factory.getbasetemp() / "vo-cache"
+    monkeypatch.setenv("VO_CACHE_DIR", str(cache))
