@@ -1,0 +1,7 @@
+"""The learner: a CTCNet-style CNN+LSTM trained on teacher labels with composite
+transformation constraints, and Monte-Carlo-dropout prediction of edges with covariances.
+
+Modules: :mod:`learner.config` (presets), :mod:`learner.se3` (torch SE(3)),
+:mod:`learner.model`, :mod:`learner.loss`, :mod:`learner.dataset` (frames + labels),
+:mod:`learner.train` (``fit``), :mod:`learner.predict` (``predict``), :mod:`learner.cli`.
+"""

@@ -1,0 +1,191 @@
+"""Frozen configurations of the learner: model shape, training schedule, prediction.
+
+Presets are instances (:data:`PRESETS`); change one with :func:`dataclasses.replace`, never
+by mutation. The resolved configuration is saved as JSON next to every run
+(``config.json``) and inside every checkpoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from data.errors import ConfigError
+
+#: conv widths of the VGG-11 stack (the ``M`` max-pools sit after conv 1, 2, 4, 6 and 8)
+VGG11_WIDTHS: tuple[int, ...] = (64, 128, 256, 256, 512, 512, 512, 512)
+#: the VGG-11 layout: an int is a 3x3 conv (index into the widths), ``"M"`` a 2x2 max-pool
+VGG11_LAYOUT: tuple[Any, ...] = (0, "M", 1, "M", 2, 3, "M", 4, 5, "M", 6, 7, "M")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Shape of the CTCNet-style network (encoder, direct head, LSTM head)."""
+
+    width: int = 320
+    """Input image width in pixels (frames are resized to it once and cached)."""
+    height: int = 240
+    """Input image height in pixels."""
+    conv_widths: tuple[int, ...] = VGG11_WIDTHS
+    """Output channels of the eight 3x3 conv+BN+ReLU layers of the VGG-11-BN stack."""
+    strided_widths: tuple[int, int] = (1024, 1024)
+    """Output channels of the two 3x3 stride-2 convs after the VGG stack."""
+    latent_dim: int = 1080
+    """C, channels of the final 1x1 conv; global-average-pooled to the C-dim latent."""
+    fc_dim: int = 1080
+    """Width of the direct head's penultimate FC layer (dropout is applied after it)."""
+    lstm_hidden: int = 1000
+    """Units of the one-layer LSTM of the sequential head."""
+    dropout: float = 0.3
+    """Drop probability at the direct head's penultimate FC and at the LSTM output during
+    training. The paper's 0.7 is read as TensorFlow's *keep* probability (drop 0.3)."""
+
+    def __post_init__(self) -> None:
+        if len(self.conv_widths) != 8 or len(self.strided_widths) != 2:
+            raise ConfigError("conv_widths needs 8 entries and strided_widths 2")
+        if min(self.width, self.height) < 32:
+            raise ConfigError(f"input must be at least 32x32 for five 2x2 pools, got {self.width}x{self.height}")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ConfigError(f"dropout must be in [0, 1), got {self.dropout}")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Training schedule (two phases) and optimiser."""
+
+    epochs: int = 30
+    """Total epochs (phase 1 + phase 2)."""
+    pretrain_epochs: int = 10
+    """Phase-1 epochs: encoder + direct head on single pairs of gaps 1..max_gap, L_reg only.
+    Variants without an LSTM (``cnn-*``) train every epoch this way."""
+    max_gap: int = 5
+    """Largest frame gap of a direct-head pair (phase 1 pairs and the CTC's G)."""
+    batch_pairs: int = 32
+    """Phase 1: pairs per optimiser step (global, split across DDP processes)."""
+    batch_windows: int = 4
+    """Phase 2: windows per optimiser step (global, split across DDP processes)."""
+    window_min: int = 3
+    """Phase 2: window length (consecutive pairs) of its first epoch."""
+    window_max: int = 18
+    """Phase 2: window length of its last epoch (grows linearly in between)."""
+    alpha: float = 1.0
+    """Weight of the composite transformation constraint L_ctc."""
+    beta: float = 3.0
+    """Weight of the label regression L_reg."""
+    lr: float = 1e-4
+    """Adam learning rate of the first epoch."""
+    beta1: float = 0.9
+    """Adam beta1."""
+    lr_halve_every: int = 5
+    """Halve the learning rate every this many epochs."""
+    steps_per_epoch: Optional[int] = None
+    """Cap on optimiser steps per epoch (``None``: one full pass over the data)."""
+    seed: int = 0
+    """Seed of shuffling, dropout, label sampling and initialisation."""
+
+    def __post_init__(self) -> None:
+        if self.epochs < 1 or not 0 <= self.pretrain_epochs <= self.epochs:
+            raise ConfigError(f"need epochs >= 1 and 0 <= pretrain_epochs <= epochs, got {self.epochs}/{self.pretrain_epochs}")
+        if self.max_gap < 1 or self.window_min < 1 or self.window_max < self.window_min:
+            raise ConfigError("need max_gap >= 1 and 1 <= window_min <= window_max")
+        if self.batch_pairs < 1 or self.batch_windows < 1:
+            raise ConfigError("batch sizes must be positive")
+
+
+@dataclass(frozen=True)
+class PredictConfig:
+    """Monte-Carlo-dropout prediction."""
+
+    samples: int = 10
+    """K, stochastic passes per pair (dropout resampled, conv features computed once)."""
+    drop: float = 0.1
+    """Drop probability of the MC passes (the paper uses 10%)."""
+    max_gap: int = 5
+    """Direct-head edges are written for gaps 2..max_gap besides the gap-1 edges."""
+    cov_floor: float = 1e-8
+    """Added to the covariance diagonal before inversion (rad^2 / m^2)."""
+    outlier_factor: float = 3.0
+    """An edge is flagged an outlier when its sigma (sqrt of the covariance trace) exceeds
+    this many times the sequence's median sigma."""
+    batch_pairs: int = 64
+    """Pairs per encoder forward pass."""
+
+    def __post_init__(self) -> None:
+        if self.samples < 1:
+            raise ConfigError(f"--samples must be >= 1, got {self.samples}")
+        if not 0.0 <= self.drop < 1.0:
+            raise ConfigError(f"drop ratio must be in [0, 1), got {self.drop}")
+
+
+@dataclass(frozen=True)
+class Preset:
+    """A named pair of model and training configurations."""
+
+    name: str
+    """Preset name (stored in checkpoints; a checkpoint only loads with its own preset)."""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    """Network shape."""
+    train: TrainConfig = field(default_factory=TrainConfig)
+    """Training schedule."""
+
+
+def _div(widths: tuple[int, ...], k: int) -> tuple[int, ...]:
+    return tuple(max(1, w // k) for w in widths)
+
+
+PAPER = Preset("paper", ModelConfig(), TrainConfig())
+CPU = Preset(
+    "cpu",
+    ModelConfig(width=128, height=96, conv_widths=_div(VGG11_WIDTHS, 4), strided_widths=(256, 256),
+                latent_dim=256, fc_dim=256, lstm_hidden=256),
+    TrainConfig(epochs=12, pretrain_epochs=4, batch_pairs=32, batch_windows=2, lr_halve_every=4, window_max=18),
+)
+TINY = Preset(
+    "tiny",
+    ModelConfig(width=64, height=48, conv_widths=_div(VGG11_WIDTHS, 16), strided_widths=(16, 16),
+                latent_dim=16, fc_dim=16, lstm_hidden=16),
+    TrainConfig(epochs=2, pretrain_epochs=1, max_gap=3, batch_pairs=4, batch_windows=2, window_min=3,
+                window_max=4, lr=1e-3, lr_halve_every=1, steps_per_epoch=2),
+)
+PRESETS: dict[str, Preset] = {p.name: p for p in (PAPER, CPU, TINY)}
+
+#: variant -> (uses LSTM, label source, CTC on)
+VARIANTS: dict[str, tuple[bool, str, bool]] = {
+    "cnn-gt": (False, "gt", False),
+    "lstm-gt": (True, "gt", False),
+    "cnn-unsup": (False, "teacher", False),
+    "lstm-unsup": (True, "teacher", False),
+    "cnn-aug": (False, "aug", False),
+    "lstm-aug": (True, "aug", False),
+    "ctc": (True, "teacher", True),
+}
+
+
+def get_preset(name: str) -> Preset:
+    if name not in PRESETS:
+        raise ConfigError(f"unknown preset {name!r} (choose from {', '.join(PRESETS)})")
+    return PRESETS[name]
+
+
+def check_variant(name: str) -> tuple[bool, str, bool]:
+    """(uses_lstm, label_source in {gt, teacher, aug}, uses_ctc) of a variant name."""
+    if name not in VARIANTS:
+        raise ConfigError(f"unknown variant {name!r} (choose from {', '.join(VARIANTS)})")
+    return VARIANTS[name]
+
+
+def to_dict(obj: Any) -> dict:
+    """Plain-JSON form of a config dataclass (tuples become lists)."""
+    return dataclasses.asdict(obj)
+
+
+def model_from_dict(d: dict) -> ModelConfig:
+    d = dict(d)
+    d["conv_widths"] = tuple(d["conv_widths"])
+    d["strided_widths"] = tuple(d["strided_widths"])
+    return ModelConfig(**d)
+
+
+def train_from_dict(d: dict) -> TrainConfig:
+    return TrainConfig(**d)

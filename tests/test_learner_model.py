@@ -1,0 +1,119 @@
+"""Model shapes, pretrained initialisation and the CTC / regression losses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from data import geometry as geo
+from data.errors import ConfigError
+from learner import loss as L
+from learner.config import PRESETS, TINY
+from learner.model import CTCNet, load_pretrained_vgg
+
+
+def _pairs(n: int, cfg) -> torch.Tensor:
+    g = torch.Generator().manual_seed(0)
+    return torch.randint(0, 256, (n, 6, cfg.height, cfg.width), dtype=torch.uint8, generator=g)
+
+
+@pytest.mark.parametrize("name", ["tiny", "cpu"])
+def test_forward_shapes(name: str) -> None:
+    cfg = PRESETS[name].model
+    net = CTCNet(cfg)
+    x = _pairs(6, cfg)
+    xi_d, xi_s = net(x, torch.tensor([[0, 1, 2], [3, 4, 5]]))
+    assert xi_d.shape == (6, 6) and xi_s.shape == (2, 3, 6)
+    assert net.encode(x).shape == (6, cfg.latent_dim)
+
+
+def test_mc_dropout_shapes_and_spread() -> None:
+    net = CTCNet(TINY.model).eval()
+    z = net.encode(_pairs(3, TINY.model))
+    s = net.direct_mc(z, samples=7, p=0.5)
+    assert s.shape == (7, 3, 6)
+    assert float(s.std(0).mean()) > 0  # dropout resampled
+    assert torch.allclose(net.direct_mc(z, 2, 0.0)[0], net.direct_mc(z, 2, 0.0)[1])
+    q = net.sequential_mc(z[None], samples=5, p=0.5)
+    assert q.shape == (5, 1, 3, 6)
+
+
+def test_pretrained_init(tmp_path) -> None:
+    full = CTCNet(PRESETS["paper"].model)
+    # a fake torchvision vgg11_bn state dict with a 3-channel first conv
+    sd = {f"features.{k}": v.clone() for k, v in full.features.state_dict().items()}
+    rgb = torch.randn(64, 3, 3, 3)
+    sd["features.0.weight"] = rgb
+    path = tmp_path / "vgg11_bn.pth"
+    torch.save(sd, path)
+    n = load_pretrained_vgg(full, path)
+    assert n == len(full.features.state_dict())
+    w = full.features[0].weight.detach()
+    assert torch.allclose(w[:, :3], 0.5 * rgb) and torch.allclose(w[:, 3:], 0.5 * rgb)
+    # identical stacked frames give the single-frame response
+    img = torch.randn(1, 3, 8, 8)
+    one = torch.nn.functional.conv2d(img, rgb, padding=1)
+    two = torch.nn.functional.conv2d(torch.cat([img, img], 1), w, padding=1)
+    assert torch.allclose(one, two, atol=1e-5)
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_pretrained_vgg(full, tmp_path / "missing.pth")
+    with pytest.raises(ConfigError, match="only fit the full-width"):
+        load_pretrained_vgg(CTCNet(TINY.model), path)
+    (tmp_path / "junk.pth").write_text("not a checkpoint")
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_pretrained_vgg(full, tmp_path / "junk.pth")
+
+
+def _gt_window(W: int, G: int, noise: float = 0.0, seed: int = 0):
+    """Twists of consecutive and longer-gap pairs of a smooth random trajectory."""
+    rng = np.random.default_rng(seed)
+    poses = [np.eye(4)]
+    for _ in range(W):
+        poses.append(poses[-1] @ geo.se3_exp(rng.normal(size=6) * 0.05))
+    seq = np.array([geo.se3_log(geo.relative_pose(poses[k], poses[k + 1])) for k in range(W)])
+    direct = np.array([geo.se3_log(geo.relative_pose(poses[i], poses[j])) for i, j in L.window_pairs(W, G)])
+    direct = direct + rng.normal(size=direct.shape) * noise
+    return torch.tensor(seq)[None], torch.tensor(direct)[None]
+
+
+def test_ctc_zero_on_consistent_poses_and_positive_otherwise() -> None:
+    seq, direct = _gt_window(6, 4)
+    assert float(L.ctc_loss(seq, direct, 4)[0]) < 1e-20
+    seq, noisy = _gt_window(6, 4, noise=0.01)
+    val = float(L.ctc_loss(seq, noisy, 4)[0])
+    # the constraint only looks at gaps >= 2: the noise added there, squared and summed
+    sl = L.gap_slices(6, 4)
+    expect = sum(float(((noisy - direct)[0, sl[g]] ** 2).sum()) for g in (2, 3, 4))
+    assert val == pytest.approx(expect, rel=1e-6) and val > 1e-4
+
+
+def test_window_pairs_order() -> None:
+    assert L.window_pairs(3, 2) == ((0, 1), (1, 2), (2, 3), (0, 2), (1, 3))
+    assert L.gap_slices(3, 2) == {1: slice(0, 3), 2: slice(3, 5)}
+    assert L.window_pairs(2, 5) == ((0, 1), (1, 2), (0, 2))
+
+
+def test_window_loss_masks_failed_labels() -> None:
+    seq, direct = _gt_window(4, 3)
+    pred_s, pred_d = seq + 0.1, direct.clone()
+    m_s = torch.ones(1, 4)
+    m_d = torch.ones(1, direct.shape[1])
+    full = L.window_loss(pred_s, pred_d, seq, m_s, direct, m_d, 3, 1.0, 3.0)
+    assert float(full.reg) == pytest.approx(4 * 6 * 0.01)
+    m_s[0, 1] = 0
+    part = L.window_loss(pred_s, pred_d, seq, m_s, direct, m_d, 3, 1.0, 3.0)
+    assert float(part.reg) == pytest.approx(3 * 6 * 0.01)
+    assert float(part.total) == pytest.approx(float(part.ctc) + 3 * float(part.reg))
+    assert float(part.ctc) > 0
+    no_ctc = L.window_loss(pred_s, pred_d, seq, m_s, direct, m_d, 3, 0.0, 3.0)
+    assert float(no_ctc.ctc) == 0.0
+
+
+def test_ctc_gradient_flows_to_both_heads() -> None:
+    seq, direct = _gt_window(5, 3, noise=0.02)
+    seq = seq.clone().requires_grad_(True)
+    direct = direct.clone().requires_grad_(True)
+    L.ctc_loss(seq, direct, 3).sum().backward()
+    assert torch.all(torch.isfinite(seq.grad)) and float(seq.grad.abs().sum()) > 0
+    assert float(direct.grad.abs().sum()) > 0
