@@ -1,0 +1,187 @@
+"""The comparison table: teacher (chained), learner (chained), fused (graph).
+
+Per row (``report.json`` ``rows.<name>``): the standard keys of
+:func:`data.metrics.trajectory_report` (``ate_rmse_m``, ``rpe_trans_rmse_m``,
+``rpe_rot_rmse_deg``, ``se3_l2_mean``) plus
+
+* ``rpe_g{1,2,3}_trans_m`` / ``rpe_g{1,2,3}_rot_deg`` and ``rpe_1s_*``: evo RPE RMSE at
+  gaps of 1, 2, 3 frames and of the frame count closest to one second;
+* ``composition_trans_rmse_m`` / ``composition_rot_rmse_deg`` (+ ``composition_n``):
+  disagreement between the row's trajectory and the direct gap > 1 edges of its source
+  (for a chained row: composed gap-1 edges versus direct longer-gap edges; for the fused
+  row: the graph versus every source's longer-gap edges). Needs no ground truth;
+* for a source's edges with ground truth (``calibration``): mean NEES
+  ``d^T C^-1 d`` with ``d = log(inv(T_meas) @ T_gt)`` (expected 6), its ratio to 6, and
+  the fraction of edges inside the 1-sigma (68.27 %) and 2-sigma (95.45 %) chi-square
+  regions of 6 dof.
+
+Metrics that need ground truth are ``null`` without it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from data import geometry as geo
+from data import metrics
+from data.formats import Edge, Trajectory
+
+ROW_LABELS = {"teacher": "teacher (chained)", "learner": "learner (chained)", "fused": "fused (graph)"}
+RPE_GAPS = (1, 2, 3)
+#: chi-square (6 dof) quantiles of the 1-sigma and 2-sigma probability masses.
+CHI2_6_1SIGMA = 7.0405
+CHI2_6_2SIGMA = 11.3139
+METRIC_KEYS = ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "se3_l2_mean")
+
+
+def _f(x: Optional[float]) -> Optional[float]:
+    """JSON-safe float (NaN -> None)."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def frames_per_second_gap(times: NDArray[np.float64]) -> int:
+    """Frame gap closest to one second (median frame interval); 0 if unknown."""
+    dt = np.diff(times)
+    dt = dt[dt > 0]
+    if len(dt) == 0:
+        return 0
+    return max(1, int(round(1.0 / float(np.median(dt)))))
+
+
+def gt_metrics(gt: Trajectory, est: Trajectory) -> dict[str, Optional[float]]:
+    """Standard keys plus RPE at gaps 1, 2, 3 and one second (evo)."""
+    out = {k: _f(v) for k, v in metrics.trajectory_report(gt, est).items()}
+    for g in RPE_GAPS:
+        t, r = metrics.rpe_rmse(gt, est, g)
+        out[f"rpe_g{g}_trans_m"], out[f"rpe_g{g}_rot_deg"] = _f(t), _f(r)
+    g1s = frames_per_second_gap(gt.timestamps)
+    t, r = metrics.rpe_rmse(gt, est, g1s) if g1s >= 1 else (float("nan"), float("nan"))
+    out["rpe_1s_frames"] = g1s
+    out["rpe_1s_trans_m"], out["rpe_1s_rot_deg"] = _f(t), _f(r)
+    return out
+
+
+def empty_gt_metrics() -> dict[str, Optional[float]]:
+    out: dict[str, Optional[float]] = {k: None for k in METRIC_KEYS}
+    for g in RPE_GAPS:
+        out[f"rpe_g{g}_trans_m"] = out[f"rpe_g{g}_rot_deg"] = None
+    out["rpe_1s_frames"] = None
+    out["rpe_1s_trans_m"] = out["rpe_1s_rot_deg"] = None
+    return out
+
+
+def edge_errors(poses: NDArray[np.float64], frame_ids: NDArray[np.int64],
+                edges: Sequence[Edge]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per edge: translation (m) and rotation (deg) of ``inv(T_i_j) @ T_i_j(poses)``."""
+    pos = {int(k): p for p, k in enumerate(frame_ids)}
+    tr, rot = np.empty(len(edges)), np.empty(len(edges))
+    for n, e in enumerate(edges):
+        D = geo.inv_T(e.T_i_j) @ geo.relative_pose(poses[pos[e.i]], poses[pos[e.j]])
+        tr[n], rot[n] = np.linalg.norm(D[:3, 3]), geo.rotation_angle_deg(D)
+    return tr, rot
+
+
+def composition_consistency(poses: NDArray[np.float64], frame_ids: NDArray[np.int64],
+                            edges: Sequence[Edge]) -> dict[str, Optional[float]]:
+    """RMSE disagreement of ``poses`` (N, 4, 4) with the gap > 1 edges (see module doc)."""
+    pos = {int(k): p for p, k in enumerate(frame_ids)}
+    long = [e for e in edges if abs(pos[e.j] - pos[e.i]) > 1]
+    if not long:
+        return {"composition_trans_rmse_m": None, "composition_rot_rmse_deg": None, "composition_n": 0}
+    tr, rot = edge_errors(poses, frame_ids, long)
+    return {"composition_trans_rmse_m": _f(np.sqrt(np.mean(tr**2))),
+            "composition_rot_rmse_deg": _f(np.sqrt(np.mean(rot**2))), "composition_n": len(long)}
+
+
+def nees(edges: Sequence[Edge], frame_ids: NDArray[np.int64], gt_poses: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(E,) normalised estimation error squared of each edge against ground truth:
+    ``d^T C^-1 d`` with ``d = log(inv(T_meas) @ T_gt)`` (project order, right perturbation)."""
+    pos = {int(k): p for p, k in enumerate(frame_ids)}
+    out = np.empty(len(edges))
+    for n, e in enumerate(edges):
+        T_gt = geo.relative_pose(gt_poses[pos[e.i]], gt_poses[pos[e.j]])
+        d = geo.se3_log(geo.inv_T(e.T_i_j) @ T_gt)
+        out[n] = float(d @ np.linalg.solve(e.cov, d))
+    return out
+
+
+def calibration(edges: Sequence[Edge], frame_ids: NDArray[np.int64],
+                gt_poses: Optional[NDArray[np.float64]]) -> dict[str, Optional[float]]:
+    """Covariance calibration of a source's edges (NEES, 1-sigma / 2-sigma coverage)."""
+    if gt_poses is None or not edges:
+        return {"nees_mean": None, "nees_over_dof": None, "coverage_1sigma": None, "coverage_2sigma": None,
+                "calibration_n": 0}
+    v = nees(edges, frame_ids, gt_poses)
+    return {"nees_mean": _f(np.mean(v)), "nees_over_dof": _f(np.mean(v) / 6.0),
+            "coverage_1sigma": _f(np.mean(v <= CHI2_6_1SIGMA)), "coverage_2sigma": _f(np.mean(v <= CHI2_6_2SIGMA)),
+            "calibration_n": len(v)}
+
+
+def row_block(name: str, poses: NDArray[np.float64], frame_ids: NDArray[np.int64], times: NDArray[np.float64],
+              gt_poses: Optional[NDArray[np.float64]], consistency_edges: Sequence[Edge],
+              calib_edges: Optional[Sequence[Edge]] = None, how: str = "") -> dict:
+    """One ``rows.<name>`` block of ``report.json``."""
+    block: dict = {"label": ROW_LABELS.get(name, name), "how": how, "n_poses": len(frame_ids)}
+    if gt_poses is not None:
+        block.update(gt_metrics(Trajectory(times, gt_poses), Trajectory(times, poses)))
+    else:
+        block.update(empty_gt_metrics())
+    block.update(composition_consistency(poses, frame_ids, consistency_edges))
+    if calib_edges is not None:
+        block["calibration"] = calibration(calib_edges, frame_ids, gt_poses)
+    return block
+
+
+def _cell(v, fmt: str) -> str:
+    return "-" if v is None else format(v, fmt)
+
+
+def report_markdown(report: dict) -> str:
+    """``report.md``: the table, calibration, outliers and settings."""
+    rows = report["rows"]
+    lines = [f"# Pose graph: {report.get('scene') or report.get('name', '')}", "",
+             f"{report['frames']} frames, {report['edges_total']} edges "
+             f"({', '.join(f'{k}: {v}' for k, v in report['edges_per_source'].items())}), "
+             f"solver {report['solver']['name']}, kernel {report['config']['kernel']}; "
+             f"ground truth: {'yes' if report['has_groundtruth'] else 'no'}.", ""]
+    g1s = next((b.get("rpe_1s_frames") for b in rows.values() if b.get("rpe_1s_frames")), None)
+    head = ["row", "ATE m", "RPE1 m", "RPE1 deg", "RPE2 m", "RPE2 deg", "RPE3 m", "RPE3 deg",
+            f"RPE 1s m ({g1s or '?'} fr)", "RPE 1s deg", "se(3) L2", "comp. m", "comp. deg"]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for b in rows.values():
+        cells = [b["label"], _cell(b["ate_rmse_m"], ".4f")]
+        for g in RPE_GAPS:
+            cells += [_cell(b[f"rpe_g{g}_trans_m"], ".4f"), _cell(b[f"rpe_g{g}_rot_deg"], ".3f")]
+        cells += [_cell(b["rpe_1s_trans_m"], ".4f"), _cell(b["rpe_1s_rot_deg"], ".3f"), _cell(b["se3_l2_mean"], ".4f"),
+                  _cell(b["composition_trans_rmse_m"], ".4f"), _cell(b["composition_rot_rmse_deg"], ".3f")]
+        lines.append("| " + " | ".join(cells) + " |")
+    cal = [(n, b["calibration"]) for n, b in rows.items() if "calibration" in b]
+    if cal:
+        lines += ["", "## Covariance calibration (edges vs ground truth)", "",
+                  "| source | edges | mean NEES (6 ideal) | NEES/6 | 1-sigma coverage (68.3 %) | 2-sigma coverage (95.4 %) |",
+                  "|---|---|---|---|---|---|"]
+        for n, c in cal:
+            lines.append(f"| {n} | {c['calibration_n']} | {_cell(c['nees_mean'], '.3f')} | "
+                         f"{_cell(c['nees_over_dof'], '.3f')} | {_cell(c['coverage_1sigma'], '.3f')} | "
+                         f"{_cell(c['coverage_2sigma'], '.3f')} |")
+    out = report["outliers"]
+    lines += ["", f"## Outliers ({len(out)})", ""]
+    if out:
+        lines += ["| i | j | source | reason | value | action |", "|---|---|---|---|---|---|"]
+        lines += [f"| {o['i']} | {o['j']} | {o['source']} | {o['reason']} | {o['value']:.3g} | {o['action']} |"
+                  for o in out[:200]]
+        if len(out) > 200:
+            lines.append(f"\n... and {len(out) - 200} more in report.json")
+    else:
+        lines.append("none")
+    lines += ["", "## Solver", "", f"- initial error {report['solver']['initial_error']:.6g}, final "
+              f"{report['solver']['final_error']:.6g}, {report['solver']['iterations']} iterations/updates, "
+              f"{report['solver']['time_s']:.2f} s", f"- git {report['git']}", ""]
+    return "\n".join(lines)
