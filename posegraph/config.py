@@ -81,7 +81,7 @@ class PoseGraphConfig:
     :attr:`downweight_factor`). An edge whose removal would disconnect the graph is
     down-weighted instead."""
 
-    downweight_factor: float = 1e4
+    downweight_factor: float = 100.0
     """Covariance inflation for down-weighted edges."""
 
     marginals: bool = False

@@ -256,6 +256,9 @@ def _run_lm(graph, values, cfg: PoseGraphConfig):
     try:
         opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         result = opt.optimize()
+        # LM hides an indeterminant system behind its damping; one undamped
+        # elimination at the solution exposes it (costs about one LM iteration).
+        graph.linearize(result).eliminateMultifrontal()
     except RuntimeError as exc:
         raise _indeterminant(exc) from None
     return result, int(opt.iterations())

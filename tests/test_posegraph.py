@@ -1,0 +1,133 @@
+"""Pose graph: known-answer solves, robust outlier handling, covariance frame vs GTSAM."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import gtsam
+import numpy as np
+import pytest
+
+from data import geometry as geo
+from data.formats import Edge
+from posegraph import synthetic as syn
+from posegraph.config import DEFAULT, PLAIN
+from posegraph.graph import GraphError, chain_poses, solve
+
+
+def _loop(n: int = 16) -> np.ndarray:
+    """Poses on a closed circle (the last frame is one step before the first)."""
+    out = []
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        out.append(geo.make_T(geo.se3_exp([0, 0, 0, 0.1 * np.sin(a), a, 0])[:3, :3],
+                              [np.cos(a), 0.2 * np.sin(2 * a), np.sin(a)]))
+    return np.array(out)
+
+
+def _max_err(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest |log(inv(a_k) b_k)| over poses (both anchored at the same first pose)."""
+    return max(float(np.abs(geo.se3_log(geo.inv_T(x) @ y)).max()) for x, y in zip(a, b))
+
+
+@pytest.mark.parametrize("solver", ["lm", "isam2"])
+def test_loop_recovered_from_perturbed_initial_values(solver):
+    gt = _loop()
+    n = len(gt)
+    cov = syn.diag_cov(0.01, 0.005)
+    edges = syn.make_edges(gt, [1, 2], cov)
+    edges.append(Edge(n - 1, 0, geo.relative_pose(gt[-1], gt[0]), cov))  # loop closure
+    rng = np.random.default_rng(3)
+    init = np.array([T @ geo.se3_exp(rng.normal(0, 0.1, 6)) for T in gt])
+    init[0] = gt[0]  # the prior fixes the first pose where the initial values put it
+    res = solve(np.arange(n), edges, init, dataclasses.replace(PLAIN, solver=solver))
+    assert _max_err(gt, res.poses) < 1e-4
+    assert _max_err(gt, init) > 0.1  # the perturbation was real
+    assert res.final_error < 1e-8
+
+
+def test_gross_outlier_is_rejected_and_solution_stays_close():
+    gt = syn.helix(40)
+    rng = np.random.default_rng(7)
+    cov = syn.diag_cov(0.005, 0.002)
+    edges = syn.make_edges(gt, [1, 2, 3], cov, rng)
+    bad = 10  # edge 10 -> 11: 0.5 m and 30 degrees off
+    edges[bad] = Edge(10, 11, edges[bad].T_i_j @ geo.se3_exp([0.5, 0, 0, 0, np.radians(30), 0]), cov)
+    robust = solve(np.arange(40), edges, None, DEFAULT)
+    plain = solve(np.arange(40), edges, None, PLAIN)
+    gt0 = np.array([geo.relative_pose(gt[0], T) for T in gt])  # anchored like the solve
+    err_r = max(np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in zip(gt0, robust.poses))
+    err_p = max(np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in zip(gt0, plain.poses))
+    assert [(o.i, o.j, o.reason, o.action) for o in robust.outliers] == [(10, 11, "residual", "removed")]
+    assert err_r < 0.03, err_r  # the noise alone gives about 1 cm over 40 poses
+    assert err_p > 3 * err_r  # least squares is pulled away by the outlier
+    assert not robust.used[bad] and robust.used.sum() == len(edges) - 1
+
+
+def test_outlier_by_covariance_downweighted_when_removal_would_disconnect():
+    gt = syn.helix(12)
+    cov = syn.diag_cov(0.01, 0.01)
+    edges = syn.make_edges(gt, [1], cov)
+    edges[5] = Edge(5, 6, edges[5].T_i_j, syn.diag_cov(0.8, 0.01))  # a bridge with a large sigma
+    res = solve(np.arange(12), edges, None, dataclasses.replace(DEFAULT, max_trans_sigma_m=0.5))
+    assert [(o.i, o.reason, o.action) for o in res.outliers] == [(5, "covariance_trans_sigma_m", "downweighted")]
+    assert res.outliers[0].value == pytest.approx(0.8)
+    assert _max_err(np.array([geo.relative_pose(gt[0], T) for T in gt]), res.poses) < 1e-6
+
+
+def test_chain_poses_prefers_gap_one_and_detects_disconnection():
+    gt = syn.helix(6)
+    edges = syn.make_edges(gt, [1, 2], syn.diag_cov(0.01, 0.01))
+    poses = chain_poses(np.arange(6), edges, gt[0])
+    assert _max_err(gt, poses) < 1e-9
+    with pytest.raises(GraphError, match="disconnected: 2 components"):
+        chain_poses(np.arange(6), [e for e in edges if not (e.i <= 2 < e.j)])
+
+
+def test_covariance_frame_matches_gtsam_between_factor_whitening():
+    """Sample delta ~ N(0, C) in project order, perturb T_true = T_meas @ exp(delta): GTSAM's
+    BetweenFactorPose3 with cov_to_gtsam(C) must see delta (re-ordered) and whiten it to
+    unit covariance. A left perturbation exp(delta) @ T_meas must fail the same check."""
+    rng = np.random.default_rng(0)
+    T_meas = geo.make_T(geo.se3_exp([0, 0, 0, 0.4, -0.9, 0.3])[:3, :3], [1.5, -0.4, 2.0])
+    A = rng.normal(size=(6, 6))
+    C = A @ A.T * 1e-4 + np.diag([4e-4, 1e-6, 1e-5, 1e-6, 2.5e-3, 1e-5])  # anisotropic, correlated
+    noise = gtsam.noiseModel.Gaussian.Covariance(geo.cov_to_gtsam(C))
+    factor = gtsam.BetweenFactorPose3(0, 1, gtsam.Pose3(T_meas), noise)
+    deltas = rng.multivariate_normal(np.zeros(6), C, size=4000)
+
+    def whitened(Ts):
+        out, raw = [], []
+        for T in Ts:
+            v = gtsam.Values()
+            v.insert(0, gtsam.Pose3())
+            v.insert(1, gtsam.Pose3(T))
+            raw.append(factor.unwhitenedError(v))
+            out.append(noise.whiten(raw[-1]))
+        return np.array(raw), np.array(out)
+
+    raw, w = whitened([T_meas @ geo.se3_exp(d) for d in deltas])
+    np.testing.assert_allclose(geo.vec_from_gtsam(raw), deltas, atol=1e-5)
+    np.testing.assert_allclose(np.cov(w.T), np.eye(6), atol=0.1)
+    _, w_left = whitened([geo.se3_exp(d) @ T_meas for d in deltas])
+    assert np.abs(np.cov(w_left.T) - np.eye(6)).max() > 1.0
+
+
+def test_marginal_covariance_is_edge_covariance_in_project_order():
+    """Pose 0 fixed, one edge with covariance C: the marginal of pose 1 (right
+    perturbation, converted back to project order) is C."""
+    T01 = geo.make_T(geo.se3_exp([0, 0, 0, 0.3, 0.2, -0.5])[:3, :3], [0.3, 0.1, -0.2])
+    A = np.random.default_rng(1).normal(size=(6, 6))
+    C = A @ A.T * 1e-3 + np.eye(6) * 1e-4
+    res = solve(np.arange(2), [Edge(0, 1, T01, C)], None,
+                dataclasses.replace(PLAIN, marginals=True, prior_sigma_rot_rad=1e-9, prior_sigma_trans_m=1e-9))
+    np.testing.assert_allclose(res.marginals[1], C, rtol=1e-5, atol=1e-10)
+    assert np.abs(res.marginals[0]).max() < 1e-15
+
+
+def test_isam2_matches_lm_on_noisy_graph():
+    gt = syn.helix(50)
+    edges = syn.make_edges(gt, [1, 2, 3], syn.diag_cov(0.01, 0.005), np.random.default_rng(2))
+    lm = solve(np.arange(50), edges, None, PLAIN)
+    isam = solve(np.arange(50), edges, None, dataclasses.replace(PLAIN, solver="isam2"))
+    assert _max_err(lm.poses, isam.poses) < 1e-3

@@ -1,0 +1,142 @@
+"""posegraph optimize: report on a tiny teacher/learner fixture, CLI smoke, bad inputs."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from posegraph import synthetic as syn
+from posegraph.cli import main
+from posegraph.report import METRIC_KEYS
+
+N = 24
+
+
+@pytest.fixture()
+def dirs(tmp_path: Path) -> tuple[Path, Path]:
+    """Teacher (gaps 1-2, with GT) and learner (gaps 1-4, no GT file) folders."""
+    rng = np.random.default_rng(5)
+    gt = syn.helix(N)
+    times = 100.0 + np.arange(N) / 10.0  # 10 Hz: one second is 10 frames
+    t = syn.write_source_dir(tmp_path / "teacher", gt, syn.make_edges(gt, [1, 2], syn.diag_cov(0.01, 0.01), rng), times)
+    l = syn.write_source_dir(tmp_path / "learner", gt, syn.make_edges(gt, [1, 2, 3, 4], syn.diag_cov(0.02, 0.005), rng),
+                             times, with_gt=False)
+    return t, l
+
+
+def _run(args: list[str], capsys) -> tuple[int, str]:
+    rc = main(args)
+    return rc, capsys.readouterr().err
+
+
+def test_report_has_every_row_and_key(dirs, tmp_path, capsys):
+    t, l = dirs
+    out = tmp_path / "out"
+    rc, err = _run(["optimize", "--teacher", str(t), "--learner", str(l), "--out", str(out), "--marginals"], capsys)
+    assert rc == 0, err
+    rep = json.loads((out / "report.json").read_text())
+    assert list(rep["rows"]) == ["teacher", "learner", "fused"]
+    extras = [f"rpe_g{g}_{q}" for g in (1, 2, 3) for q in ("trans_m", "rot_deg")] + [
+        "rpe_1s_trans_m", "rpe_1s_rot_deg", "composition_trans_rmse_m", "composition_rot_rmse_deg"]
+    for name, block in rep["rows"].items():
+        for k in (*METRIC_KEYS, *extras):
+            assert isinstance(block[k], float), (name, k)
+    assert rep["rows"]["fused"]["rpe_1s_frames"] == 10
+    cal = rep["rows"]["learner"]["calibration"]
+    assert cal["calibration_n"] == 4 * N - 10
+    assert 0.5 < cal["nees_over_dof"] < 1.6  # sampled from the stated covariance
+    assert 0.0 <= cal["coverage_1sigma"] <= cal["coverage_2sigma"] <= 1.0
+    # fusing 2 sources with longer gaps beats dead reckoning of either
+    assert rep["rows"]["fused"]["ate_rmse_m"] < min(rep["rows"]["teacher"]["ate_rmse_m"],
+                                                    rep["rows"]["learner"]["ate_rmse_m"])
+    assert rep["has_groundtruth"] and rep["outliers"] == []
+    for f in ("trajectory.tum", "report.md", "config.json", "marginals.npz", "trajectories.png",
+              "relative_se3.png", "outliers.png", "error_over_time.png"):
+        assert (out / f).stat().st_size > 0, f
+    md = (out / "report.md").read_text()
+    assert all(lbl in md for lbl in ("teacher (chained)", "learner (chained)", "fused (graph)"))
+    m = np.load(out / "marginals.npz")
+    assert m["cov"].shape == (N, 6, 6)
+
+
+def test_without_groundtruth_reports_consistency_and_outliers(dirs, tmp_path, capsys):
+    _, l = dirs
+    out = tmp_path / "out"
+    rc, err = _run(["optimize", "--learner", str(l), "--out", str(out), "--no-plots", "--solver", "isam2"], capsys)
+    assert rc == 0, err
+    rep = json.loads((out / "report.json").read_text())
+    assert list(rep["rows"]) == ["learner", "fused"] and not rep["has_groundtruth"]
+    assert rep["rows"]["fused"]["ate_rmse_m"] is None
+    assert rep["rows"]["fused"]["composition_trans_rmse_m"] < rep["rows"]["learner"]["composition_trans_rmse_m"]
+    assert rep["rows"]["learner"]["calibration"]["calibration_n"] == 0
+
+
+def test_scene_defaults_to_runs_folders(dirs, tmp_path, monkeypatch, capsys):
+    t, l = dirs
+    base = tmp_path / "runs" / "synthetic-tiny"
+    base.mkdir(parents=True)
+    t.rename(base / "teacher")
+    l.rename(base / "learner")
+    monkeypatch.chdir(tmp_path)
+    rc, err = _run(["optimize", "--scene", "synthetic/tiny", "--no-plots"], capsys)
+    assert rc == 0, err
+    assert (base / "posegraph" / "report.json").is_file()
+
+
+def test_console_script_smoke(dirs, tmp_path):
+    t, _ = dirs
+    out = tmp_path / "cli"
+    exe = Path(sys.executable).parent / "posegraph"
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "posegraph.cli"]
+    p = subprocess.run(cmd + ["optimize", "--edges", str(t / "edges.g2o"), "--out", str(out), "--no-plots"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["synthetic_timestamps"] and list(rep["rows"]) == ["edges", "fused"]
+
+
+# ----------------------------------------------------------------------------------
+# bad input: one clear error each, exit 1, nothing written
+# ----------------------------------------------------------------------------------
+def _edit_g2o(path: Path, fn) -> None:
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(fn(lines)) + "\n")
+
+
+def _info_line(line: str, info: np.ndarray) -> str:
+    toks = line.split()[:10]
+    return " ".join(toks + [f"{x:.9g}" for x in info[np.triu_indices(6)]])
+
+
+BAD_CASES = {
+    "unknown_tag": (lambda ls: ls + ["EDGE_SE2 0 1 0 0 0 1 0 1 0 0 1 0 1"], "unknown g2o tag 'EDGE_SE2'"),
+    "field_count": (lambda ls: [ls[0] + " 1.0"] + ls[1:], "needs 31 fields, got 32"),
+    "non_finite": (lambda ls: [ls[0].replace(ls[0].split()[3], "nan", 1)] + ls[1:], "non-finite value"),
+    "not_pd": (lambda ls: [_info_line(ls[0], np.diag([1, 1, 1, 1, 1, -1.0]))] + ls[1:], "not positive definite"),
+    "missing_frame": (lambda ls: ls + [" ".join(["EDGE_SE3:QUAT", "3", "99"] + ls[0].split()[3:])],
+                      "references frame 99, which does not exist"),
+    "disconnected": (lambda ls: [x for x in ls if not (x.split()[1:3] in (["9", "10"], ["8", "10"], ["9", "11"]))],
+                     "pose graph is disconnected: 2 components: 0..9"),
+    "indeterminant": (lambda ls: [(_info_line(x, np.eye(6) * 1e-5) if x.split()[1:3] == ["9", "10"] else x)
+                                  for x in ls if x.split()[1:3] not in (["8", "10"], ["9", "11"])],
+                      "indeterminant near frame"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CASES))
+def test_bad_input_is_one_clear_error(case, dirs, tmp_path, capsys):
+    t, _ = dirs
+    edit, msg = BAD_CASES[case]
+    _edit_g2o(t / "edges.g2o", edit)
+    out = tmp_path / "out"
+    rc, err = _run(["optimize", "--teacher", str(t), "--out", str(out), "--no-plots"], capsys)
+    assert rc == 1
+    lines = err.strip().splitlines()
+    assert lines[-1].startswith("error: ") and msg in lines[-1], err
+    assert "Traceback" not in err
+    assert not out.exists()
