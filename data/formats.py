@@ -70,25 +70,48 @@ def write_tum(path: Path, traj: Trajectory) -> None:
 
 
 def read_tum(path: Path) -> Trajectory:
-    """Read a TUM trajectory with evo, then check it is finite, ordered and normalisable."""
+    """Read a TUM trajectory: strict line-by-line validation, then evo's reader.
+
+    Rows are ``timestamp tx ty tz qx qy qz qw`` (``#`` comments allowed), finite, with a
+    non-zero quaternion and strictly increasing timestamps; otherwise
+    :class:`~data.errors.FormatError` names the file and line.
+    """
     from evo.tools.file_interface import FileInterfaceException, read_tum_trajectory_file
 
     path = Path(path)
     if not path.is_file():
         raise FormatError(f"missing TUM trajectory file {path}")
+    _check_tum_rows(path)
     try:
         traj = read_tum_trajectory_file(str(path))
     except (FileInterfaceException, ValueError, IndexError) as exc:
         raise FormatError(f"{path}: {exc}") from None
-    stamps = np.asarray(traj.timestamps)
-    if not np.all(np.isfinite(traj.positions_xyz)) or not np.all(np.isfinite(stamps)):
-        raise FormatError(f"{path}: non-finite timestamp or position")
-    qn = np.linalg.norm(traj.orientations_quat_wxyz, axis=1)
-    if not np.all(np.isfinite(qn)) or np.any(qn < 1e-6):
-        raise FormatError(f"{path}: zero or non-finite quaternion")
-    if np.any(np.diff(stamps) < 0):
-        raise FormatError(f"{path}: timestamps are not sorted")
     return Trajectory.from_evo(traj)
+
+
+def _check_tum_rows(path: Path) -> None:
+    prev, n = -math.inf, 0
+    try:
+        with open(path) as fh:
+            lines = fh.readlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FormatError(f"{path}: cannot read as text ({exc})") from None
+    for lineno, line in enumerate(lines, 1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        where = f"{path}:{lineno}"
+        toks = s.split()
+        if len(toks) != 8:
+            raise FormatError(f"{where}: a TUM row needs 8 entries 'timestamp tx ty tz qx qy qz qw', got {len(toks)}")
+        vals = _parse_floats(toks, where)
+        if np.linalg.norm(vals[4:]) < 1e-6:
+            raise FormatError(f"{where}: zero quaternion")
+        if vals[0] <= prev:
+            raise FormatError(f"{where}: timestamps must be strictly increasing ({vals[0]:.6f} after {prev:.6f})")
+        prev, n = vals[0], n + 1
+    if n == 0:
+        raise FormatError(f"{path}: no poses")
 
 
 # ----------------------------------------------------------------------------------
@@ -136,7 +159,7 @@ def write_g2o(path: Path, edges: Iterable[Edge], vertices: Optional[dict[int, ND
         info = np.linalg.inv(e.cov)
         info = 0.5 * (info + info.T)
         pose = " ".join(f"{x:.9f}" for x in geo.T_to_tum(e.T_i_j))
-        inf = " ".join(f"{x:.9g}" for x in info[iu])
+        inf = " ".join(f"{x:.17g}" for x in info[iu])  # exact float round trip
         buf.write(f"EDGE_SE3:QUAT {e.i} {e.j} {pose} {inf}\n")
     with atomic_write(path) as fh:
         fh.write(buf.getvalue())
@@ -230,7 +253,7 @@ def write_edges_csv(path: Path, rows: Iterable[dict]) -> None:
 
 def _fmt(v) -> str:
     if isinstance(v, float):
-        return "nan" if math.isnan(v) else f"{v:.6g}"
+        return "nan" if math.isnan(v) else repr(float(v))  # shortest exact form (timestamps ~1e9 s)
     return str(v)
 
 
@@ -250,5 +273,7 @@ def read_edges_csv(path: Path) -> list[dict]:
                        for k, v in r.items() if v != ""}
             except (TypeError, ValueError):
                 raise FormatError(f"{path}:{lineno}: malformed row") from None
+            if not {"i", "j", "status"} <= set(row):
+                raise FormatError(f"{path}:{lineno}: a row needs i, j and status")
             out.append(row)
     return out

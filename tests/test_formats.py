@@ -1,0 +1,309 @@
+"""Project file formats (docs/formats.md): TUM trajectories, g2o edges, edges.csv.
+
+Round trips, atomic writing, strict readers (FormatError naming file and line), and the
+contract that ``gtsam.readG2o`` reads our g2o files with exactly the intended measurement
+and covariance.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import gtsam
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from data import formats
+from data import geometry as geo
+from data.errors import FormatError
+from data.formats import (EDGE_CSV_COLUMNS, Edge, Trajectory, read_edges_csv, read_g2o, read_tum,
+                          write_edges_csv, write_g2o, write_tum)
+
+
+def _random_T(rng: np.random.Generator, scale: float = 1.0) -> np.ndarray:
+    return geo.make_T(Rotation.random(random_state=rng.integers(1 << 30)).as_matrix(), scale * rng.normal(size=3))
+
+
+def _random_cov(rng: np.random.Generator) -> np.ndarray:
+    """A full (correlated) covariance: translation ~cm, rotation ~0.01 rad, cross terms."""
+    A = rng.normal(size=(6, 6)) * np.array([0.01, 0.01, 0.01, 0.005, 0.005, 0.005])[:, None]
+    return A @ A.T + 1e-6 * np.eye(6)
+
+
+def _traj(rng: np.random.Generator, n: int = 20, t0: float = 1305031102.175304) -> Trajectory:
+    return Trajectory(t0 + np.cumsum(rng.uniform(0.02, 0.05, size=n)), np.stack([_random_T(rng) for _ in range(n)]))
+
+
+def _no_temp_files(folder: Path) -> bool:
+    return not [p for p in folder.iterdir() if p.name.endswith(".tmp")]
+
+
+# ----------------------------------------------------------------------------------
+# TUM
+# ----------------------------------------------------------------------------------
+def test_tum_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    traj = _traj(rng)
+    f = tmp_path / "trajectory.tum"
+    write_tum(f, traj)
+    back = read_tum(f)
+    assert len(back) == len(traj)
+    np.testing.assert_allclose(back.timestamps, traj.timestamps, atol=1e-6, rtol=0)
+    np.testing.assert_allclose(back.poses, traj.poses, atol=1e-8)
+    assert _no_temp_files(tmp_path)
+    lines = f.read_text().splitlines()
+    assert lines[0].startswith("#") and len(lines) == 21 and all(len(ln.split()) == 8 for ln in lines[1:])
+    # written quaternions have qw >= 0 and unit norm
+    q = np.array([[float(x) for x in ln.split()[4:]] for ln in lines[1:]])
+    assert np.all(q[:, 3] >= 0) and np.allclose(np.linalg.norm(q, axis=1), 1, atol=1e-8)
+    # evo round trip through the Trajectory helpers
+    again = Trajectory.from_evo(back.to_evo())
+    np.testing.assert_allclose(again.poses, back.poses, atol=1e-12)
+
+
+def test_tum_writer_is_atomic(tmp_path: Path, monkeypatch) -> None:
+    rng = np.random.default_rng(1)
+    f = tmp_path / "trajectory.tum"
+    f.write_text("old content\n")
+    bad = _traj(rng)
+    bad.poses[5, 0, 3] = np.nan
+    with pytest.raises(FormatError, match="non-finite"):
+        write_tum(f, bad)
+    assert f.read_text() == "old content\n" and _no_temp_files(tmp_path)
+
+    calls = {"n": 0}
+    real = geo.T_to_tum
+
+    def failing(T):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise RuntimeError("simulated crash in the middle of writing")
+        return real(T)
+
+    monkeypatch.setattr(geo, "T_to_tum", failing)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        write_tum(f, _traj(rng))
+    assert f.read_text() == "old content\n"
+    assert _no_temp_files(tmp_path)
+
+
+@pytest.mark.parametrize("row,match", [
+    ("1.0 1 2 3 0 0 0", "8 entries.*got 7"),
+    ("1.0 1 2 3 0 0 0 1 9", "8 entries.*got 9"),
+    ("1.0 a 2 3 0 0 0 1", "expected numbers"),
+    ("1.0 nan 2 3 0 0 0 1", "non-finite"),
+    ("nan 1 2 3 0 0 0 1", "non-finite"),
+    ("1.0 1 2 3 0 0 0 inf", "non-finite"),
+    ("1.0 1 2 3 0 0 0 0", "zero quaternion"),
+    ("0.5 1 2 3 0 0 0 1", "strictly increasing"),
+    ("0.9 1 2 3 0 0 0 1", "strictly increasing"),  # equal to the previous timestamp
+])
+def test_tum_malformed(tmp_path: Path, row: str, match: str) -> None:
+    f = tmp_path / "bad.tum"
+    f.write_text("# header\n0.0 0 0 0 0 0 0 1\n0.9 0 0 0 0 0 0 1\n" + row + "\n")
+    with pytest.raises(FormatError, match=match) as exc:
+        read_tum(f)
+    assert f"{f}:4:" in str(exc.value)
+
+
+def test_tum_missing_or_empty(tmp_path: Path) -> None:
+    with pytest.raises(FormatError, match="missing TUM trajectory file"):
+        read_tum(tmp_path / "nope.tum")
+    f = tmp_path / "empty.tum"
+    f.write_text("# only a header\n")
+    with pytest.raises(FormatError, match=f"{f}: no poses"):
+        read_tum(f)
+    f.write_bytes(b"\xff\xfe\x00binary")
+    with pytest.raises(FormatError, match=str(f)):
+        read_tum(f)
+
+
+@pytest.mark.realdata
+def test_tum_reads_real_groundtruth(tum_fr1_xyz: Path) -> None:
+    traj = read_tum(tum_fr1_xyz / "groundtruth.txt")
+    assert len(traj) == 3000
+    np.testing.assert_allclose(traj.poses[0], geo.tum_to_T([1.3563, 0.6305, 1.6380, 0.6132, 0.5962, -0.3311, -0.3986]),
+                               atol=1e-12)
+    assert traj.timestamps[0] == pytest.approx(1305031098.6659, abs=1e-6)
+
+
+# ----------------------------------------------------------------------------------
+# g2o
+# ----------------------------------------------------------------------------------
+def _edges_and_vertices(rng: np.random.Generator, n: int = 6):
+    T_w = {k: _random_T(rng) for k in range(10, 10 + n)}
+    edges = []
+    for i in range(10, 10 + n - 1):
+        for j in (i + 1, i + 2):
+            if j in T_w:
+                T_ij = geo.relative_pose(T_w[i], T_w[j]) @ geo.se3_exp(rng.normal(scale=0.01, size=6))
+                edges.append(Edge(i, j, T_ij, _random_cov(rng)))
+    return edges, T_w
+
+
+def test_g2o_round_trip(tmp_path: Path) -> None:
+    rng = np.random.default_rng(2)
+    edges, T_w = _edges_and_vertices(rng)
+    f = tmp_path / "edges.g2o"
+    write_g2o(f, edges, T_w)
+    assert _no_temp_files(tmp_path)
+    back, verts = read_g2o(f)
+    assert [(e.i, e.j) for e in back] == [(e.i, e.j) for e in edges]
+    assert sorted(verts) == sorted(T_w)
+    for k in T_w:
+        np.testing.assert_allclose(verts[k], T_w[k], atol=1e-8)
+    for a, b in zip(edges, back):
+        np.testing.assert_allclose(b.T_i_j, a.T_i_j, atol=1e-8)
+        np.testing.assert_allclose(b.cov, a.cov, rtol=1e-6, atol=1e-12 * np.abs(a.cov).max())
+        np.testing.assert_allclose(b.information, np.linalg.inv(a.cov), rtol=1e-6)
+    # the information block order in the file is (v, w) = g2o's (t, R): a covariance with
+    # only translation-x uncertainty different shows up in the first diagonal entry
+    cov = np.diag([4.0, 1, 1, 1, 1, 1]) * 1e-4
+    write_g2o(f, [Edge(0, 1, np.eye(4), cov)])
+    toks = f.read_text().split()
+    assert toks[0] == "EDGE_SE3:QUAT" and len(toks) == 31
+    info_upper = np.array(toks[10:], dtype=float)
+    assert info_upper[0] == pytest.approx(2500.0) and info_upper[6] == pytest.approx(10000.0)
+
+
+def test_gtsam_reads_our_g2o_exactly(tmp_path: Path) -> None:
+    """gtsam.readG2o(is3D=True) on our file: same measured poses, and its noise model's
+    covariance equals cov_to_gtsam(our cov), including the (t, R) cross-covariance block
+    (a transposed or un-permuted block would fail: the covariances are fully correlated)."""
+    rng = np.random.default_rng(3)
+    edges, T_w = _edges_and_vertices(rng)
+    f = tmp_path / "edges.g2o"
+    write_g2o(f, edges, T_w)
+    graph, initial = gtsam.readG2o(str(f), True)
+    assert graph.size() == len(edges)
+    for k, T in T_w.items():
+        np.testing.assert_allclose(initial.atPose3(k).matrix(), T, atol=1e-8)
+    for n, e in enumerate(edges):
+        factor = graph.at(n)
+        assert isinstance(factor, gtsam.BetweenFactorPose3)
+        assert list(factor.keys()) == [e.i, e.j]
+        np.testing.assert_allclose(factor.measured().matrix(), e.T_i_j, atol=1e-8)
+        C = factor.noiseModel().covariance()
+        want = geo.cov_to_gtsam(e.cov)
+        np.testing.assert_allclose(C, want, rtol=1e-6, atol=1e-9 * np.abs(want).max())
+        # the checks can fail: neither the un-permuted nor a cross-transposed matrix passes
+        wrong = want.copy()
+        wrong[:3, 3:], wrong[3:, :3] = want[:3, 3:].T, want[3:, :3].T
+        assert np.abs(C - wrong).max() > 1e-3 * np.abs(want).max()
+        assert np.abs(C - e.cov).max() > 1e-3 * np.abs(want).max()
+
+
+def test_gtsam_reads_g2o_without_vertices(tmp_path: Path) -> None:
+    rng = np.random.default_rng(4)
+    edges, _ = _edges_and_vertices(rng, n=3)
+    f = tmp_path / "edges.g2o"
+    write_g2o(f, edges)
+    graph, _ = gtsam.readG2o(str(f), True)
+    assert graph.size() == len(edges)
+    np.testing.assert_allclose(graph.at(0).measured().matrix(), edges[0].T_i_j, atol=1e-8)
+
+
+def test_g2o_writer_rejects_bad_edges(tmp_path: Path) -> None:
+    f = tmp_path / "edges.g2o"
+    f.write_text("old\n")
+    good = np.eye(6) * 1e-4
+    cases = [
+        (Edge(0, 1, np.eye(4), -good), "not positive definite"),
+        (Edge(0, 1, np.eye(4), good + np.triu(np.ones((6, 6)), 1) * 1e-5), "not symmetric"),
+        (Edge(0, 1, np.eye(4), np.full((6, 6), np.nan)), "finite 6x6"),
+        (Edge(0, 1, np.eye(4), np.eye(3)), "finite 6x6"),
+        (Edge(0, 1, np.diag([2.0, 1, 1, 1]), good), "rigid"),
+        (Edge(0, 1, np.full((4, 4), np.nan), good), "rigid"),
+    ]
+    for edge, match in cases:
+        with pytest.raises(FormatError, match=match):
+            write_g2o(f, [Edge(5, 6, np.eye(4), good), edge])
+        assert f.read_text() == "old\n" and _no_temp_files(tmp_path)
+
+
+_POSE = "0 0 0 0 0 0 1"
+_INFO = " ".join("1" if i == j else "0" for i in range(6) for j in range(i, 6))
+
+
+@pytest.mark.parametrize("line,match", [
+    ("EDGE_SE2 0 1 0 0 0 1 0 0 1 0 1", "unknown g2o tag 'EDGE_SE2'"),
+    ("VERTEX_SE3:QUAT 0 0 0 0 0 0 1", "9 fields, got 8"),
+    (f"EDGE_SE3:QUAT 0 1 {_POSE} {_INFO} 5", "31 fields, got 32"),
+    (f"EDGE_SE3:QUAT 0 1 {_POSE}", "31 fields, got 10"),
+    (f"EDGE_SE3:QUAT 0 1 nan 0 0 0 0 0 1 {_INFO}", "non-finite"),
+    (f"EDGE_SE3:QUAT 0 1 {_POSE} inf" + _INFO[1:], "non-finite"),
+    (f"EDGE_SE3:QUAT 0 1 x 0 0 0 0 0 1 {_INFO}", "expected numbers"),
+    (f"EDGE_SE3:QUAT a 1 {_POSE} {_INFO}", "integer ids"),
+    (f"EDGE_SE3:QUAT 0 1 0 0 0 0 0 0 0 {_INFO}", "invalid quaternion"),
+    (f"EDGE_SE3:QUAT 0 1 {_POSE} -1" + _INFO[1:], "not positive definite"),
+    (f"EDGE_SE3:QUAT 0 1 {_POSE} 0" + _INFO[1:], "singular|not positive definite"),
+    (f"EDGE_SE3:QUAT 0 1 {_POSE} 1 5" + _INFO[3:], "not positive definite"),
+])
+def test_g2o_malformed(tmp_path: Path, line: str, match: str) -> None:
+    f = tmp_path / "bad.g2o"
+    f.write_text(f"# comment\nVERTEX_SE3:QUAT 0 {_POSE}\nFIX 0\n{line}\n")
+    with pytest.raises(FormatError, match=match) as exc:
+        read_g2o(f)
+    assert f"{f}:4:" in str(exc.value)
+
+
+def test_g2o_missing_file(tmp_path: Path) -> None:
+    with pytest.raises(FormatError, match="missing g2o file"):
+        read_g2o(tmp_path / "nope.g2o")
+    f = tmp_path / "ok.g2o"
+    f.write_text(f"\n# only comments and a FIX\nFIX 0\nVERTEX_SE3:QUAT 0 {_POSE}\nEDGE_SE3:QUAT 0 1 {_POSE} {_INFO}\n")
+    edges, verts = read_g2o(f)
+    assert len(edges) == 1 and list(verts) == [0]
+    np.testing.assert_allclose(edges[0].cov, np.eye(6))
+
+
+# ----------------------------------------------------------------------------------
+# edges.csv
+# ----------------------------------------------------------------------------------
+def test_edges_csv_round_trip(tmp_path: Path) -> None:
+    rows = [
+        dict(i=0, j=1, t_i=1305031102.175304, t_j=1305031102.211214, status="ok", matches=812, inliers=640,
+             inlier_ratio=640 / 812, rmse_px=0.8123456789, trans_m=0.0123, rot_deg=0.5),
+        dict(i=1, j=3, t_i=1305031102.211214, t_j=1305031102.275326, status="too_few_matches", matches=12,
+             inliers=0, inlier_ratio=float("nan"), rmse_px=float("nan"), trans_m=float("nan"), rot_deg=float("nan")),
+        dict(i=2, j=3, status="failed", unknown_column="ignored"),
+    ]
+    f = tmp_path / "edges.csv"
+    write_edges_csv(f, rows)
+    assert _no_temp_files(tmp_path)
+    assert f.read_text().splitlines()[0] == ",".join(EDGE_CSV_COLUMNS)
+    back = read_edges_csv(f)
+    assert len(back) == 3
+    for k in ("i", "j", "status", "matches", "inliers"):
+        assert back[0][k] == rows[0][k] and type(back[0][k]) is type(rows[0][k])
+    for k in ("t_i", "t_j", "inlier_ratio", "rmse_px", "trans_m", "rot_deg"):
+        assert back[0][k] == rows[0][k]  # floats survive exactly (TUM timestamps included)
+    assert back[1]["status"] == "too_few_matches" and math.isnan(back[1]["rmse_px"])
+    assert back[2] == {"i": 2, "j": 3, "status": "failed"}
+
+
+@pytest.mark.parametrize("text,match", [
+    ("a,b,c\n1,2,3\n", "header must contain i, j and status"),
+    ("", "header must contain"),
+    ("i,j,status,matches\n0,1,ok,many\n", ":2: malformed row"),
+    ("i,j,status\n0,1,ok\n0.5,1,ok\n", ":3: malformed row"),
+    ("i,j,status\n0,1,ok,extra\n", ":2: malformed row"),
+    ("i,j,status,rmse_px\n0,1\n", ":2: malformed row"),
+    ("i,j,status\n,1,ok\n", ":2: .*i, j and status"),
+])
+def test_edges_csv_malformed(tmp_path: Path, text: str, match: str) -> None:
+    f = tmp_path / "edges.csv"
+    f.write_text(text)
+    with pytest.raises(FormatError, match=match) as exc:
+        read_edges_csv(f)
+    assert str(f) in str(exc.value)
+    with pytest.raises(FormatError, match="missing edge table"):
+        read_edges_csv(tmp_path / "nope.csv")
+
+
+def test_module_docstring_names_every_writer() -> None:
+    """Each writer here has a reader (no write-only formats)."""
+    for w, r in [("write_tum", "read_tum"), ("write_g2o", "read_g2o"), ("write_edges_csv", "read_edges_csv")]:
+        assert callable(getattr(formats, w)) and callable(getattr(formats, r))
