@@ -1,0 +1,221 @@
+"""Built-in synthetic RGB-D scenes: procedural rooms ray-cast with Open3D, Kinect-v1 sensor model.
+
+``--scene synthetic/NAME`` (NAME one of :data:`~data.synthetic.config.PRESETS`, or
+``NAME-clean`` for the noise-free rendering) is rendered on first use into
+``$VO_CACHE_DIR/synthetic/NAME-<config hash>/`` (default cache ``~/.cache/ctcvo``) in the
+7-Scenes layout and read back with :class:`~data.sevenscenes.SevenScenesSequence`:
+
+* ``camera-intrinsics.txt`` (3x3 matrix; ``fx fy cx cy w h`` when not 640x480),
+  ``config.json`` (resolved config, git revision, motion statistics);
+* ``seq-01/frame-NNNNNN.color.png`` (8-bit RGB), ``.depth.png`` (uint16 mm, 0 = hole),
+  ``.pose.txt`` (exact 4x4 ``T_world_cam``).
+
+The scene is rendered into a temporary sibling folder that is renamed at the end, so a
+killed render never leaves a half scene; the hash in the folder name changes with the
+config (and :data:`~data.synthetic.config.RENDER_VERSION`), so a changed config re-renders.
+See docs/formats.md ("Synthetic scenes").
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import os
+import shutil
+import sys
+import time
+import uuid
+from pathlib import Path
+from typing import Optional
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from data.errors import ConfigError, DataError
+from data.io import ensure_dir, git_revision, write_json, write_text
+from data.sequence import Sequence
+from data.synthetic.config import PRESETS, RENDER_VERSION, SceneConfig, SensorConfig, known_names, resolve_preset
+from data.synthetic.layout import LAYOUTS, Scene
+from data.synthetic.renderer import ExactFrame, Renderer
+from data.synthetic.sensor import ColourSensor, depth_sensor, exposure_gains
+from data.synthetic.trajectory import make_trajectory, motion_stats
+
+__all__ = [
+    "PRESETS", "SceneConfig", "SensorConfig", "synthetic_sequence", "render_scene", "build",
+    "default_cache_dir", "scene_dir", "known_names", "FrameRenderer",
+]
+
+log = logging.getLogger(__name__)
+
+
+def default_cache_dir() -> Path:
+    """``$VO_CACHE_DIR`` or ``~/.cache/ctcvo``."""
+    env = os.environ.get("VO_CACHE_DIR")
+    return Path(env).expanduser() if env else Path.home() / ".cache" / "ctcvo"
+
+
+def scene_dir(name: str, config: SceneConfig, cache_dir: Optional[Path] = None) -> Path:
+    """Cache folder of scene ``name`` rendered with ``config``."""
+    root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    return root / "synthetic" / f"{name}-{config.digest()}"
+
+
+def _check(config: SceneConfig) -> None:
+    if config.layout not in LAYOUTS:
+        raise ConfigError(f"unknown synthetic layout {config.layout!r} (known: {', '.join(sorted(LAYOUTS))})")
+    if config.frames < 2:
+        raise ConfigError(f"a synthetic scene needs at least 2 frames, got {config.frames}")
+    if config.width < 16 or config.height < 16:
+        raise ConfigError(f"image size {config.width}x{config.height} too small")
+
+
+def synthetic_sequence(name: str, cache_dir: Optional[Path] = None, config: Optional[SceneConfig] = None) -> Sequence:
+    """The sequence of synthetic scene ``name``, rendered into the cache on first use.
+
+    ``config`` overrides the preset's config (the cache folder is still named after ``name``
+    plus the config hash). Unknown names raise :class:`DataError` listing the known ones.
+    """
+    from data.sevenscenes import SevenScenesSequence
+
+    if config is None:
+        try:
+            config = resolve_preset(name)
+        except KeyError:
+            raise DataError(
+                f"unknown synthetic scene {name!r}; known: {', '.join(known_names())} "
+                "(append -clean for the noise-free rendering, e.g. synthetic/office-clean)"
+            ) from None
+    _check(config)
+    folder = scene_dir(name, config, cache_dir)
+    if not (folder / "seq-01").is_dir():
+        render_scene(config, folder)
+    return SevenScenesSequence(folder / "seq-01", name=f"synthetic-{name}")
+
+
+def build(config: SceneConfig) -> tuple[Scene, NDArray[np.float64]]:
+    """The room and the poses ``T_world_cam`` (N, 4, 4) of ``config`` (deterministic)."""
+    _check(config)
+    scene = LAYOUTS[config.layout](np.random.default_rng([config.seed, 0]))
+    poses = make_trajectory(config, scene, np.random.default_rng([config.seed, 1]))
+    return scene, poses
+
+
+class FrameRenderer:
+    """Renders frames of a scene and trajectory with the sensor model of ``config``."""
+
+    def __init__(self, config: SceneConfig, scene: Scene, poses: NDArray[np.float64], nthreads: int = 0) -> None:
+        self.config = config
+        self.poses = poses
+        c = config
+        self.renderer = Renderer(scene, c.fx, c.fy, c.cx, c.cy, c.width, c.height, nthreads=nthreads)
+        self.colour_sensor = ColourSensor(c.sensor, c.width, c.height, c.cx, c.cy)
+        self.gains = exposure_gains(c.sensor, np.arange(len(poses)) / c.fps, np.random.default_rng([c.seed, 2]))
+        gv, gu = np.mgrid[c.height // 12: c.height: c.height // 6, c.width // 16: c.width: c.width // 8]
+        self._grid = np.stack([gu.ravel(), gv.ravel()], 1)
+        self.K = np.array([[c.fx, 0, c.cx], [0, c.fy, c.cy], [0, 0, 1.0]])
+
+    def image_flow(self, k: int, exact: ExactFrame) -> NDArray[np.float64]:
+        """Mean image motion (2,) in pixels per frame around frame ``k`` (for motion blur)."""
+        n = len(self.poses)
+        if n < 2:
+            return np.zeros(2)
+        z = exact.depth[self._grid[:, 1], self._grid[:, 0]]
+        ok = z > 0
+        if not ok.any():
+            return np.zeros(2)
+        pix = self._grid[ok].astype(np.float64)
+        Xc = np.linalg.inv(self.K) @ np.vstack([pix.T, np.ones(ok.sum())]) * z[ok]
+        Xw = self.poses[k][:3, :3] @ Xc + self.poses[k][:3, 3:4]
+        a, b = max(k - 1, 0), min(k + 1, n - 1)
+        proj = []
+        for j in (a, b):
+            Tinv = np.linalg.inv(self.poses[j])
+            Xj = Tinv[:3, :3] @ Xw + Tinv[:3, 3:4]
+            uv = (self.K @ Xj)[:2] / np.maximum(Xj[2], 1e-3)
+            proj.append(uv.T)
+        return ((proj[1] - proj[0]) / max(b - a, 1)).mean(0)
+
+    def frame(self, k: int) -> tuple[NDArray[np.uint8], NDArray[np.float32], ExactFrame]:
+        """Frame ``k``: RGB (H, W, 3) uint8, measured depth (H, W) float32 m, exact rendering."""
+        c = self.config
+        exact = self.renderer.render(self.poses[k])
+        rng = np.random.default_rng([c.seed, 3, k])
+        depth = depth_sensor(exact.depth, exact.cos_incidence, c.fx, c.sensor, rng)
+        flow = self.image_flow(k, exact) if (c.sensor.motion_blur_exposure > 0 and not c.sensor.noise_free) else np.zeros(2)
+        rgb = self.colour_sensor(exact.colour, float(self.gains[k]), flow, rng)
+        return rgb, depth, exact
+
+
+def depth_to_png_mm(depth: NDArray[np.float32]) -> NDArray[np.uint16]:
+    """Metres (H, W) -> uint16 millimetres, 0 stays 0 (hole); values beyond 65.534 m -> 0."""
+    mm = np.rint(depth.astype(np.float64) * 1000.0)
+    mm[(mm < 0) | (mm > 65534)] = 0
+    return mm.astype(np.uint16)
+
+
+def _write_frame(seq_dir: Path, k: int, rgb: NDArray[np.uint8], depth: NDArray[np.float32], T: NDArray) -> None:
+    stem = seq_dir / f"frame-{k:06d}"
+    ok1, col = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    ok2, dep = cv2.imencode(".png", depth_to_png_mm(depth), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not (ok1 and ok2):
+        raise DataError(f"could not encode frame {k}")
+    Path(f"{stem}.color.png").write_bytes(col.tobytes())
+    Path(f"{stem}.depth.png").write_bytes(dep.tobytes())
+    Path(f"{stem}.pose.txt").write_text("\n".join(" ".join(f"{v:.9e}" for v in row) for row in T) + "\n")
+
+
+def intrinsics_text(config: SceneConfig) -> str:
+    c = config
+    if (c.width, c.height) == (640, 480):
+        return f"{c.fx:.6f} 0 {c.cx:.6f}\n0 {c.fy:.6f} {c.cy:.6f}\n0 0 1\n"
+    return f"{c.fx:.6f} {c.fy:.6f} {c.cx:.6f} {c.cy:.6f} {c.width} {c.height}\n"
+
+
+def render_scene(config: SceneConfig, out_dir: Path, workers: int = 2) -> Path:
+    """Render ``config`` into ``out_dir`` (7-Scenes layout, see module docstring); returns it.
+
+    Rendered into a temporary sibling folder first and renamed at the end. If ``out_dir``
+    appears meanwhile (another process rendered it), the temporary folder is discarded.
+    """
+    out_dir = Path(out_dir)
+    ensure_dir(out_dir.parent)
+    tmp = out_dir.parent / f".tmp-{out_dir.name}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+    seq_dir = tmp / "seq-01"
+    t0 = time.perf_counter()
+    try:
+        ensure_dir(seq_dir)
+        scene, poses = build(config)
+        fr = FrameRenderer(config, scene, poses)
+        write_text(tmp / "camera-intrinsics.txt", intrinsics_text(config))
+        log.info("rendering synthetic scene %s (%d frames, %d triangles) into %s",
+                 out_dir.name, config.frames, len(scene.triangles), out_dir)
+        pending: list[cf.Future] = []
+        with cf.ThreadPoolExecutor(max_workers=workers) as pool:
+            for k in tqdm(range(config.frames), desc=f"render {out_dir.name}", unit="frame",
+                          disable=not sys.stderr.isatty()):
+                rgb, depth, _ = fr.frame(k)
+                pending.append(pool.submit(_write_frame, seq_dir, k, rgb, depth, poses[k]))
+                if len(pending) > 2 * workers:
+                    pending.pop(0).result()
+            for f in pending:
+                f.result()
+        seconds = time.perf_counter() - t0
+        write_json(tmp / "config.json", {
+            "render_version": RENDER_VERSION, "config": config.to_dict(), "git_revision": git_revision(),
+            "triangles": int(len(scene.triangles)), "materials": [m.name for m in scene.materials],
+            "motion": motion_stats(poses, config.fps), "render_seconds": round(seconds, 2),
+        })
+        try:
+            os.rename(tmp, out_dir)
+        except OSError:
+            if not (out_dir / "seq-01").is_dir():
+                raise
+            log.info("%s was rendered by another process meanwhile; keeping that one", out_dir)
+            shutil.rmtree(tmp, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    log.info("rendered %s in %.1f s (%.1f frames/s)", out_dir.name, seconds, config.frames / seconds)
+    return out_dir

@@ -1,0 +1,154 @@
+"""Configuration of the synthetic RGB-D scenes: frozen dataclasses, presets as instances.
+
+Change a preset with :func:`dataclasses.replace`, e.g.
+``replace(PRESETS["office"], frames=100)`` or, for the sensor,
+``replace(cfg, sensor=replace(cfg.sensor, noise_free=True))``.
+
+Defaults of :class:`SensorConfig` model a Kinect v1 (the 7-Scenes sensor):
+
+* depth noise in the disparity domain, ``sigma_z = depth_noise_coeff * z**2``
+  (1.4 mm at 1 m, 23 mm at 4 m; Khoshelham & Oude Elberink 2012), half of it spatially
+  correlated like block-matching errors;
+* disparity quantisation: inverse depth in steps of ``disparity_step`` (1/m), which gives
+  the 2.9 mm / 11 mm / 26 mm depth steps at 1 / 2 / 3 m seen in 7-Scenes depth PNGs;
+* holes: projector shadows beside depth discontinuities (projector 7.5 cm to the right of
+  the IR camera), a pixel band along discontinuities, grazing surfaces, random dropouts,
+  and everything outside 0.5-4.5 m;
+* colour: optical blur, optional motion blur, slow exposure changes, vignetting, read and
+  shot noise, and a small RGB-depth misregistration (a shift of a few pixels).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+#: Bump when the renderer's output changes for the same config (invalidates caches).
+RENDER_VERSION = 1
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """Kinect-v1-like sensor model applied to the exact rendering."""
+
+    noise_free: bool = False
+    """Write the exact rendering: exact depth (no noise, quantisation or holes; only the
+    1 mm PNG rounding), clean colour (no blur, noise, exposure change or misregistration)."""
+    depth_noise_coeff: float = 1.425e-3
+    """Std of inverse depth noise in 1/m; equals ``sigma_z / z**2`` (m / m^2)."""
+    depth_noise_correlated: float = 0.5
+    """Fraction of the depth noise variance that is spatially correlated (0..1)."""
+    depth_noise_corr_px: int = 6
+    """Correlation length of the correlated depth noise, pixels."""
+    disparity_step: float = 2.85e-3
+    """Quantisation step of inverse depth, 1/m (depth step ``~ step * z**2``); 0 = none."""
+    depth_min_m: float = 0.5
+    """Nearest measurable depth, metres; closer pixels are holes (0)."""
+    depth_max_m: float = 4.5
+    """Farthest measurable depth, metres; farther pixels are holes (0)."""
+    projector_baseline_m: float = 0.075
+    """IR projector offset along +x of the depth camera, metres; pixels the projector
+    cannot see (shadows left of foreground objects) are holes. 0 = no shadows."""
+    edge_jump_rel: float = 0.05
+    """Relative depth jump between neighbouring pixels that counts as a discontinuity."""
+    edge_hole_px: int = 1
+    """Half-width in pixels of the hole band along depth discontinuities (0 = none)."""
+    grazing_cos: float = 0.25
+    """Below this |cos| between surface normal and viewing ray, pixels drop out with
+    probability ``1 - cos / grazing_cos``."""
+    dropout_prob: float = 0.003
+    """Probability of an isolated random depth hole per pixel."""
+    rgb_shift_px: tuple[float, float] = (2.5, -1.5)
+    """RGB-depth misregistration: shift (x, y) of the colour image in pixels."""
+    rgb_blur_sigma: float = 0.7
+    """Optical blur of the colour camera (Gaussian sigma, pixels)."""
+    motion_blur_exposure: float = 0.4
+    """Exposure time as a fraction of the frame period for motion blur; 0 = off."""
+    exposure_log_sigma: float = 0.15
+    """Std of the slowly varying log exposure gain (auto-exposure drift); 0 = off."""
+    exposure_period_s: float = 5.0
+    """Typical period of the exposure changes, seconds."""
+    vignetting: float = 0.25
+    """Relative brightness loss at the image corners."""
+    read_noise_dn: float = 2.0
+    """Colour read noise std in 8-bit digital numbers."""
+    shot_noise_gain: float = 0.5
+    """Shot noise: variance grows by ``shot_noise_gain * value`` (DN^2 per DN)."""
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """A synthetic scene: layout, trajectory and camera; the sensor model in ``sensor``."""
+
+    layout: str = "office"
+    """Room layout generator: ``office``, ``kitchen`` or ``lab``."""
+    seed: int = 0
+    """Seed of the layout, textures, trajectory and sensor noise (same seed, same files)."""
+    frames: int = 300
+    """Number of frames (30 Hz)."""
+    width: int = 640
+    """Image width, pixels."""
+    height: int = 480
+    """Image height, pixels."""
+    fx: float = 585.0
+    """Focal length x, pixels (7-Scenes)."""
+    fy: float = 585.0
+    """Focal length y, pixels."""
+    cx: float = 320.0
+    """Principal point x, pixels."""
+    cy: float = 240.0
+    """Principal point y, pixels."""
+    fps: float = 30.0
+    """Frame rate, Hz."""
+    mean_speed_mps: float = 0.22
+    """Typical camera speed, m/s (7-Scenes redkitchen: ~7 mm per frame = 0.21 m/s)."""
+    min_speed_mps: float = 0.08
+    """Slowest desired speed where rotation does not limit it, m/s."""
+    max_speed_mps: float = 0.45
+    """Fastest camera speed of the smooth path, m/s (hand jitter adds a little)."""
+    max_angular_dps: float = 25.0
+    """Fastest rotation of the smooth path, deg/s (hand jitter adds a little)."""
+    view_distance_m: tuple[float, float] = (0.9, 2.6)
+    """Range of distances from the camera to the points it looks at, metres."""
+    jitter_trans_m: float = 0.0015
+    """Amplitude of hand tremor (1-4 Hz), metres."""
+    jitter_rot_deg: float = 0.12
+    """Amplitude of hand tremor in rotation, degrees."""
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    """Sensor model."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def digest(self) -> str:
+        """Short hash of the config and renderer version (names the cache folder)."""
+        blob = json.dumps({"v": RENDER_VERSION, "cfg": self.to_dict()}, sort_keys=True)
+        return hashlib.sha1(blob.encode()).hexdigest()[:8]
+
+
+PRESETS: dict[str, SceneConfig] = {
+    "office": SceneConfig(layout="office", seed=11, frames=300),
+    "kitchen": SceneConfig(layout="kitchen", seed=22, frames=300, mean_speed_mps=0.2),
+    "lab": SceneConfig(layout="lab", seed=33, frames=300, mean_speed_mps=0.25),
+    "tiny": SceneConfig(layout="office", seed=44, frames=20),
+}
+"""Named scenes for ``--scene synthetic/NAME``; ``NAME-clean`` is the noise-free variant."""
+
+CLEAN_SUFFIX = "-clean"
+
+
+def resolve_preset(name: str) -> SceneConfig:
+    """Config of a preset name (``office``, ``office-clean``, ...); KeyError if unknown."""
+    if name in PRESETS:
+        return PRESETS[name]
+    if name.endswith(CLEAN_SUFFIX) and name[: -len(CLEAN_SUFFIX)] in PRESETS:
+        cfg = PRESETS[name[: -len(CLEAN_SUFFIX)]]
+        return dataclasses.replace(cfg, sensor=dataclasses.replace(cfg.sensor, noise_free=True))
+    raise KeyError(name)
+
+
+def known_names() -> list[str]:
+    return sorted(PRESETS)

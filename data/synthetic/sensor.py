@@ -1,0 +1,149 @@
+"""Kinect-v1-like sensor model applied to an exact rendering (see :mod:`data.synthetic.config`).
+
+Depth: disparity-domain noise (``sigma_z = c z^2``, partly spatially correlated), disparity
+quantisation, projector shadows, holes along discontinuities, at grazing angles, random
+dropouts and outside the working range. Colour: exposure gain, vignetting, motion blur,
+optical blur, RGB-depth misregistration, read and shot noise, 8-bit quantisation.
+All randomness comes from the generator passed in (one per frame), so output is
+deterministic for a seed.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from data.synthetic.config import SensorConfig
+
+
+def projector_shadow(z: NDArray[np.float32], fx: float, baseline_m: float) -> NDArray[np.bool_]:
+    """Pixels the IR projector (``baseline_m`` along +x) cannot see, (H, W) bool.
+
+    In projector image coordinates a pixel lands at ``u - fx * b / z``. Along a row this is
+    increasing on a surface the projector sees; a pixel is shadowed when some pixel to its
+    right lands at a smaller projector coordinate (a nearer surface blocks the light).
+    Pixels with ``z == 0`` (misses) never block.
+    """
+    H, W = z.shape
+    with np.errstate(divide="ignore"):
+        up = np.arange(W, dtype=np.float32)[None, :] - np.float32(fx * baseline_m) / z
+    up[~(z > 0)] = np.inf
+    cm = np.minimum.accumulate(up[:, ::-1], axis=1)[:, ::-1]
+    shadow = np.zeros((H, W), bool)
+    shadow[:, :-1] = up[:, :-1] > cm[:, 1:] + 1e-3
+    return shadow
+
+
+def discontinuity_mask(z: NDArray[np.float32], jump_rel: float, width_px: int) -> NDArray[np.bool_]:
+    """Pixels within ``width_px`` of a relative depth jump larger than ``jump_rel``, (H, W) bool."""
+    zz = np.where(z > 0, z, np.float32(100.0))
+    mx = cv2.dilate(zz, np.ones((3, 3), np.uint8))
+    mn = cv2.erode(zz, np.ones((3, 3), np.uint8))
+    edge = ((mx - mn) > jump_rel * mn).astype(np.uint8)
+    if width_px > 1:
+        edge = cv2.dilate(edge, np.ones((2 * width_px - 1, 2 * width_px - 1), np.uint8))
+    return edge.astype(bool)
+
+
+def correlated_noise(rng: np.random.Generator, shape: tuple[int, int], scale_px: int) -> NDArray[np.float32]:
+    """Smooth unit-variance Gaussian noise field with correlation length ``scale_px``, (H, W)."""
+    H, W = shape
+    low = rng.standard_normal((H // scale_px + 2, W // scale_px + 2), dtype=np.float32)
+    up = cv2.resize(low, ((W // scale_px + 2) * scale_px, (H // scale_px + 2) * scale_px),
+                    interpolation=cv2.INTER_LINEAR)[scale_px // 2: scale_px // 2 + H, scale_px // 2: scale_px // 2 + W]
+    return up / max(float(up.std()), 1e-6)
+
+
+def depth_sensor(z: NDArray[np.float32], cos_incidence: NDArray[np.float32], fx: float,
+                 cfg: SensorConfig, rng: np.random.Generator) -> NDArray[np.float32]:
+    """Measured depth (H, W) float32 metres (0 = hole) from exact z-depth ``z`` (0 = miss)
+    and |cos| of the viewing ray against the surface normal (H, W)."""
+    if cfg.noise_free:
+        return z.copy()
+    valid = z > 0
+    if cfg.projector_baseline_m > 0:
+        valid &= ~projector_shadow(z, fx, cfg.projector_baseline_m)
+    if cfg.edge_hole_px > 0:
+        valid &= ~discontinuity_mask(z, cfg.edge_jump_rel, cfg.edge_hole_px)
+    u = rng.random(z.shape, dtype=np.float32)
+    if cfg.grazing_cos > 0:
+        valid &= cos_incidence > cfg.grazing_cos * u
+    valid &= rng.random(z.shape, dtype=np.float32) >= cfg.dropout_prob
+    with np.errstate(divide="ignore"):
+        inv = np.where(valid, 1.0 / np.maximum(z, 1e-6), 0).astype(np.float32)
+    if cfg.depth_noise_coeff > 0:
+        a = np.float32(np.sqrt(cfg.depth_noise_correlated))
+        b = np.float32(np.sqrt(1.0 - cfg.depth_noise_correlated))
+        n = b * rng.standard_normal(z.shape, dtype=np.float32)
+        if a > 0:
+            n += a * correlated_noise(rng, z.shape, cfg.depth_noise_corr_px)
+        inv = inv + np.float32(cfg.depth_noise_coeff) * n
+    if cfg.disparity_step > 0:
+        step = np.float32(cfg.disparity_step)
+        inv = np.rint(inv / step) * step
+    with np.errstate(divide="ignore"):
+        out = np.where(valid & (inv > 0), 1.0 / inv, 0).astype(np.float32)
+    out[(out < cfg.depth_min_m) | (out > cfg.depth_max_m)] = 0.0
+    return out
+
+
+def exposure_gains(cfg: SensorConfig, times: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.float32]:
+    """Slowly varying exposure gain per frame (N,), log-normal around 1."""
+    if cfg.noise_free or cfg.exposure_log_sigma <= 0:
+        return np.ones(len(times), np.float32)
+    f0 = 1.0 / cfg.exposure_period_s
+    out = np.zeros(len(times))
+    for _ in range(3):
+        out += np.sin(2 * np.pi * rng.uniform(0.5 * f0, 2 * f0) * times + rng.uniform(0, 2 * np.pi))
+    return np.exp(cfg.exposure_log_sigma * out * np.sqrt(2 / 3)).astype(np.float32)
+
+
+def motion_kernel(flow: NDArray[np.float64], exposure: float) -> NDArray[np.float32] | None:
+    """Linear blur kernel for image motion ``flow`` (2,) pixels per frame; None if < 0.5 px."""
+    vec = np.asarray(flow, np.float64) * exposure
+    length = float(np.linalg.norm(vec))
+    if length < 0.5:
+        return None
+    half = int(np.ceil(length / 2)) + 1
+    k = np.zeros((2 * half + 1, 2 * half + 1), np.float32)
+    for s in np.linspace(-0.5, 0.5, max(3, int(4 * length))):
+        x, y = half + s * vec[0], half + s * vec[1]
+        x0, y0 = int(np.floor(x)), int(np.floor(y))
+        fx_, fy_ = x - x0, y - y0
+        k[y0, x0] += (1 - fx_) * (1 - fy_)
+        k[y0, x0 + 1] += fx_ * (1 - fy_)
+        k[y0 + 1, x0] += (1 - fx_) * fy_
+        k[y0 + 1, x0 + 1] += fx_ * fy_
+    return k / k.sum()
+
+
+class ColourSensor:
+    """Turns a linear rendering (H, W, 3) float32 into an 8-bit RGB image."""
+
+    def __init__(self, cfg: SensorConfig, width: int, height: int, cx: float, cy: float) -> None:
+        self.cfg = cfg
+        yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+        r2 = ((xx - cx) ** 2 + (yy - cy) ** 2) / (cx ** 2 + cy ** 2)
+        self.vignette = (1.0 - cfg.vignetting * r2)[..., None].astype(np.float32)
+        self.shift = np.float32([[1, 0, cfg.rgb_shift_px[0]], [0, 1, cfg.rgb_shift_px[1]]])
+
+    def __call__(self, img: NDArray[np.float32], gain: float, flow: NDArray[np.float64],
+                 rng: np.random.Generator) -> NDArray[np.uint8]:
+        cfg = self.cfg
+        if cfg.noise_free:
+            return np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
+        img = img * (np.float32(gain) * self.vignette)
+        if cfg.motion_blur_exposure > 0:
+            k = motion_kernel(flow, cfg.motion_blur_exposure)
+            if k is not None:
+                img = cv2.filter2D(img, -1, k, borderType=cv2.BORDER_REFLECT)
+        if cfg.rgb_blur_sigma > 0:
+            img = cv2.GaussianBlur(img, (0, 0), cfg.rgb_blur_sigma)
+        if any(cfg.rgb_shift_px):
+            img = cv2.warpAffine(img, self.shift, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_REFLECT)
+        dn = np.clip(img, 0, 1) * np.float32(255)
+        sd = np.sqrt(np.float32(cfg.read_noise_dn ** 2) + np.float32(cfg.shot_noise_gain) * dn)
+        dn += sd * rng.standard_normal(dn.shape, dtype=np.float32)
+        return np.clip(np.rint(dn), 0, 255).astype(np.uint8)
