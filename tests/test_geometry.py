@@ -319,3 +319,89 @@ def test_evo_reads_tum_quaternion_as_xyzw(tmp_path) -> None:
     traj = read_tum_trajectory_file(str(f))
     np.testing.assert_allclose(traj.orientations_quat_wxyz[0], geo.quat_xyzw_to_wxyz(q), atol=1e-12)
     np.testing.assert_allclose(traj.poses_se3[0][:3, :3], geo.quat_xyzw_to_R(q), atol=1e-12)
+
+
+# ----------------------------------------------------------------------------------
+# conventions of the vision libraries (docs/conventions.md states these; checked here)
+# ----------------------------------------------------------------------------------
+def test_opencv_solvepnp_returns_T_cam_obj() -> None:
+    import cv2
+
+    rng = np.random.default_rng(RNG_SEED)
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    T_cam_obj = geo.make_T(Rotation.from_rotvec([0.1, -0.2, 0.05]).as_matrix(), [0.1, -0.05, 2.0])
+    X_obj = rng.uniform(-1, 1, size=(30, 3))
+    X_cam = X_obj @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
+    uv = X_cam @ K.T
+    uv = uv[:, :2] / uv[:, 2:]  # u = fx x / z + cx (column), v = fy y / z + cy (row)
+    ok, rvec, tvec = cv2.solvePnP(X_obj, uv, K, None, flags=cv2.SOLVEPNP_SQPNP)
+    assert ok
+    R, _ = cv2.Rodrigues(rvec)
+    np.testing.assert_allclose(geo.make_T(R, tvec.ravel()), T_cam_obj, atol=1e-9)
+    np.testing.assert_allclose(R, Rotation.from_rotvec(rvec.ravel()).as_matrix(), atol=1e-15)  # rvec = rotvec
+
+
+def _rendered_rgbd_pair(T_s_t: np.ndarray, W: int = 160, H: int = 120):
+    """A textured bumpy surface seen from a source camera and from a target camera at
+    ``T_s_t`` (target pose in the source frame); z-buffered point splatting. Returns
+    (K, gray_s, depth_s, gray_t, depth_t) with depth in metres (0 = no data)."""
+    K = np.array([[125.0, 0, W / 2], [0, 125.0, H / 2], [0, 0, 1]])
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
+    # supersample the source surface so the target image has no holes
+    ys, xs = np.mgrid[0:H:0.25, 0:W:0.25]
+    z = 1.5 + 0.2 * np.sin(xs / 12.0) * np.cos(ys / 15.0)
+    tex = 128 + 60 * np.sin(xs / 3.5) + 60 * np.cos(ys / 2.5) * np.sin(xs / 6.5)
+    P_s = np.stack([(xs - K[0, 2]) / K[0, 0] * z, (ys - K[1, 2]) / K[1, 1] * z, z], -1).reshape(-1, 3)
+
+    def render(P):
+        u = np.round(K[0, 0] * P[:, 0] / P[:, 2] + K[0, 2]).astype(int)
+        v = np.round(K[1, 1] * P[:, 1] / P[:, 2] + K[1, 2]).astype(int)
+        ok = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        order = np.argsort(-P[ok, 2])  # far first, near ones overwrite
+        depth, gray = np.zeros((H, W)), np.zeros((H, W))
+        depth[v[ok][order], u[ok][order]] = P[ok, 2][order]
+        gray[v[ok][order], u[ok][order]] = tex.reshape(-1)[ok][order]
+        return gray.clip(0, 255).astype(np.uint8), depth.astype(np.float32)
+
+    T_t_s = geo.inv_T(T_s_t)
+    gray_s, depth_s = render(P_s)
+    gray_t, depth_t = render(P_s @ T_t_s[:3, :3].T + T_t_s[:3, 3])
+    return K, gray_s, depth_s, gray_t, depth_t
+
+
+_T_S_T = geo.make_T(Rotation.from_rotvec([0.0, 0.02, 0.01]).as_matrix(), [0.03, -0.01, 0.02])
+
+
+def test_open3d_rgbd_odometry_returns_T_target_source() -> None:
+    o3d = pytest.importorskip("open3d")
+    K, gs, ds, gt, dt = _rendered_rgbd_pair(_T_S_T)
+    H, W = gs.shape
+    intr = o3d.camera.PinholeCameraIntrinsic(W, H, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+
+    def rgbd(g, d):
+        return o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(np.ascontiguousarray(np.repeat(g[..., None], 3, -1))), o3d.geometry.Image(d),
+            depth_scale=1.0, depth_trunc=10.0, convert_rgb_to_intensity=True)
+
+    ok, T, _ = o3d.pipelines.odometry.compute_rgbd_odometry(
+        rgbd(gs, ds), rgbd(gt, dt), intr, np.eye(4), o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm(),
+        o3d.pipelines.odometry.OdometryOption())
+    assert ok
+    T_t_s = geo.inv_T(_T_S_T)
+    assert np.abs(T - T_t_s).max() < 0.005  # maps source points into the target frame
+    assert np.abs(T - _T_S_T).max() > 0.03  # and is not the other direction
+
+
+def test_opencv_odometry_returns_T_dst_src() -> None:
+    import cv2
+
+    if not hasattr(cv2, "OdometrySettings"):
+        pytest.skip("cv2.Odometry (OpenCV 5 ptcloud module) not available")
+    K, gs, ds, gt, dt = _rendered_rgbd_pair(_T_S_T)
+    settings = cv2.OdometrySettings()
+    settings.setCameraMatrix(K.astype(np.float32))
+    odo = cv2.Odometry(cv2.OdometryType_RGB_DEPTH, settings, cv2.OdometryAlgoType_COMMON)
+    ok, Rt = odo.compute(ds, gs, dt, gt)
+    assert ok
+    assert np.abs(Rt - geo.inv_T(_T_S_T)).max() < 0.005
+    assert np.abs(Rt - _T_S_T).max() > 0.03
