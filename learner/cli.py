@@ -1,0 +1,83 @@
+"""``learner`` command line: ``learner fit`` and ``learner predict`` (thin wrappers).
+
+Parses arguments, configures logging, calls :func:`learner.train.fit` /
+:func:`learner.predict.predict`, and turns a :class:`~data.errors.VOError` into
+``error: <message>`` on stderr with exit code 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+from typing import Optional, Sequence
+
+from data.errors import VOError
+from learner.config import PRESETS, VARIANTS, PredictConfig
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="learner", description="Train the CTCNet-style learner and predict edges.")
+    ap.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+
+    f = sub.add_parser("fit", help="train on teacher (or ground-truth) labels")
+    f.add_argument("--scene", action="append", required=True, help="scene spec (repeatable)")
+    f.add_argument("--val-scene", action="append", default=[], help="validation scene spec (repeatable)")
+    f.add_argument("--frames", help="frame range START:STOP[:STEP] of every sequence")
+    f.add_argument("--split", default="all", help="7-Scenes split for scene folders (train/test/all)")
+    f.add_argument("--variant", default="ctc", choices=list(VARIANTS))
+    f.add_argument("--preset", default="cpu", choices=list(PRESETS))
+    f.add_argument("--out", type=Path, help="run folder (default runs/<scene-slug>/learner)")
+    f.add_argument("--epochs", type=int, help="total epochs (overrides the preset)")
+    f.add_argument("--steps-per-epoch", type=int, help="cap on optimiser steps per epoch")
+    f.add_argument("--seed", type=int, help="random seed (overrides the preset)")
+    f.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    f.add_argument("--pretrained", type=Path, help="local torchvision vgg11_bn state-dict file")
+    f.add_argument("--teacher", type=Path,
+                   help="teacher output folder to read labels from (never generated); "
+                        "default runs/<scene-slug>/teacher, generated when missing")
+
+    p = sub.add_parser("predict", help="MC-dropout edges, trajectory and report")
+    p.add_argument("--checkpoint", type=Path, required=True)
+    p.add_argument("--scene", required=True)
+    p.add_argument("--frames", help="frame range START:STOP[:STEP]")
+    p.add_argument("--split", default="all")
+    p.add_argument("--out", type=Path, help="output folder (default runs/<scene-slug>/learner)")
+    p.add_argument("--samples", type=int, default=PredictConfig.samples, help="MC-dropout passes K")
+    p.add_argument("--drop", type=float, default=PredictConfig.drop, help="MC-dropout drop ratio")
+    p.add_argument("--max-gap", type=int, default=PredictConfig.max_gap, help="longest direct edge gap")
+    p.add_argument("--preset", choices=list(PRESETS), help="fail unless the checkpoint has this preset")
+    return ap
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        if args.cmd == "fit":
+            from learner.train import fit
+
+            res = fit(args.scene, variant=args.variant, preset=args.preset, val_scenes=args.val_scene,
+                      frames=args.frames, split=args.split, out=args.out, resume=args.resume,
+                      pretrained=args.pretrained, teacher_root=args.teacher, epochs=args.epochs,
+                      seed=args.seed, steps_per_epoch=args.steps_per_epoch)
+            logging.getLogger("learner").info("checkpoint: %s", res.checkpoint)
+        else:
+            from learner.predict import predict
+
+            cfg = PredictConfig(samples=args.samples, drop=args.drop, max_gap=args.max_gap)
+            res = predict(args.checkpoint, args.scene, frames=args.frames, split=args.split, out=args.out,
+                          config=cfg, preset=args.preset)
+            for d in res.out_dirs:
+                print(d)
+    except VOError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

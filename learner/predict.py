@@ -1,0 +1,247 @@
+"""``learner predict``: Monte-Carlo-dropout edges with covariances, a trajectory, a report.
+
+For every sequence of ``--scene`` the encoder runs once per frame pair; only the dropout
+and the layers after it are resampled K times (:meth:`CTCNet.direct_mc`,
+:meth:`CTCNet.sequential_mc`). Per edge the K twists give a mean ``xi`` (the edge is
+``exp(mean)``) and a 6x6 sample covariance in the project tangent order (v, w), which is
+regularised (``cov_floor`` on the diagonal) and written as information ``inv(cov)``.
+
+Gap-1 edges come from the LSTM head (run over chunks of ``window_max`` consecutive pairs,
+as in training) for the LSTM variants and from the direct head for ``cnn-*``; gaps
+2..max_gap come from the direct head. Outputs per sequence (docs/formats.md, "Learner"):
+``edges.g2o``, ``edges_mc.csv``, ``trajectory.tum``, ``report.json``.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from data import geometry as geo
+from data.errors import ConfigError, DataError
+from data.formats import Edge, Trajectory, write_g2o, write_tum
+from data.io import atomic_write, ensure_dir, git_revision, write_json
+from data.metrics import se3_l2_errors, trajectory_report
+from data.scenes import open_scene, scene_slug
+from learner.config import PredictConfig, check_variant, model_from_dict
+from learner.dataset import load_frames
+from learner.model import CTCNet
+from learner.train import load_checkpoint
+
+log = logging.getLogger(__name__)
+
+MC_CSV_COLUMNS = ["i", "j", "gap", "head", "sigma", "outlier", "error_se3_l2", "mahalanobis2"]
+
+
+@dataclass
+class EdgeSet:
+    """MC-dropout edges of one sequence, positions ``i < j`` (E,) into the sequence view,
+    mean twists (E, 6), covariances (E, 6, 6), head name per edge."""
+
+    i: NDArray[np.int64]
+    j: NDArray[np.int64]
+    mean: NDArray[np.float64]
+    cov: NDArray[np.float64]
+    head: list[str]
+
+    @property
+    def sigma(self) -> NDArray[np.float64]:
+        """sqrt(trace(cov)) per edge (E,)."""
+        return np.sqrt(np.trace(self.cov, axis1=1, axis2=2))
+
+
+@dataclass
+class PredictResult:
+    """Output folder and report of every predicted sequence."""
+
+    out_dirs: list[Path] = field(default_factory=list)
+    reports: list[dict] = field(default_factory=list)
+
+
+def load_model(checkpoint: Path, preset: Optional[str] = None) -> tuple[CTCNet, dict]:
+    """The network of a checkpoint (eval mode) and the checkpoint's metadata."""
+    state = load_checkpoint(checkpoint)
+    if preset is not None and preset != state["preset"]:
+        raise ConfigError(f"{checkpoint} was trained with preset {state['preset']!r}, not {preset!r}")
+    model = CTCNet(model_from_dict(state["model_config"]))
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as exc:
+        raise ConfigError(f"{checkpoint} does not match its own model config: {str(exc).splitlines()[0]}") from None
+    model.eval()
+    return model, state
+
+
+@torch.no_grad()
+def mc_edges(model: CTCNet, frames: torch.Tensor, *, uses_lstm: bool, window: int, cfg: PredictConfig,
+             progress: bool = False, seed: int = 0) -> EdgeSet:
+    """MC-dropout edges of one sequence of frames (N, 3, H, W) uint8."""
+    n = len(frames)
+    torch.manual_seed(seed)
+    G = max(1, min(cfg.max_gap, n - 1))
+    ii, jj, means, covs, heads = [], [], [], [], []
+    bar = tqdm(total=sum(n - g for g in range(1, G + 1)), desc="encode", disable=not progress, leave=False)
+
+    def latents(g: int) -> torch.Tensor:
+        out = []
+        for a in range(0, n - g, cfg.batch_pairs):
+            k = torch.arange(a, min(a + cfg.batch_pairs, n - g))
+            out.append(model.encode(torch.cat([frames[k], frames[k + g]], 1)))
+            bar.update(len(k))
+        return torch.cat(out)
+
+    for g in range(1, G + 1):
+        z = latents(g)  # (n-g, C)
+        if g == 1 and uses_lstm:
+            chunks = [model.sequential_mc(z[a:a + window][None], cfg.samples, cfg.drop)[:, 0]
+                      for a in range(0, len(z), window)]
+            samples, head = torch.cat(chunks, dim=1), "lstm"  # (K, n-1, 6)
+        else:
+            samples, head = model.direct_mc(z, cfg.samples, cfg.drop), "direct"
+        s = samples.double().numpy()
+        mean = s.mean(0)
+        dev = s - mean
+        cov = np.einsum("kei,kej->eij", dev, dev) / max(cfg.samples - 1, 1)
+        cov = 0.5 * (cov + cov.transpose(0, 2, 1)) + cfg.cov_floor * np.eye(6)
+        k = np.arange(n - g)
+        ii.append(k)
+        jj.append(k + g)
+        means.append(mean)
+        covs.append(cov)
+        heads += [head] * len(k)
+    bar.close()
+    return EdgeSet(np.concatenate(ii), np.concatenate(jj), np.concatenate(means), np.concatenate(covs), heads)
+
+
+def outlier_flags(edges: EdgeSet, factor: float) -> NDArray[np.bool_]:
+    """Flag edges whose sigma exceeds ``factor`` x the median sigma of edges of the same gap."""
+    sig = edges.sigma
+    gaps = edges.j - edges.i
+    flags = np.zeros(len(sig), dtype=bool)
+    for g in np.unique(gaps):
+        m = gaps == g
+        flags[m] = sig[m] > factor * np.median(sig[m])
+    return flags
+
+
+def chain(edges: EdgeSet, T0: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``T_world_cam`` (N, 4, 4) from chaining the gap-1 edges from ``T0``."""
+    one = np.nonzero(edges.j - edges.i == 1)[0]
+    one = one[np.argsort(edges.i[one])]
+    poses = [np.asarray(T0, dtype=np.float64)]
+    for e in one:
+        poses.append(poses[-1] @ geo.se3_exp(edges.mean[e]))
+    return np.array(poses)
+
+
+def auroc(score: NDArray[np.float64], positive: NDArray[np.bool_]) -> float:
+    """Area under the ROC curve of ``score`` for the ``positive`` class (Mann-Whitney)."""
+    from scipy.stats import rankdata
+
+    npos, nneg = int(positive.sum()), int((~positive).sum())
+    if npos == 0 or nneg == 0:
+        return float("nan")
+    r = rankdata(score)
+    return float((r[positive].sum() - npos * (npos + 1) / 2) / (npos * nneg))
+
+
+def calibration(edges: EdgeSet, gt: NDArray[np.float64]) -> tuple[dict[str, float], NDArray, NDArray]:
+    """Uncertainty quality against ground truth (N, 4, 4).
+
+    * ``spearman_sigma_error``: rank correlation of sigma with the se(3) L2 error;
+    * ``coverage_1sigma`` / ``coverage_2sigma``: fraction of edges whose error
+      ``log(inv(T_est) T_gt)`` has squared Mahalanobis distance within the 6-dof chi-square
+      quantile of 68.27% / 95.45% (a calibrated covariance gives those fractions);
+    * ``outlier_auroc``: AUROC of sigma for separating the worst 10% edges by error.
+    """
+    from scipy.stats import chi2, spearmanr
+
+    T_est = np.array([geo.se3_exp(m) for m in edges.mean])
+    T_gt = np.array([geo.relative_pose(gt[i], gt[j]) for i, j in zip(edges.i, edges.j)])
+    err = se3_l2_errors(T_gt, T_est)
+    d2 = np.array([float(e @ np.linalg.solve(c, e)) for e, c in
+                   zip((geo.se3_log(geo.inv_T(a) @ b) for a, b in zip(T_est, T_gt)), edges.cov)])
+    worst = err >= np.quantile(err, 0.9)
+    rho = spearmanr(edges.sigma, err).statistic if len(err) > 2 else float("nan")
+    out = {
+        "spearman_sigma_error": float(rho),
+        "coverage_1sigma": float(np.mean(d2 <= chi2.ppf(0.6827, 6))),
+        "coverage_2sigma": float(np.mean(d2 <= chi2.ppf(0.9545, 6))),
+        "outlier_auroc": auroc(edges.sigma, worst),
+    }
+    return out, err, d2
+
+
+def _nan_to_none(d: dict) -> dict:
+    return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in d.items()}
+
+
+def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split: str = "all",
+            out: Optional[Path] = None, config: PredictConfig = PredictConfig(), preset: Optional[str] = None,
+            progress: Optional[bool] = None) -> PredictResult:
+    """Predict edges, trajectory and report for every sequence of ``scene``."""
+    checkpoint = Path(checkpoint)
+    model, state = load_model(checkpoint, preset)
+    uses_lstm, _, _ = check_variant(state["variant"])
+    window = int(state["train_config"]["window_max"])
+    mcfg = model.cfg
+    seqs = open_scene(scene, split=split, frames=frames)
+    base = Path(out) if out is not None else Path("runs") / scene_slug(scene) / "learner"
+    if progress is None:
+        progress = sys.stderr.isatty()
+    result = PredictResult()
+    for seq in seqs:
+        if len(seq) < 2:
+            raise DataError(f"sequence {seq.name} needs at least 2 frames to predict edges")
+        out_dir = ensure_dir(base / seq.name if len(seqs) > 1 else base)
+        frames_u8 = load_frames(seq, mcfg.width, mcfg.height, checkpoint.parent / "cache")
+        edges = mc_edges(model, frames_u8, uses_lstm=uses_lstm, window=window, cfg=config, progress=progress)
+        flags = outlier_flags(edges, config.outlier_factor)
+        ids, gt = seq.ids(), seq.groundtruth()
+        poses = chain(edges, gt[0] if gt is not None else np.eye(4))
+        write_g2o(out_dir / "edges.g2o",
+                  [Edge(int(ids[i]), int(ids[j]), geo.se3_exp(m), c) for i, j, m, c in
+                   zip(edges.i, edges.j, edges.mean, edges.cov)],
+                  vertices={int(f): T for f, T in zip(ids, poses)})
+        write_tum(out_dir / "trajectory.tum", Trajectory(seq.times(), poses))
+        report: dict = {
+            "sequence": seq.name, "frames": len(seq), "checkpoint": str(checkpoint), "preset": state["preset"],
+            "variant": state["variant"], "samples": config.samples, "drop": config.drop,
+            "max_gap": int((edges.j - edges.i).max()), "edges": len(edges.i), "outliers": int(flags.sum()),
+            "median_sigma_gap1": float(np.median(edges.sigma[edges.j - edges.i == 1])),
+            "git_revision": git_revision(),
+        }
+        err = d2 = None
+        if gt is not None:
+            write_tum(out_dir / "groundtruth.tum", Trajectory(seq.times(), gt))
+            report.update(trajectory_report(Trajectory(seq.times(), gt), Trajectory(seq.times(), poses)))
+            cal, err, d2 = calibration(edges, gt)
+            report.update(cal)
+        _write_mc_csv(out_dir / "edges_mc.csv", edges, ids, flags, err, d2)
+        report = _nan_to_none(report)
+        write_json(out_dir / "report.json", report)
+        log.info("%s: %d edges, %d outliers -> %s", seq.name, len(edges.i), int(flags.sum()), out_dir)
+        result.out_dirs.append(out_dir)
+        result.reports.append(report)
+    return result
+
+
+def _write_mc_csv(path: Path, edges: EdgeSet, ids: NDArray[np.int64], flags: NDArray[np.bool_],
+                  err: Optional[NDArray], d2: Optional[NDArray]) -> None:
+    sig = edges.sigma
+    with atomic_write(path) as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(MC_CSV_COLUMNS)
+        for e in range(len(edges.i)):
+            w.writerow([int(ids[edges.i[e]]), int(ids[edges.j[e]]), int(edges.j[e] - edges.i[e]), edges.head[e],
+                        f"{sig[e]:.6g}", int(flags[e]),
+                        "" if err is None else f"{err[e]:.6g}", "" if d2 is None else f"{d2[e]:.6g}"])

@@ -1,0 +1,311 @@
+"""Training, resume, prediction and CLI of the learner on a tiny on-disk fixture: a
+7-Scenes-layout sequence with known poses and teacher-like edges (ground truth + noise,
+one failed edge left out), written in tmp_path."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import gtsam
+import numpy as np
+import pytest
+import torch
+
+from data import geometry as geo
+from data.errors import ConfigError, DataError, VOError
+from data.formats import Edge, read_tum, write_g2o
+from learner import cli
+from learner.config import VARIANTS, PredictConfig
+from learner.predict import auroc, predict
+from learner.train import fit, load_checkpoint
+
+REPO = Path(__file__).resolve().parents[1]
+N_FRAMES = 20
+W, H = 80, 60
+
+
+def gt_poses(n: int = N_FRAMES) -> np.ndarray:
+    """Smooth camera path: 2 cm/frame forward drift plus a slow yaw, (n, 4, 4)."""
+    out = []
+    for k in range(n):
+        R = geo.se3_exp([0, 0, 0, 0, 0.01 * k, 0.002 * k])[:3, :3]
+        out.append(geo.make_T(R, [0.02 * k, 0.005 * np.sin(k), 0.01 * k]))
+    return np.array(out)
+
+
+def write_sequence(root: Path, n: int = N_FRAMES, seed: int = 0) -> Path:
+    """A 7-Scenes-layout sequence folder ``root/scene/seq-01`` with n frames."""
+    rng = np.random.default_rng(seed)
+    seq = root / "scene" / "seq-01"
+    seq.mkdir(parents=True)
+    (seq / "camera-intrinsics.txt").write_text(f"60 60 {W / 2} {H / 2} {W} {H}\n")
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (H + 60, W + 60, 3)).astype(np.uint8), (5, 5), 0)
+    for k, T in enumerate(gt_poses(n)):
+        dx, dy = int(round(T[0, 3] * 100)), int(round(T[1, 3] * 100))
+        img = texture[10 + dy:10 + dy + H, 10 + dx:10 + dx + W]
+        cv2.imwrite(str(seq / f"frame-{k:06d}.color.png"), img)
+        cv2.imwrite(str(seq / f"frame-{k:06d}.depth.png"), np.full((H, W), 1500, np.uint16))
+        np.savetxt(seq / f"frame-{k:06d}.pose.txt", T)
+    return seq
+
+
+def write_teacher(out: Path, poses: np.ndarray, gaps: int = 3, noise: float = 0.002, seed: int = 1,
+                  failed: tuple[int, int] = (4, 5)) -> Path:
+    """Teacher-like ``edges.g2o`` in ``out`` from poses + noise; ``failed`` is left out."""
+    rng = np.random.default_rng(seed)
+    edges = []
+    cov = np.diag([noise**2] * 6)
+    for g in range(1, gaps + 1):
+        for i in range(len(poses) - g):
+            if (i, i + g) == failed:
+                continue
+            T = geo.relative_pose(poses[i], poses[i + g]) @ geo.se3_exp(rng.normal(size=6) * noise)
+            edges.append(Edge(i, i + g, T, cov))
+    out.mkdir(parents=True, exist_ok=True)
+    write_g2o(out / "edges.g2o", edges)
+    return out
+
+
+@pytest.fixture(scope="module")
+def fixture_seq(tmp_path_factory) -> tuple[Path, Path]:
+    """(sequence folder, teacher folder)."""
+    root = tmp_path_factory.mktemp("learner-data")
+    seq = write_sequence(root)
+    teacher = write_teacher(root / "teacher", gt_poses())
+    return seq, teacher
+
+
+def _state(ckpt: Path) -> dict:
+    return load_checkpoint(ckpt)["model"]
+
+
+# ----------------------------------------------------------------------------------
+# training
+# ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_every_variant_trains_two_steps(variant: str, fixture_seq, tmp_path) -> None:
+    seq, teacher = fixture_seq
+    res = fit([str(seq)], variant=variant, preset="tiny", out=tmp_path / "run", teacher_root=teacher)
+    assert res.checkpoint.is_file()
+    hist = json.loads((tmp_path / "run" / "history.json").read_text())
+    assert [h["steps"] for h in hist] == [2, 2]
+    phases = [h["phase"] for h in hist]
+    assert phases == (["pairs", "windows"] if variant.startswith(("lstm", "ctc")) else ["pairs", "pairs"])
+    assert all(np.isfinite(h["loss"]) and h["reg"] > 0 for h in hist)
+    if variant == "ctc":
+        assert hist[1]["ctc"] > 0
+    else:
+        assert hist[1]["ctc"] == 0
+    cfg = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert cfg["variant"] == variant and cfg["preset"] == "tiny" and cfg["git_revision"]
+    # weights moved
+    init = torch.load(res.checkpoint, weights_only=True)["model"]["fc1.weight"]
+    assert torch.isfinite(init).all()
+
+
+def test_cpu_preset_two_steps(fixture_seq, tmp_path) -> None:
+    seq, teacher = fixture_seq
+    res = fit([str(seq)], variant="ctc", preset="cpu", out=tmp_path / "run", teacher_root=teacher,
+              epochs=2, pretrain_epochs=1, steps_per_epoch=1, batch_pairs=2, batch_windows=2, window_max=4)
+    assert [h["phase"] for h in res.history] == ["pairs", "windows"]
+    assert all(np.isfinite(h["loss"]) for h in res.history)
+
+
+@pytest.mark.slow
+def test_paper_preset_single_step(fixture_seq, tmp_path) -> None:
+    seq, teacher = fixture_seq
+    res = fit([str(seq)], variant="cnn-unsup", preset="paper", out=tmp_path / "run", teacher_root=teacher,
+              epochs=1, steps_per_epoch=1, batch_pairs=1)
+    assert res.history[0]["steps"] == 1 and np.isfinite(res.history[0]["loss"])
+
+
+def test_resume_reaches_the_same_state(fixture_seq, tmp_path) -> None:
+    seq, teacher = fixture_seq
+    kw = dict(variant="lstm-aug", preset="tiny", teacher_root=teacher, epochs=3, pretrain_epochs=1, seed=7)
+    straight = fit([str(seq)], out=tmp_path / "a", **kw)
+    part = tmp_path / "d"
+    fit([str(seq)], out=part, **kw)
+    # interrupted run: killed right after writing the epoch-1 checkpoint, then resumed
+    e = tmp_path / "e"
+    _train_one_epoch_then_stop(seq, e, kw)
+    assert load_checkpoint(e / "checkpoint.pt")["epoch"] == 1
+    resumed = fit([str(seq)], out=e, resume=True, **kw)
+    a, b = _state(straight.checkpoint), _state(resumed.checkpoint)
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    assert straight.history == resumed.history
+    # a same-seed repeat is identical too (reproducible on CPU)
+    for k, v in _state(part / "checkpoint.pt").items():
+        assert torch.equal(v, a[k]), k
+
+
+def _train_one_epoch_then_stop(seq: Path, out: Path, kw: dict) -> None:
+    """Run the 3-epoch schedule but stop ("kill") after epoch 1."""
+    import learner.train as T
+
+    orig = T.save_checkpoint
+    calls = {"n": 0}
+
+    class Killed(Exception):
+        pass
+
+    def save_then_die(*a, **k):
+        orig(*a, **k)
+        calls["n"] += 1
+        raise Killed
+
+    T.save_checkpoint = save_then_die
+    try:
+        with pytest.raises(Killed):
+            fit([str(seq)], out=out, **kw)
+    finally:
+        T.save_checkpoint = orig
+
+
+def test_resume_with_another_preset_or_variant_fails(fixture_seq, tmp_path) -> None:
+    seq, teacher = fixture_seq
+    fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher, epochs=1)
+    with pytest.raises(ConfigError, match="preset 'tiny', not 'cpu'"):
+        fit([str(seq)], variant="cnn-unsup", preset="cpu", out=tmp_path / "run", teacher_root=teacher, resume=True)
+    with pytest.raises(ConfigError, match="variant 'cnn-unsup', not 'ctc'"):
+        fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=teacher, resume=True)
+    with pytest.raises(ConfigError, match="already holds a checkpoint"):
+        fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher)
+
+
+def test_nan_loss_is_a_clear_error_and_keeps_checkpoint(fixture_seq, tmp_path, monkeypatch) -> None:
+    seq, teacher = fixture_seq
+    fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher, epochs=1)
+    import learner.loss as L
+
+    before = (tmp_path / "run" / "checkpoint.pt").read_bytes()
+    real = L.pair_loss
+    monkeypatch.setattr(L, "pair_loss", lambda *a, **k: (lambda t: L.LossTerms(t.total * float("nan"), t.ctc, t.reg))(real(*a, **k)))
+    with pytest.raises(VOError, match="non-finite loss at epoch 2 step 1"):
+        fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher,
+            epochs=2, pretrain_epochs=2, resume=True)
+    assert (tmp_path / "run" / "checkpoint.pt").read_bytes() == before
+
+
+def test_missing_teacher_labels_is_a_clear_error(fixture_seq, tmp_path) -> None:
+    seq, _ = fixture_seq
+    with pytest.raises(DataError, match="has no teacher labels"):
+        fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=tmp_path / "nothing")
+    # ground-truth variants need no teacher
+    fit([str(seq)], variant="cnn-gt", preset="tiny", out=tmp_path / "gt", teacher_root=tmp_path / "nothing", epochs=1)
+
+
+def test_val_scene_must_differ_from_training(fixture_seq, tmp_path) -> None:
+    seq, teacher = fixture_seq
+    with pytest.raises(ConfigError, match="also training sequences"):
+        fit([str(seq)], val_scenes=[str(seq)], variant="ctc", preset="tiny", out=tmp_path / "r", teacher_root=teacher)
+
+
+# ----------------------------------------------------------------------------------
+# prediction
+# ----------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def trained(fixture_seq, tmp_path_factory) -> Path:
+    seq, teacher = fixture_seq
+    out = tmp_path_factory.mktemp("learner-run")
+    return fit([str(seq)], variant="ctc", preset="tiny", out=out, teacher_root=teacher).checkpoint
+
+
+def test_predict_writes_readable_outputs(trained, fixture_seq, tmp_path) -> None:
+    seq, _ = fixture_seq
+    res = predict(trained, str(seq), out=tmp_path / "pred", config=PredictConfig(samples=6, drop=0.2, max_gap=3))
+    d = res.out_dirs[0]
+    graph, initial = gtsam.readG2o(str(d / "edges.g2o"), True)
+    n = N_FRAMES
+    assert graph.size() == (n - 1) + (n - 2) + (n - 3)
+    assert initial.size() == n
+    traj = read_tum(d / "trajectory.tum")
+    assert len(traj) == n
+    np.testing.assert_allclose(traj.poses[0], gt_poses()[0], atol=1e-6)
+    rep = json.loads((d / "report.json").read_text())
+    for key in ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "se3_l2_mean", "spearman_sigma_error",
+                "coverage_1sigma", "coverage_2sigma", "outlier_auroc"):
+        assert key in rep
+    assert 0 <= rep["coverage_1sigma"] <= rep["coverage_2sigma"] <= 1
+    assert rep["edges"] == graph.size() and rep["samples"] == 6
+    lines = (d / "edges_mc.csv").read_text().splitlines()
+    assert lines[0].startswith("i,j,gap,head,sigma") and len(lines) == graph.size() + 1
+    assert lines[1].split(",")[3] == "lstm"
+    # the first gap-1 edge's information is the inverse of a positive covariance
+    factor = graph.at(0)
+    assert factor.noiseModel().sigmas().min() > 0
+
+
+def test_predict_is_deterministic_and_samples_matter(trained, fixture_seq, tmp_path) -> None:
+    seq, _ = fixture_seq
+    a = predict(trained, str(seq), out=tmp_path / "a", config=PredictConfig(samples=4)).reports[0]
+    b = predict(trained, str(seq), out=tmp_path / "b", config=PredictConfig(samples=4)).reports[0]
+    assert a["median_sigma_gap1"] == b["median_sigma_gap1"] > 0
+    c = predict(trained, str(seq), out=tmp_path / "c", config=PredictConfig(samples=4, drop=0.0)).reports[0]
+    assert c["median_sigma_gap1"] < 1e-3  # only the covariance floor remains
+
+
+def test_auroc_known_answers() -> None:
+    assert auroc(np.array([0.1, 0.2, 0.9, 0.8]), np.array([False, False, True, True])) == 1.0
+    assert auroc(np.array([0.9, 0.8, 0.1, 0.2]), np.array([False, False, True, True])) == 0.0
+    assert auroc(np.array([1.0, 1.0, 1.0, 1.0]), np.array([False, True, False, True])) == 0.5
+
+
+# ----------------------------------------------------------------------------------
+# command line
+# ----------------------------------------------------------------------------------
+def test_cli_fit_and_predict(fixture_seq, tmp_path, capsys) -> None:
+    seq, teacher = fixture_seq
+    assert cli.main(["fit", "--scene", str(seq), "--variant", "cnn-unsup", "--preset", "tiny", "--epochs", "1",
+                     "--out", str(tmp_path / "run"), "--teacher", str(teacher), "--seed", "3"]) == 0
+    assert cli.main(["predict", "--checkpoint", str(tmp_path / "run" / "checkpoint.pt"), "--scene", str(seq),
+                     "--frames", "2:10", "--out", str(tmp_path / "pred"), "--samples", "3"]) == 0
+    rep = json.loads((tmp_path / "pred" / "report.json").read_text())
+    assert rep["frames"] == 8 and rep["samples"] == 3
+
+
+@pytest.mark.parametrize("args, message", [
+    (["predict", "--checkpoint", "{tmp}/missing.pt", "--scene", "{seq}"], "does not exist"),
+    (["predict", "--checkpoint", "{ckpt}", "--scene", "{seq}", "--preset", "cpu"], "preset 'tiny', not 'cpu'"),
+    (["predict", "--checkpoint", "{ckpt}", "--scene", "{tmp}/nowhere"], "not found"),
+    (["predict", "--checkpoint", "{ckpt}", "--scene", "{seq}", "--samples", "0"], "--samples must be >= 1"),
+    (["fit", "--scene", "{seq}", "--preset", "tiny", "--out", "{tmp}/r", "--teacher", "{tmp}/none"], "no teacher labels"),
+    (["fit", "--scene", "{seq}", "--preset", "tiny", "--out", "{tmp}/r", "--resume"], "does not exist"),
+])
+def test_cli_bad_inputs_exit_1(args, message, trained, fixture_seq, tmp_path, capsys) -> None:
+    seq, _ = fixture_seq
+    argv = [a.format(tmp=tmp_path, seq=seq, ckpt=trained) for a in args]
+    assert cli.main(argv) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and message in err and "\n" not in err and "Traceback" not in err
+
+
+def test_cli_wrong_checkpoint_file(fixture_seq, tmp_path, capsys) -> None:
+    seq, _ = fixture_seq
+    bad = tmp_path / "bad.pt"
+    torch.save({"not": "a checkpoint"}, bad)
+    assert cli.main(["predict", "--checkpoint", str(bad), "--scene", str(seq)]) == 1
+    assert "is not a learner checkpoint" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------------
+# multi-process
+# ----------------------------------------------------------------------------------
+def test_ddp_two_cpu_processes(fixture_seq, tmp_path) -> None:
+    seq, teacher = fixture_seq
+    torchrun = Path(sys.executable).with_name("torchrun")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    cmd = [str(torchrun), "--standalone", "--nproc_per_node=2", "-m", "learner.cli", "fit", "--scene", str(seq),
+           "--variant", "ctc", "--preset", "tiny", "--out", str(tmp_path / "ddp"), "--teacher", str(teacher)]
+    proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    state = load_checkpoint(tmp_path / "ddp" / "checkpoint.pt")
+    assert state["epoch"] == 2 and [h["steps"] for h in state["history"]] == [2, 2]
+    assert json.loads((tmp_path / "ddp" / "config.json").read_text())["world_size"] == 2
+    assert all(torch.isfinite(v).all() for v in state["model"].values() if v.is_floating_point())
