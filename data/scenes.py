@@ -46,6 +46,8 @@ def _open(spec: str, split: str, cache_dir: Optional[Path]) -> list[Sequence]:
     if (path / "rgb.txt").is_file() and (path / "depth.txt").is_file():
         from data import tum
 
+        if split != "all":
+            raise DataError(f"--split applies to a 7-Scenes scene folder; {spec} is a single TUM sequence")
         return [tum.TumSequence(path)]
     if sevenscenes.is_sequence_folder(path):
         if split != "all":

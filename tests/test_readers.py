@@ -412,6 +412,8 @@ def test_tum_lazy_reading(tmp_path: Path) -> None:
     # open_scene recognises the TUM layout
     [viaspec] = open_scene(str(folder), frames="1:3")
     assert isinstance(viaspec, TumSequence) and list(viaspec.ids()) == [1, 2]
+    with pytest.raises(DataError, match="--split"):
+        open_scene(str(folder), split="train")
 
 
 def test_tum_association_drops_unpaired(tmp_path: Path) -> None:
