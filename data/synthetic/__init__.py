@@ -39,7 +39,7 @@ from data.sequence import Sequence
 from data.synthetic.config import PRESETS, RENDER_VERSION, SceneConfig, SensorConfig, known_names, resolve_preset
 from data.synthetic.layout import LAYOUTS, Scene
 from data.synthetic.renderer import ExactFrame, Renderer
-from data.synthetic.sensor import ColourSensor, depth_sensor, exposure_gains
+from data.synthetic.sensor import ColourSensor, NoiseBank, depth_sensor, exposure_gains
 from data.synthetic.trajectory import make_trajectory, motion_stats
 
 __all__ = [
@@ -111,6 +111,7 @@ class FrameRenderer:
         c = config
         self.renderer = Renderer(scene, c.fx, c.fy, c.cx, c.cy, c.width, c.height, nthreads=nthreads)
         self.colour_sensor = ColourSensor(c.sensor, c.width, c.height, c.cx, c.cy)
+        self.bank = NoiseBank(c.seed, c.width * c.height)
         self.gains = exposure_gains(c.sensor, np.arange(len(poses)) / c.fps, np.random.default_rng([c.seed, 2]))
         gv, gu = np.mgrid[c.height // 12: c.height: c.height // 6, c.width // 16: c.width: c.width // 8]
         self._grid = np.stack([gu.ravel(), gv.ravel()], 1)
@@ -142,7 +143,7 @@ class FrameRenderer:
         c = self.config
         exact = self.renderer.render(self.poses[k])
         rng = np.random.default_rng([c.seed, 3, k])
-        depth = depth_sensor(exact.depth, exact.cos_incidence, c.fx, c.sensor, rng)
+        depth = depth_sensor(exact.depth, exact.cos_incidence, c.fx, c.sensor, rng, self.bank)
         flow = self.image_flow(k, exact) if (c.sensor.motion_blur_exposure > 0 and not c.sensor.noise_free) else np.zeros(2)
         rgb = self.colour_sensor(exact.colour, float(self.gains[k]), flow, rng)
         return rgb, depth, exact
@@ -155,10 +156,15 @@ def depth_to_png_mm(depth: NDArray[np.float32]) -> NDArray[np.uint16]:
     return mm.astype(np.uint16)
 
 
+# fast settings: zlib level 1, RLE strategy, "up" filter (~3x faster than the defaults)
+_PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE,
+               cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP]
+
+
 def _write_frame(seq_dir: Path, k: int, rgb: NDArray[np.uint8], depth: NDArray[np.float32], T: NDArray) -> None:
     stem = seq_dir / f"frame-{k:06d}"
-    ok1, col = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    ok2, dep = cv2.imencode(".png", depth_to_png_mm(depth), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    ok1, col = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), _PNG_PARAMS)
+    ok2, dep = cv2.imencode(".png", depth_to_png_mm(depth), _PNG_PARAMS)
     if not (ok1 and ok2):
         raise DataError(f"could not encode frame {k}")
     Path(f"{stem}.color.png").write_bytes(col.tobytes())
@@ -173,13 +179,37 @@ def intrinsics_text(config: SceneConfig) -> str:
     return f"{c.fx:.6f} {c.fy:.6f} {c.cx:.6f} {c.cy:.6f} {c.width} {c.height}\n"
 
 
-def render_scene(config: SceneConfig, out_dir: Path, workers: int = 2) -> Path:
+def _render_frames(fr: FrameRenderer, seq_dir: Path, workers: int, desc: str) -> None:
+    """Render and write every frame, ``workers`` frames at a time in threads (the heavy
+    parts - ray casting, OpenCV, PNG encoding, large numpy operations - release the GIL)."""
+    n = len(fr.poses)
+
+    def job(k: int) -> None:
+        rgb, depth, _ = fr.frame(k)
+        _write_frame(seq_dir, k, rgb, depth, fr.poses[k])
+
+    with cf.ThreadPoolExecutor(max_workers=max(1, workers)) as pool, \
+            tqdm(total=n, desc=desc, unit="frame", disable=not sys.stderr.isatty()) as bar:
+        pending: list[cf.Future] = []
+        for k in range(n):
+            pending.append(pool.submit(job, k))
+            while len(pending) > 2 * workers:
+                pending.pop(0).result()
+                bar.update()
+        for f in pending:
+            f.result()
+            bar.update()
+
+
+def render_scene(config: SceneConfig, out_dir: Path, workers: Optional[int] = None) -> Path:
     """Render ``config`` into ``out_dir`` (7-Scenes layout, see module docstring); returns it.
 
+    ``workers`` threads render frames in parallel (default: the number of cores, at most 4).
     Rendered into a temporary sibling folder first and renamed at the end. If ``out_dir``
     appears meanwhile (another process rendered it), the temporary folder is discarded.
     """
     out_dir = Path(out_dir)
+    workers = workers or min(os.cpu_count() or 1, 4)
     ensure_dir(out_dir.parent)
     tmp = out_dir.parent / f".tmp-{out_dir.name}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
     seq_dir = tmp / "seq-01"
@@ -187,20 +217,11 @@ def render_scene(config: SceneConfig, out_dir: Path, workers: int = 2) -> Path:
     try:
         ensure_dir(seq_dir)
         scene, poses = build(config)
-        fr = FrameRenderer(config, scene, poses)
+        fr = FrameRenderer(config, scene, poses, nthreads=1)
         write_text(tmp / "camera-intrinsics.txt", intrinsics_text(config))
         log.info("rendering synthetic scene %s (%d frames, %d triangles) into %s",
                  out_dir.name, config.frames, len(scene.triangles), out_dir)
-        pending: list[cf.Future] = []
-        with cf.ThreadPoolExecutor(max_workers=workers) as pool:
-            for k in tqdm(range(config.frames), desc=f"render {out_dir.name}", unit="frame",
-                          disable=not sys.stderr.isatty()):
-                rgb, depth, _ = fr.frame(k)
-                pending.append(pool.submit(_write_frame, seq_dir, k, rgb, depth, poses[k]))
-                if len(pending) > 2 * workers:
-                    pending.pop(0).result()
-            for f in pending:
-                f.result()
+        _render_frames(fr, seq_dir, workers, desc=f"render {out_dir.name}")
         seconds = time.perf_counter() - t0
         write_json(tmp / "config.json", {
             "render_version": RENDER_VERSION, "config": config.to_dict(), "git_revision": git_revision(),

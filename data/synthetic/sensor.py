@@ -17,6 +17,36 @@ from numpy.typing import NDArray
 from data.synthetic.config import SensorConfig
 
 
+class NoiseBank:
+    """Pre-drawn standard normal and uniform numbers; each frame takes slices at random offsets.
+
+    Drawing ~1.5 M random numbers per frame costs more than the rest of the sensor model;
+    slicing a bank twice that size at offsets drawn from the frame's generator keeps frames
+    deterministic and, in any one frame, the noise independent across pixels.
+    """
+
+    def __init__(self, seed: int, size: int) -> None:
+        rng = np.random.default_rng([seed, 99])
+        self._normal = rng.standard_normal(2 * size, dtype=np.float32)
+        self._uniform = rng.random(2 * size, dtype=np.float32)
+        self.size = size
+
+    def _take(self, bank: NDArray[np.float32], shape: tuple[int, ...], rng: np.random.Generator) -> NDArray[np.float32]:
+        n = int(np.prod(shape))
+        if n > self.size:
+            raise ValueError(f"noise bank of {self.size} too small for {shape}")
+        off = int(rng.integers(0, len(bank) - n + 1))
+        return bank[off: off + n].reshape(shape)
+
+    def normal(self, shape: tuple[int, ...], rng: np.random.Generator) -> NDArray[np.float32]:
+        """Standard normal samples of ``shape`` (read-only view)."""
+        return self._take(self._normal, shape, rng)
+
+    def uniform(self, shape: tuple[int, ...], rng: np.random.Generator) -> NDArray[np.float32]:
+        """Uniform [0, 1) samples of ``shape`` (read-only view)."""
+        return self._take(self._uniform, shape, rng)
+
+
 def projector_shadow(z: NDArray[np.float32], fx: float, baseline_m: float) -> NDArray[np.bool_]:
     """Pixels the IR projector (``baseline_m`` along +x) cannot see, (H, W) bool.
 
@@ -56,7 +86,7 @@ def correlated_noise(rng: np.random.Generator, shape: tuple[int, int], scale_px:
 
 
 def depth_sensor(z: NDArray[np.float32], cos_incidence: NDArray[np.float32], fx: float,
-                 cfg: SensorConfig, rng: np.random.Generator) -> NDArray[np.float32]:
+                 cfg: SensorConfig, rng: np.random.Generator, bank: NoiseBank | None = None) -> NDArray[np.float32]:
     """Measured depth (H, W) float32 metres (0 = hole) from exact z-depth ``z`` (0 = miss)
     and |cos| of the viewing ray against the surface normal (H, W)."""
     if cfg.noise_free:
@@ -66,16 +96,17 @@ def depth_sensor(z: NDArray[np.float32], cos_incidence: NDArray[np.float32], fx:
         valid &= ~projector_shadow(z, fx, cfg.projector_baseline_m)
     if cfg.edge_hole_px > 0:
         valid &= ~discontinuity_mask(z, cfg.edge_jump_rel, cfg.edge_hole_px)
-    u = rng.random(z.shape, dtype=np.float32)
+    bank = bank or NoiseBank(int(rng.integers(1 << 31)), z.size)
     if cfg.grazing_cos > 0:
-        valid &= cos_incidence > cfg.grazing_cos * u
-    valid &= rng.random(z.shape, dtype=np.float32) >= cfg.dropout_prob
+        valid &= cos_incidence > np.float32(cfg.grazing_cos) * bank.uniform(z.shape, rng)
+    if cfg.dropout_prob > 0:
+        valid &= bank.uniform(z.shape, rng) >= np.float32(cfg.dropout_prob)
     with np.errstate(divide="ignore"):
         inv = np.where(valid, 1.0 / np.maximum(z, 1e-6), 0).astype(np.float32)
     if cfg.depth_noise_coeff > 0:
         a = np.float32(np.sqrt(cfg.depth_noise_correlated))
         b = np.float32(np.sqrt(1.0 - cfg.depth_noise_correlated))
-        n = b * rng.standard_normal(z.shape, dtype=np.float32)
+        n = b * bank.normal(z.shape, rng)
         if a > 0:
             n += a * correlated_noise(rng, z.shape, cfg.depth_noise_corr_px)
         inv = inv + np.float32(cfg.depth_noise_coeff) * n
@@ -118,6 +149,17 @@ def motion_kernel(flow: NDArray[np.float64], exposure: float) -> NDArray[np.floa
     return k / k.sum()
 
 
+def shifted_gaussian(sigma: float, shift: float) -> NDArray[np.float32]:
+    """1-D correlation kernel that blurs by ``sigma`` and moves content by ``+shift`` pixels."""
+    half = int(np.ceil(abs(shift) + 3 * max(sigma, 0.3))) + 1
+    x = np.arange(-half, half + 1, dtype=np.float64)
+    if sigma > 0:
+        k = np.exp(-0.5 * ((x + shift) / sigma) ** 2)
+    else:  # pure sub-pixel shift: linear interpolation
+        k = np.maximum(1 - np.abs(x + shift), 0)
+    return (k / k.sum()).astype(np.float32)
+
+
 class ColourSensor:
     """Turns a linear rendering (H, W, 3) float32 into an 8-bit RGB image."""
 
@@ -126,7 +168,9 @@ class ColourSensor:
         yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
         r2 = ((xx - cx) ** 2 + (yy - cy) ** 2) / (cx ** 2 + cy ** 2)
         self.vignette = (1.0 - cfg.vignetting * r2)[..., None].astype(np.float32)
-        self.shift = np.float32([[1, 0, cfg.rgb_shift_px[0]], [0, 1, cfg.rgb_shift_px[1]]])
+        self.kx = shifted_gaussian(cfg.rgb_blur_sigma, cfg.rgb_shift_px[0])
+        self.ky = shifted_gaussian(cfg.rgb_blur_sigma, cfg.rgb_shift_px[1])
+        self.bank = NoiseBank(0, width * height * 3)
 
     def __call__(self, img: NDArray[np.float32], gain: float, flow: NDArray[np.float64],
                  rng: np.random.Generator) -> NDArray[np.uint8]:
@@ -138,12 +182,9 @@ class ColourSensor:
             k = motion_kernel(flow, cfg.motion_blur_exposure)
             if k is not None:
                 img = cv2.filter2D(img, -1, k, borderType=cv2.BORDER_REFLECT)
-        if cfg.rgb_blur_sigma > 0:
-            img = cv2.GaussianBlur(img, (0, 0), cfg.rgb_blur_sigma)
-        if any(cfg.rgb_shift_px):
-            img = cv2.warpAffine(img, self.shift, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR,
-                                 borderMode=cv2.BORDER_REFLECT)
+        # optical blur and RGB-depth misregistration in one separable filter
+        img = cv2.sepFilter2D(img, -1, self.kx, self.ky, borderType=cv2.BORDER_REFLECT)
         dn = np.clip(img, 0, 1) * np.float32(255)
         sd = np.sqrt(np.float32(cfg.read_noise_dn ** 2) + np.float32(cfg.shot_noise_gain) * dn)
-        dn += sd * rng.standard_normal(dn.shape, dtype=np.float32)
+        dn += sd * self.bank.normal(dn.shape, rng)
         return np.clip(np.rint(dn), 0, 255).astype(np.uint8)

@@ -1,0 +1,217 @@
+"""Synthetic scenes: known-answer depth, sensor statistics, trajectories, cache and reader."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import data.synthetic as syn
+from data.errors import DataError
+from data.geometry import is_rigid
+from data.scenes import open_scene
+from data.synthetic.config import PRESETS, SceneConfig, SensorConfig
+from data.synthetic.layout import SceneBuilder
+from data.synthetic.renderer import Renderer
+from data.synthetic.sensor import depth_sensor, projector_shadow
+from data.synthetic.textures import tex_plain
+from data.synthetic.trajectory import motion_stats
+
+FX, CX, CY, W, H = 585.0, 320.0, 240.0, 640, 480
+
+
+def _plane_scene(point: np.ndarray, normal: np.ndarray, half: float = 20.0):
+    """A single large square plane through ``point`` with ``normal`` (world = camera frame)."""
+    b = SceneBuilder(np.random.default_rng(0), (1.0, 1.0, 1.0))
+    m = b.material("grey", lambda g: tex_plain(g, np.array([0.5, 0.5, 0.5], np.float32)), 1.0)
+    n = normal / np.linalg.norm(normal)
+    e1 = np.cross(n, [0.0, 1.0, 0.0] if abs(n[1]) < 0.9 else [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    b.quad(point - half * e1 - half * e2, 2 * half * e1, 2 * half * e2, m)
+    b.lights.append((0.0, 0.0, 0.0, 1.0))
+    return b.build(free_margin=0.1)
+
+
+def _plane_z(point: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Analytic z-depth (H, W) of the plane n.X = n.point seen by the camera at the origin."""
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    d = np.stack([(u - CX) / FX, (v - CY) / FX, np.ones_like(u)], -1)
+    return float(normal @ point) / (d @ normal)
+
+
+@pytest.mark.parametrize("dist,normal", [(1.5, [0.0, 0.0, -1.0]), (2.0, [0.3, -0.2, -1.0])])
+def test_noise_free_depth_is_exact_z(dist, normal):
+    point, normal = np.array([0.0, 0.0, dist]), np.array(normal)
+    r = Renderer(_plane_scene(point, normal), FX, FX, CX, CY, W, H)
+    frame = r.render(np.eye(4))
+    expected = _plane_z(point, normal / np.linalg.norm(normal))
+    assert (frame.triangle >= 0).all()
+    np.testing.assert_allclose(frame.depth, expected, rtol=2e-6, atol=2e-6)
+    clean = depth_sensor(frame.depth, frame.cos_incidence, FX, SensorConfig(noise_free=True), np.random.default_rng(0))
+    np.testing.assert_array_equal(clean, frame.depth)
+    mm = syn.depth_to_png_mm(clean)
+    assert np.abs(mm / 1000.0 - expected).max() <= 0.0005 + 1e-6
+
+
+def test_shading_is_lambertian_on_a_plane():
+    # light at the camera centre, grey albedo 0.5: colour = 0.5 * (ambient + cos / (0.5 + r^2))
+    point, normal = np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0])
+    scene = _plane_scene(point, normal)
+    frame = Renderer(scene, FX, FX, CX, CY, W, H).render(np.eye(4))
+    centre = frame.colour[240, 320]
+    expected = 0.5 * (scene.ambient + 1.0 / (0.5 + 1.0))
+    np.testing.assert_allclose(centre, expected, rtol=0.03)
+
+
+def _wall_errors(z: float, seed: int = 0) -> np.ndarray:
+    zz = np.full((H, W), z, np.float32)
+    out = depth_sensor(zz, np.ones_like(zz), FX, SensorConfig(), np.random.default_rng(seed))
+    inner = out[20:-20, 20:-20]
+    return inner[inner > 0] - z
+
+
+def test_depth_noise_follows_kinect_z_squared_law():
+    e1, e3, e4 = _wall_errors(1.0), _wall_errors(3.0), _wall_errors(4.0)
+    s1, s3, s4 = e1.std(), e3.std(), e4.std()
+    assert 1.0e-3 < s1 < 2.5e-3, s1  # ~1.5 mm at 1 m
+    assert 10e-3 < s3 < 22e-3, s3  # cm-level at 3 m
+    assert 20e-3 < s4 < 33e-3, s4  # 2-3 cm at 4 m
+    assert 11 < s4 / s1 < 21  # ~ z^2
+    assert abs(e1.mean()) < 0.3e-3
+    # disparity quantisation: few distinct depth values at 1 m, steps ~2.85 mm
+    vals = np.unique(np.round(e1 + 1.0, 6))
+    steps = np.diff(vals)
+    assert 2.0e-3 < np.median(steps) < 3.5e-3
+
+
+def test_depth_holes_outside_working_range():
+    zz = np.tile(np.linspace(0.3, 6.0, W, dtype=np.float32), (H, 1))
+    out = depth_sensor(zz, np.ones_like(zz), FX, SensorConfig(), np.random.default_rng(1))
+    assert (out[zz < 0.47] == 0).all()
+    assert (out[zz > 4.9] == 0).all()
+    assert ((out > 0) & ((out < 0.5) | (out > 4.5))).sum() == 0
+    mid = (zz > 0.7) & (zz < 4.0)
+    assert (out[mid] > 0).mean() > 0.95
+
+
+def test_projector_shadow_width_matches_geometry():
+    zz = np.full((H, W), 2.0, np.float32)
+    zz[:, 300:400] = 1.0  # a 1 m foreground bar in front of a 2 m wall
+    shadow = projector_shadow(zz, FX, 0.075)
+    cols = np.flatnonzero(shadow[100])
+    expected = FX * 0.075 * (1 / 1.0 - 1 / 2.0)  # 21.9 px left of the bar
+    assert cols.max() == 299
+    assert abs(len(cols) - expected) <= 1.0
+    assert not shadow[:, 300:].any()
+
+
+def test_presets_are_distinct_and_sized():
+    names = [n for n in PRESETS if n != "tiny"]
+    assert len(names) >= 3
+    assert len({PRESETS[n].layout for n in names}) >= 3
+    assert all(300 <= PRESETS[n].frames <= 600 for n in names)
+    assert PRESETS["tiny"].frames <= 30
+    digests = {PRESETS[n].digest() for n in PRESETS}
+    assert len(digests) == len(PRESETS)
+    clean = syn.config.resolve_preset("office-clean")
+    assert clean.sensor.noise_free and clean.digest() != PRESETS["office"].digest()
+
+
+@pytest.mark.parametrize("name", ["office", "kitchen", "lab"])
+def test_trajectories_are_hand_held_speeds(name):
+    cfg = PRESETS[name]
+    scene, poses = syn.build(cfg)
+    assert poses.shape == (cfg.frames, 4, 4)
+    assert all(is_rigid(T, atol=1e-9) for T in poses)
+    st = motion_stats(poses, cfg.fps)
+    assert 0.1 <= st["mean_speed_mps"] <= 0.4, st
+    assert st["max_speed_mps"] <= 0.5, st
+    assert st["max_angular_dps"] <= 30.0, st
+    assert 3.0 <= st["mean_step_mm"] <= 15.0, st
+    pos = poses[:, :3, 3]
+    assert (pos > 0.3).all() and (pos < scene.size - 0.3).all()
+    clearance = np.min([ob.distance(pos) for ob in scene.obstacles], axis=0)
+    assert clearance.min() > 0.2
+
+
+def test_rendering_is_deterministic_for_a_seed():
+    cfg = dataclasses.replace(PRESETS["tiny"], frames=4)
+    a = syn.FrameRenderer(cfg, *syn.build(cfg))
+    b = syn.FrameRenderer(cfg, *syn.build(cfg))
+    np.testing.assert_array_equal(a.poses, b.poses)
+    rgb_a, d_a, _ = a.frame(2)
+    rgb_b, d_b, _ = b.frame(2)
+    np.testing.assert_array_equal(rgb_a, rgb_b)
+    np.testing.assert_array_equal(d_a, d_b)
+    other = dataclasses.replace(cfg, seed=cfg.seed + 1)
+    assert not np.allclose(syn.build(other)[1], a.poses)
+    # noise is on: the measured depth differs from the exact one, with holes
+    exact = a.renderer.render(a.poses[2]).depth
+    valid = d_a > 0
+    assert 0.6 < valid.mean() < 0.995
+    assert np.abs(d_a[valid] - exact[valid]).max() > 1e-3
+
+
+def test_open_scene_round_trip_and_cache(tmp_path: Path):
+    seqs = open_scene("synthetic/tiny", cache_dir=tmp_path)
+    assert len(seqs) == 1
+    seq = seqs[0]
+    cfg = PRESETS["tiny"]
+    assert len(seq) == cfg.frames and seq.name == "synthetic-tiny"
+    assert seq.intrinsics.K.tolist() == [[585.0, 0, 320.0], [0, 585.0, 240.0], [0, 0, 1]]
+    folder = syn.scene_dir("tiny", cfg, tmp_path)
+    assert folder.name.endswith(cfg.digest()) and (folder / "seq-01" / "frame-000000.color.png").is_file()
+    scene, poses = syn.build(cfg)
+    np.testing.assert_allclose(seq.groundtruth(), poses, atol=1e-8)
+    fr = syn.FrameRenderer(cfg, scene, poses)
+    rgb, depth, exact = fr.frame(5)
+    np.testing.assert_array_equal(seq.rgb(5), rgb)
+    np.testing.assert_allclose(seq.depth(5), np.rint(depth * 1000) / 1000, atol=1e-6)
+    # the camera looks at the room contents from typical 7-Scenes distances
+    assert 0.7 < np.median(exact.depth[exact.depth > 0]) < 3.0
+    # second open: cached, nothing re-rendered
+    mtime = (folder / "config.json").stat().st_mtime_ns
+    open_scene("synthetic/tiny", cache_dir=tmp_path)
+    assert (folder / "config.json").stat().st_mtime_ns == mtime
+    assert not list(folder.parent.glob(".tmp-*"))
+
+
+def test_killed_render_leaves_no_scene(tmp_path: Path, monkeypatch):
+    calls = {"n": 0}
+    real = syn._write_frame
+
+    def failing(*args):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return real(*args)
+
+    monkeypatch.setattr(syn, "_write_frame", failing)
+    cfg = dataclasses.replace(PRESETS["tiny"], frames=6, width=160, height=120, fx=146.25, fy=146.25, cx=80, cy=60)
+    with pytest.raises(KeyboardInterrupt):
+        syn.synthetic_sequence("small", cache_dir=tmp_path, config=cfg)
+    root = tmp_path / "synthetic"
+    assert not any(root.iterdir())
+    monkeypatch.setattr(syn, "_write_frame", real)
+    seq = syn.synthetic_sequence("small", cache_dir=tmp_path, config=cfg)
+    assert len(seq) == 6 and seq.rgb(0).shape == (120, 160, 3) and seq.intrinsics.width == 160
+
+
+def test_unknown_name_lists_known_names(tmp_path: Path):
+    with pytest.raises(DataError) as err:
+        open_scene("synthetic/attic", cache_dir=tmp_path)
+    msg = str(err.value)
+    assert "attic" in msg and all(n in msg for n in ("office", "kitchen", "lab", "tiny"))
+
+
+def test_cache_dir_from_environment(monkeypatch, tmp_path: Path):
+    monkeypatch.setenv("VO_CACHE_DIR", str(tmp_path / "c"))
+    assert syn.default_cache_dir() == tmp_path / "c"
+    monkeypatch.delenv("VO_CACHE_DIR")
+    assert syn.default_cache_dir() == Path.home() / ".cache" / "ctcvo"
+    cfg = PRESETS["office"]
+    changed = dataclasses.replace(cfg, sensor=dataclasses.replace(cfg.sensor, depth_noise_coeff=2e-3))
+    assert syn.scene_dir("office", cfg, tmp_path) != syn.scene_dir("office", changed, tmp_path)
