@@ -1,0 +1,54 @@
+"""``teacher`` console script: a thin wrapper around :func:`teacher.generate.generate`."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import sys
+from pathlib import Path
+from typing import Optional, Sequence
+
+from data.errors import VOError
+from teacher.config import PRESETS
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="teacher", description=__doc__)
+    sub = p.add_subparsers(dest="command", required=True)
+    g = sub.add_parser("generate", help="estimate relative-pose labels for a scene")
+    g.add_argument("--scene", required=True, help="sequence/scene folder (7-Scenes, TUM) or synthetic/NAME")
+    g.add_argument("--out", type=Path, default=None, help="output folder (default runs/<scene>/teacher)")
+    g.add_argument("--gaps", type=int, default=None, help="largest frame gap K of the edges (default 5)")
+    g.add_argument("--frames", default=None, help="frame range START:STOP[:STEP] of each sequence")
+    g.add_argument("--split", default="all", choices=["train", "test", "all"], help="split of a 7-Scenes scene folder")
+    g.add_argument("--preset", default="default", choices=sorted(PRESETS), help="teacher preset")
+    g.add_argument("--workers", type=int, default=None, help="threads (default 2)")
+    g.add_argument("--overwrite", action="store_true", help="redo sequences whose outputs exist")
+    g.add_argument("-v", "--verbose", action="store_true")
+    return p
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s")
+    from teacher.generate import generate
+
+    cfg = PRESETS[args.preset]
+    if args.gaps is not None:
+        cfg = dataclasses.replace(cfg, gaps=args.gaps)
+    if args.workers is not None:
+        cfg = dataclasses.replace(cfg, workers=args.workers)
+    try:
+        generate(args.scene, args.out, args.split, args.frames, cfg, args.overwrite)
+    except VOError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("error: interrupted (finished sequences are kept; rerun to resume)", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

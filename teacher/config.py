@@ -1,0 +1,83 @@
+"""Teacher configuration: a frozen dataclass, presets are instances (change with
+``dataclasses.replace``)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+
+@dataclass(frozen=True)
+class TeacherConfig:
+    """Parameters of the ORB + PnP-RANSAC RGB-D odometry teacher."""
+
+    gaps: int = 5
+    """Edges are estimated for every frame pair (i, i+g), g = 1..gaps."""
+    n_features: int = 1000
+    """ORB features per frame (cv2.ORB nfeatures)."""
+    fast_threshold: int = 12
+    """FAST threshold of the ORB detector; lower finds corners in weak texture."""
+    orb_levels: int = 6
+    """ORB pyramid levels (scale factor 1.2 each)."""
+    ratio: float = 0.85
+    """Lowe ratio test on Hamming distances (best / second best)."""
+    search_radius_px: float = 12.0
+    """Guided matching: a keypoint is compared only with keypoints of the other frame
+    within this radius of its position predicted by the motion prior."""
+    max_hamming: int = 64
+    """Reject matches whose Hamming distance exceeds this (of 256 bits)."""
+    subpixel: bool = False
+    """Refine each match in frame j to sub-pixel precision with pyramidal Lucas-Kanade
+    started at the matched keypoint (ORB keypoints are integer pixels of pyramid levels)."""
+    depth_min: float = 0.3
+    """Keypoint depths below this (m) are ignored."""
+    depth_max: float = 4.5
+    """Keypoint depths above this (m) are ignored (Kinect-v1 noise grows with z^2)."""
+    depth_edge_rel: float = 0.02
+    """A keypoint is on a depth discontinuity (rejected) if the depth range in its 5x5
+    neighbourhood exceeds ``max(depth_edge_abs, depth_edge_rel * z)``."""
+    depth_edge_abs: float = 0.02
+    """Absolute part of the depth-discontinuity test, metres."""
+    ransac_reproj_px: float = 2.5
+    """RANSAC inlier threshold on the reprojection error, pixels."""
+    ransac_iters: int = 300
+    """Maximum RANSAC iterations of cv2.solvePnPRansac."""
+    refine_inlier_px: float = 2.0
+    """After refinement, correspondences within this reprojection error are inliers."""
+    huber_px: float = 1.0
+    """Huber threshold (pixels) of the robust two-way refinement."""
+    refine_max_points: int = 300
+    """At most this many correspondences (evenly spaced) enter the refinement; more add
+    time but little accuracy, as their errors are correlated."""
+    two_way: bool = True
+    """Refine on the reprojection error in both directions (frame-i points into j and
+    frame-j points into i, using the depth of both frames); else forward only."""
+    refine_rounds: int = 1
+    """Rounds of (select inliers with the current pose, refine)."""
+    refine_iters: int = 6
+    """Levenberg-Marquardt iterations per refinement round (two rounds)."""
+    min_matches: int = 30
+    """Fewer matches with valid depth than this: edge failed (``few_matches``)."""
+    min_inliers: int = 25
+    """Fewer refined inliers than this: edge failed (``few_inliers``)."""
+    min_inlier_ratio: float = 0.25
+    """Inlier ratio below this: edge failed (``low_inlier_ratio``)."""
+    max_rmse_px: float = 1.5
+    """Reprojection RMSE of the inliers above this: edge failed (``high_rmse``)."""
+    min_spread: float = 0.08
+    """Inliers must cover at least this fraction of the image in both axes (std of u and
+    v over width/height), else the geometry is ``degenerate``."""
+    max_speed: float = 1.5
+    """Translations faster than this (m/s) are ``implausible_motion``."""
+    max_angular_speed_deg: float = 180.0
+    """Rotations faster than this (deg/s) are ``implausible_motion``."""
+    workers: int = 2
+    """Threads for decoding, feature extraction and edge estimation."""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+DEFAULT = TeacherConfig()
+#: a fast preset for tests: fewer features and gaps
+TINY = TeacherConfig(gaps=2, n_features=600)
+PRESETS = {"default": DEFAULT, "tiny": TINY}

@@ -1,0 +1,282 @@
+"""``teacher generate``: noisy relative-pose labels for every frame pair (i, i+g), g = 1..K.
+
+Pipeline per sequence (frames streamed once, each frame's features reused by all its
+edges):
+
+1. a thread pool decodes frames and extracts ORB features ahead of the main loop;
+2. the gap-1 edge (k-1, k) is matched with a constant-velocity prediction (guided
+   matching) and estimated by PnP-RANSAC + two-way refinement;
+3. its inlier matches extend feature tracks; each longer edge (k-g, k) is estimated in the
+   pool from the tracks that survive from k-g to k (falling back to guided matching with
+   the chained gap-1 motion, then to exhaustive matching);
+4. the gap-1 trajectory is chained; a failed gap-1 edge is bridged by the shortest good
+   edge that spans it, else by constant velocity, and the report lists every bridge.
+
+Outputs (docs/formats.md): edges.g2o, edges.csv, trajectory.tum, groundtruth.tum (with
+ground truth), report.json, config.json.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from collections import Counter, deque
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from data import geometry as geo
+from data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
+from data.io import ensure_dir, git_revision, write_json
+from data.metrics import trajectory_report
+from data.scenes import open_scene, scene_slug
+from data.sequence import Sequence
+from teacher.config import TeacherConfig
+from teacher.odometry import EdgeEstimate, FrameFeatures, estimate_edge, extract, make_orb
+
+log = logging.getLogger(__name__)
+
+OUTPUT_FILES = ("edges.g2o", "edges.csv", "trajectory.tum", "report.json")
+
+
+@dataclass
+class _WindowEntry:
+    k: int  # position in the sequence
+    feats: FrameFeatures
+    link: NDArray[np.int64]  # keypoint of frame k -> keypoint in the newest frame (-1: lost)
+    T_k_cur: Optional[NDArray[np.float64]]  # chained gap-1 motion from frame k to the newest
+
+
+@dataclass
+class TeacherRun:
+    """What :func:`run_sequence` computed (before writing)."""
+
+    edges: list[EdgeEstimate]
+    poses: NDArray[np.float64]  # (N, 4, 4) chained T_world_cam, frame 0 at the identity
+    bridges: list[dict]
+    seconds: float
+
+
+def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> TeacherRun:
+    """Estimate every edge (i, i+g), g = 1..cfg.gaps, and the chained gap-1 trajectory."""
+    n = len(seq)
+    ids, times = seq.ids(), seq.times()
+    intr = seq.intrinsics
+    t0 = time.perf_counter()
+    gap1: list[Optional[EdgeEstimate]] = [None] * max(n - 1, 0)
+    long_futs: list[Future] = []
+    orbs: dict[int, object] = {}
+
+    def _extract(k: int) -> FrameFeatures:
+        import threading
+
+        tid = threading.get_ident()
+        if tid not in orbs:
+            orbs[tid] = make_orb(cfg)
+        return extract(seq.rgb(k), seq.depth(k), cfg, orbs[tid])
+
+    with ThreadPoolExecutor(max(1, cfg.workers)) as pool:
+        ahead = 2 * max(1, cfg.workers) + 2
+        feat_futs: dict[int, Future] = {k: pool.submit(_extract, k) for k in range(min(n, ahead))}
+        window: deque[_WindowEntry] = deque()
+        v_prev: Optional[NDArray] = None  # last good gap-1 motion (constant-velocity prior)
+        bar = tqdm(total=n, desc=f"teacher {seq.name}", unit="frame", disable=not (progress and sys.stderr.isatty()))
+        for k in range(n):
+            fk = feat_futs.pop(k).result()
+            if k + ahead < n:
+                feat_futs[k + ahead] = pool.submit(_extract, k + ahead)
+            if k > 0:
+                prev = window[-1]
+                dt = float(times[k] - times[k - 1])
+                e = estimate_edge(int(ids[k - 1]), int(ids[k]), prev.feats, fk, intr, cfg, dt, T_pred=v_prev)
+                gap1[k - 1] = e
+                step = e.T_i_j if e.ok else (v_prev if v_prev is not None else np.eye(4))
+                if e.ok:
+                    v_prev = e.T_i_j
+                m = np.full(len(prev.feats.uv) + 1, -1, np.int64)  # last slot maps -1 -> -1
+                if e.ok and e.inlier_pairs is not None:
+                    m[e.inlier_pairs[:, 0]] = e.inlier_pairs[:, 1]
+                for w in window:
+                    w.link = m[w.link]
+                    w.T_k_cur = w.T_k_cur @ step
+                for w in list(window)[:-1]:  # gaps >= 2
+                    tracks = np.flatnonzero(w.link >= 0)
+                    tracks = np.stack([tracks, w.link[tracks]], axis=1)
+                    long_futs.append(pool.submit(
+                        estimate_edge, int(ids[w.k]), int(ids[k]), w.feats, fk, intr, cfg,
+                        float(times[k] - times[w.k]), w.T_k_cur.copy(), tracks))
+            window.append(_WindowEntry(k, fk, np.arange(len(fk.uv)), np.eye(4)))
+            while window and k - window[0].k >= cfg.gaps:
+                window.popleft()
+            bar.update(1)
+        bar.close()
+        longer = [f.result() for f in long_futs]
+    edges = [e for e in gap1 if e is not None] + longer
+    edges.sort(key=lambda e: (e.i, e.j))
+    poses, bridges = chain_trajectory(ids, edges, cfg.gaps)
+    return TeacherRun(edges, poses, bridges, time.perf_counter() - t0)
+
+
+def chain_trajectory(ids: NDArray[np.int64], edges: list[EdgeEstimate], gaps: int
+                     ) -> tuple[NDArray[np.float64], list[dict]]:
+    """Chain gap-1 edges into ``T_world_cam`` (frame 0 at the identity).
+
+    A failed gap-1 edge (k, k+1) is bridged by the shortest good edge (k-m, k+1),
+    m = 1..gaps-1, from an already placed frame; else by constant velocity (the last good
+    gap-1 motion, identity if none). Returns (poses (N, 4, 4), bridges).
+    """
+    pos = {int(f): p for p, f in enumerate(ids)}
+    good = {(e.i, e.j): e.T_i_j for e in edges if e.ok}
+    n = len(ids)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    bridges: list[dict] = []
+    v_prev = np.eye(4)
+    for k in range(n - 1):
+        a, b = int(ids[k]), int(ids[k + 1])
+        if (a, b) in good:
+            v_prev = good[(a, b)]
+            poses[k + 1] = poses[k] @ v_prev
+            continue
+        for m in range(1, gaps):
+            if k - m < 0:
+                break
+            key = (int(ids[k - m]), b)
+            if key in good:
+                poses[k + 1] = poses[pos[key[0]]] @ good[key]
+                bridges.append({"i": a, "j": b, "method": f"edge {key[0]}->{b}"})
+                break
+        else:
+            poses[k + 1] = poses[k] @ v_prev
+            bridges.append({"i": a, "j": b, "method": "constant velocity"})
+    return poses, bridges
+
+
+def _edge_rows(edges: list[EdgeEstimate], ts: dict[int, float]) -> list[dict]:
+    return [{
+        "i": e.i, "j": e.j, "t_i": f"{ts[e.i]:.6f}", "t_j": f"{ts[e.j]:.6f}", "status": e.status,
+        "matches": e.matches, "inliers": e.inliers, "inlier_ratio": float(e.inlier_ratio),
+        "rmse_px": float(e.rmse_px), "trans_m": float(e.info.get("trans_m", float("nan"))),
+        "rot_deg": float(e.info.get("rot_deg", float("nan"))),
+    } for e in edges]
+
+
+def _label_errors(edges: list[EdgeEstimate], gt: NDArray, ids: NDArray, gaps: int) -> dict:
+    """Per-gap RMS error of the good labels against ground truth (trans m, rot deg)."""
+    pos = {int(f): p for p, f in enumerate(ids)}
+    out = {}
+    for g in range(1, gaps + 1):
+        errs = []
+        for e in edges:
+            if e.ok and pos[e.j] - pos[e.i] == g:
+                d = geo.inv_T(geo.relative_pose(gt[pos[e.i]], gt[pos[e.j]])) @ e.T_i_j
+                errs.append((np.linalg.norm(d[:3, 3]), geo.rotation_angle_deg(d)))
+        if errs:
+            a = np.array(errs)
+            out[str(g)] = {"edges": len(a), "trans_rmse_m": float(np.sqrt(np.mean(a[:, 0] ** 2))),
+                           "rot_rmse_deg": float(np.sqrt(np.mean(a[:, 1] ** 2)))}
+    return out
+
+
+def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
+    """``report.json`` content (keys documented in docs/formats.md)."""
+    n = len(seq)
+    status = Counter(e.status for e in run.edges)
+    gap1_failed = [e for e in run.edges if not e.ok and _gap(seq, e) == 1]
+    rep: dict = {
+        "sequence": seq.name,
+        "frames": n,
+        "edges": int(status.get("ok", 0)),
+        "failed_edges": int(sum(v for s, v in status.items() if s != "ok")),
+        "failed_gap1_edges": len(gap1_failed),
+        "failures_by_reason": {s: int(v) for s, v in status.items() if s != "ok"},
+        "bridges": run.bridges,
+        "fps": n / run.seconds if run.seconds > 0 else float("nan"),
+        "seconds": run.seconds,
+    }
+    gt = seq.groundtruth()
+    if gt is not None and n >= 2:
+        times = seq.times()
+        rep.update(trajectory_report(Trajectory(times, gt), Trajectory(times, run.poses)))
+        rep["label_error_by_gap"] = _label_errors(run.edges, gt, seq.ids(), cfg.gaps)
+    return rep
+
+
+def _gap(seq: Sequence, e: EdgeEstimate) -> int:
+    ids = seq.ids()
+    return int(np.searchsorted(ids, e.j) - np.searchsorted(ids, e.i))
+
+
+def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path, extra: dict) -> dict:
+    """Write every output file atomically; ``report.json`` last (it marks completion)."""
+    ensure_dir(out)
+    ids, times = seq.ids(), seq.times()
+    ts = {int(f): float(t) for f, t in zip(ids, times)}
+    good = [Edge(e.i, e.j, e.T_i_j, e.cov) for e in run.edges if e.ok]
+    write_g2o(out / "edges.g2o", good, {int(f): T for f, T in zip(ids, run.poses)})
+    write_edges_csv(out / "edges.csv", _edge_rows(run.edges, ts))
+    write_tum(out / "trajectory.tum", Trajectory(times, run.poses))
+    gt = seq.groundtruth()
+    if gt is not None:
+        write_tum(out / "groundtruth.tum", Trajectory(times, gt))
+    write_json(out / "config.json", {"teacher": cfg.to_dict(), "git_revision": git_revision(), **extra})
+    report = build_report(seq, run, cfg)
+    write_json(out / "report.json", _finite(report))
+    return report
+
+
+def _finite(obj):
+    """Replace non-finite floats by None so the JSON stays strict."""
+    if isinstance(obj, float):
+        return obj if np.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def default_out(spec: str) -> Path:
+    return Path("runs") / scene_slug(spec) / "teacher"
+
+
+def generate(spec: str, out: Optional[Path] = None, split: str = "all", frames: Optional[str] = None,
+             config: TeacherConfig = TeacherConfig(), overwrite: bool = False, progress: bool = True) -> list[Path]:
+    """Run the teacher on every sequence of ``spec``; returns one output folder per sequence.
+
+    A sequence whose ``report.json`` already exists is skipped unless ``overwrite``.
+    """
+    from data.errors import ConfigError
+
+    if config.gaps < 1:
+        raise ConfigError(f"--gaps must be >= 1, got {config.gaps}")
+    seqs = open_scene(spec, split=split, frames=frames)
+    base = Path(out) if out is not None else default_out(spec)
+    ensure_dir(base)
+    dirs = []
+    for seq in seqs:
+        d = base if len(seqs) == 1 else base / seq.name
+        dirs.append(d)
+        if (d / "report.json").is_file() and not overwrite:
+            log.info("%s: teacher output exists in %s (use --overwrite to redo)", seq.name, d)
+            continue
+        if len(seq) < 2:
+            raise ConfigError(f"{seq.name}: need at least 2 frames, got {len(seq)}")
+        run = run_sequence(seq, config, progress)
+        rep = write_outputs(seq, run, config, d, {"scene": spec, "split": split, "frames": frames})
+        log.info("%s", summary_line(seq.name, rep))
+    return dirs
+
+
+def summary_line(name: str, rep: dict) -> str:
+    s = (f"{name}: {rep['frames']} frames, {rep['edges']} edges ({rep['failed_edges']} failed, "
+         f"{rep['failed_gap1_edges']} at gap 1), {rep['fps']:.1f} fps")
+    if "rpe_trans_rmse_m" in rep:
+        s += (f"; gap-1 RPE {1000 * rep['rpe_trans_rmse_m']:.2f} mm / {rep['rpe_rot_rmse_deg']:.3f} deg, "
+              f"ATE {1000 * rep['ate_rmse_m']:.1f} mm, se3 L2 {rep['se3_l2_mean']:.5f}")
+    return s

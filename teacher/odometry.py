@@ -1,0 +1,398 @@
+"""Two-frame RGB-D odometry: ORB matching, depth back-projection, PnP-RANSAC and a robust
+two-way refinement that yields ``T_i_j`` with a 6x6 covariance.
+
+Conventions (docs/conventions.md): ``T_i_j`` maps frame-j camera coordinates into frame i;
+the covariance is in the project tangent order (v, w), right perturbation at ``T_i_j``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from data import geometry as geo
+from data.sequence import Intrinsics
+from teacher.config import TeacherConfig
+
+_EDGE_KERNEL = np.ones((5, 5), np.uint8)
+
+
+@dataclass
+class FrameFeatures:
+    """Everything the teacher needs of one frame; computed once, reused by all its edges.
+
+    ``uv`` (N, 2) keypoint pixels, ``desc`` (N, 32) ORB descriptors, ``z`` (N,) depth at the
+    keypoint (0 where invalid or on a depth edge), ``gray`` (H, W) uint8 for sub-pixel
+    tracking, ``depth`` (H, W) float32 metres.
+    """
+
+    uv: NDArray[np.float32]
+    desc: NDArray[np.uint8]
+    z: NDArray[np.float32]
+    gray: NDArray[np.uint8]
+    depth: NDArray[np.float32]
+    depth_ok: NDArray[np.bool_]
+    _tree: Optional[cKDTree] = None
+
+    @property
+    def desc64(self) -> NDArray[np.uint64]:
+        """Descriptors as (N, 4) uint64 words for vectorised Hamming distances."""
+        return self.desc.view(np.uint64)
+
+    def tree(self) -> cKDTree:
+        """k-d tree over the keypoint positions (built on first use, then reused)."""
+        if self._tree is None:
+            self._tree = cKDTree(self.uv)
+        return self._tree
+
+
+def make_orb(cfg: TeacherConfig) -> cv2.ORB:
+    return cv2.ORB_create(nfeatures=cfg.n_features, scaleFactor=1.2, nlevels=cfg.orb_levels,
+                          fastThreshold=cfg.fast_threshold, edgeThreshold=19, patchSize=19)
+
+
+def valid_depth_mask(depth: NDArray[np.float32], cfg: TeacherConfig) -> NDArray[np.bool_]:
+    """Pixels with a depth in range and no depth discontinuity in their 5x5 neighbourhood."""
+    big = np.float32(1e6)
+    dmin = cv2.erode(np.where(depth > 0, depth, big), _EDGE_KERNEL)
+    dmax = cv2.dilate(depth, _EDGE_KERNEL)
+    thr = np.maximum(np.float32(cfg.depth_edge_abs), np.float32(cfg.depth_edge_rel) * depth)
+    return (depth >= cfg.depth_min) & (depth <= cfg.depth_max) & (dmin < big) & ((dmax - dmin) <= thr)
+
+
+def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConfig,
+            orb: Optional[cv2.ORB] = None) -> FrameFeatures:
+    """ORB keypoints and descriptors of one frame, with the depth at each keypoint."""
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    orb = orb or make_orb(cfg)
+    kps, desc = orb.detectAndCompute(gray, None)
+    ok = valid_depth_mask(depth, cfg)
+    if not kps or desc is None:
+        return FrameFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8),
+                             np.zeros(0, np.float32), gray, depth, ok)
+    uv = np.array([k.pt for k in kps], dtype=np.float32)
+    z = _depth_at(depth, ok, uv)
+    return FrameFeatures(uv, desc, z, gray, depth, ok)
+
+
+def _depth_at(depth: NDArray[np.float32], ok: NDArray[np.bool_], uv: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Depth at the nearest pixel of each point; 0 where invalid or outside the image."""
+    h, w = depth.shape
+    u = np.rint(uv[:, 0]).astype(np.int64)
+    v = np.rint(uv[:, 1]).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    z = np.zeros(len(uv), np.float32)
+    ui, vi = u[inside], v[inside]
+    z[inside] = np.where(ok[vi, ui], depth[vi, ui], 0.0)
+    return z
+
+
+def match(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
+          T_i_j_pred: Optional[NDArray] = None, K: Optional[NDArray] = None) -> NDArray[np.int64]:
+    """Mutual-nearest ORB matches passing the ratio test: (M, 2) index pairs (into i, into j).
+
+    Only keypoints of frame i with a valid depth take part. With a motion prediction
+    ``T_i_j_pred`` (and ``K``), each is compared only with the keypoints of frame j within
+    ``cfg.search_radius_px`` of its predicted position (guided matching, as ORB-SLAM's
+    search by projection); without one, with all of them.
+    """
+    src = np.flatnonzero(fi.z > 0)
+    if len(src) < 2 or len(fj.desc) < 2:
+        return np.zeros((0, 2), np.int64)
+    if T_i_j_pred is None:
+        return _match_exhaustive(fi, fj, src, cfg)
+    P = _backproject(fi.uv[src], fi.z[src], K)
+    Tji = geo.inv_T(T_i_j_pred)
+    Y = P @ Tji[:3, :3].T + Tji[:3, 3]
+    src = src[Y[:, 2] > 1e-3]
+    pred = _project(Y[Y[:, 2] > 1e-3], K)
+    near = cKDTree(pred).sparse_distance_matrix(fj.tree(), cfg.search_radius_px, output_type="ndarray")
+    if len(near) == 0:
+        return np.zeros((0, 2), np.int64)
+    qi, cj = src[near["i"]], near["j"].astype(np.int64)
+    d = np.bitwise_count(fi.desc64[qi] ^ fj.desc64[cj]).sum(axis=1, dtype=np.int64)
+    # best and second best in j for each i
+    o = np.lexsort((d, qi))
+    qi_s, cj_s, d_s = qi[o], cj[o], d[o]
+    first = np.flatnonzero(np.r_[True, qi_s[1:] != qi_s[:-1]])
+    has2 = np.r_[first[1:], len(qi_s)] - first >= 2
+    second = np.where(has2, d_s[np.minimum(first + 1, len(d_s) - 1)], 256)
+    best_i, best_j, best_d = qi_s[first], cj_s[first], d_s[first]
+    ok = (best_d <= cfg.max_hamming) & (best_d < cfg.ratio * second)
+    # mutual check: the best i for each j among the compared pairs
+    o2 = np.lexsort((d, cj))
+    cj2, qi2 = cj[o2], qi[o2]
+    first2 = np.flatnonzero(np.r_[True, cj2[1:] != cj2[:-1]])
+    back = np.full(len(fj.desc), -1, np.int64)
+    back[cj2[first2]] = qi2[first2]
+    ok &= back[best_j] == best_i
+    return np.stack([best_i[ok], best_j[ok]], axis=1)
+
+
+def _match_exhaustive(fi: FrameFeatures, fj: FrameFeatures, src: NDArray[np.int64],
+                      cfg: TeacherConfig) -> NDArray[np.int64]:
+    """Brute-force mutual-nearest + ratio-test matching of keypoints ``src`` of frame i."""
+    bf = cv2.BFMatcher(cv2.NORM_HAMMING)
+    di = fi.desc[src]
+    fwd = bf.knnMatch(di, fj.desc, k=2)
+    back = np.full(len(fj.desc), -1, np.int64)
+    for m in bf.match(fj.desc, di):
+        back[m.queryIdx] = m.trainIdx
+    pairs = [(a.queryIdx, a.trainIdx) for a, b in (ms for ms in fwd if len(ms) == 2)
+             if a.distance <= cfg.max_hamming and a.distance < cfg.ratio * b.distance
+             and back[a.trainIdx] == a.queryIdx]
+    p = np.array(pairs, dtype=np.int64).reshape(-1, 2)
+    p[:, 0] = src[p[:, 0]]
+    return p
+
+
+@dataclass
+class EdgeEstimate:
+    """Result of one pair. ``status`` is ``ok`` or the reason of failure."""
+
+    i: int
+    j: int
+    status: str
+    T_i_j: Optional[NDArray[np.float64]] = None
+    cov: Optional[NDArray[np.float64]] = None
+    matches: int = 0
+    inliers: int = 0
+    inlier_ratio: float = 0.0
+    rmse_px: float = float("nan")
+    info: dict = field(default_factory=dict)
+    inlier_pairs: Optional[NDArray[np.int64]] = None
+    """(M, 2) keypoint indices (in i, in j) of the inlier correspondences."""
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+def _backproject(uv: NDArray, z: NDArray, K: NDArray) -> NDArray[np.float64]:
+    x = (uv[:, 0] - K[0, 2]) / K[0, 0] * z
+    y = (uv[:, 1] - K[1, 2]) / K[1, 1] * z
+    return np.stack([x, y, z], axis=1).astype(np.float64)
+
+
+def _project(X: NDArray, K: NDArray) -> NDArray[np.float64]:
+    z = X[:, 2]
+    return np.stack([K[0, 0] * X[:, 0] / z + K[0, 2], K[1, 1] * X[:, 1] / z + K[1, 2]], axis=1)
+
+
+def _proj_rows(X: NDArray, K: NDArray) -> tuple[NDArray, NDArray]:
+    """Rows d(u)/d(X) and d(v)/d(X) of the pinhole projection at each point: two (N, 3)."""
+    iz = 1.0 / X[:, 2]
+    zero = np.zeros_like(iz)
+    du = np.stack([K[0, 0] * iz, zero, -K[0, 0] * X[:, 0] * iz * iz], axis=1)
+    dv = np.stack([zero, K[1, 1] * iz, -K[1, 1] * X[:, 1] * iz * iz], axis=1)
+    return du, dv
+
+
+def _cross(a: NDArray, b: NDArray) -> NDArray:
+    """Row-wise cross product of two (N, 3) arrays (np.cross is slow for small N)."""
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
+def _residuals(T: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDArray, K: NDArray,
+               with_jac: bool) -> tuple[NDArray, Optional[NDArray]]:
+    """Two-way reprojection residuals of ``T = T_i_j`` and their Jacobians w.r.t. a right
+    perturbation ``T @ exp(delta)``, delta = (v, w).
+
+    Forward: points ``P_i`` (frame i) projected into j vs ``uv_j``. Backward: points ``Q_j``
+    (frame j) projected into i vs ``uv_i``. Returns r (2F+2B,) ordered (u, v) per point and
+    J (2F+2B, 6); points behind a camera are dropped.
+    """
+    R, t = T[:3, :3], T[:3, 3]
+    Y = (P_i - t) @ R  # P_i in frame j: R^T (P - t)
+    X = Q_j @ R.T + t  # Q_j in frame i
+    fy, bx = Y[:, 2] > 1e-6, X[:, 2] > 1e-6
+    Y, uv_j, X, Q, uv_i = Y[fy], uv_j[fy], X[bx], Q_j[bx], uv_i[bx]
+    r = np.concatenate([(_project(Y, K) - uv_j).ravel(), (_project(X, K) - uv_i).ravel()])
+    if not with_jac:
+        return r, None
+    # forward: Y(delta) = exp(-delta) Y -> dY = [-I | hat(Y)];  a^T hat(Y) = (a x Y)^T
+    # backward: X(delta) = R exp(delta) Q + t -> dX = R [I | -hat(Q)];  b = R^T a
+    Jf = np.empty((len(Y), 2, 6))
+    Jb = np.empty((len(X), 2, 6))
+    for k, (a_f, a_b) in enumerate(zip(_proj_rows(Y, K), _proj_rows(X, K))):
+        Jf[:, k, :3] = -a_f
+        Jf[:, k, 3:] = _cross(a_f, Y)
+        b = a_b @ R
+        Jb[:, k, :3] = b
+        Jb[:, k, 3:] = _cross(Q, b)
+    return r, np.concatenate([Jf.reshape(-1, 6), Jb.reshape(-1, 6)], axis=0)
+
+
+def refine_two_way(T0: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDArray, K: NDArray,
+                   huber: float, iters: int = 10) -> tuple[NDArray, NDArray, NDArray]:
+    """Robust (Huber IRLS) Gauss-Newton with Levenberg damping on the two-way reprojection
+    error. Returns (T_i_j, covariance (6, 6) in (v, w) order, final residual vector)."""
+    T = T0.copy()
+    lam = 1e-4
+    r, J = _residuals(T, P_i, uv_j, Q_j, uv_i, K, True)
+    cost = _huber_cost(r, huber)
+    for _ in range(iters):
+        w = _huber_weights(r, huber)
+        H = J.T @ (J * w[:, None])
+        g = J.T @ (w * r)
+        step = -np.linalg.solve(H + lam * np.diag(np.diag(H)) + 1e-12 * np.eye(6), g)
+        T_new = T @ geo.se3_exp(step)
+        r_new, J_new = _residuals(T_new, P_i, uv_j, Q_j, uv_i, K, True)
+        c_new = _huber_cost(r_new, huber)
+        if c_new <= cost and len(r_new) == len(r):
+            T, r, J, cost = T_new, r_new, J_new, c_new
+            lam = max(lam / 10, 1e-7)
+            if np.linalg.norm(step) < 1e-7:
+                break
+        else:
+            lam *= 10
+            if lam > 1e4:
+                break
+    w = _huber_weights(r, huber)
+    H = J.T @ (J * w[:, None])
+    dof = max(len(r) - 6, 1)
+    sigma2 = float(np.sum(w * r * r) / dof)
+    cov = sigma2 * np.linalg.inv(H)
+    return geo.orthonormalize(T), 0.5 * (cov + cov.T), r
+
+
+def _huber_weights(r: NDArray, k: float) -> NDArray:
+    a = np.abs(r)
+    return np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
+
+
+def _huber_cost(r: NDArray, k: float) -> float:
+    a = np.abs(r)
+    return float(np.sum(np.where(a <= k, 0.5 * a * a, k * (a - 0.5 * k))))
+
+
+def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
+                  cfg: TeacherConfig, dt: float, T_pred: Optional[NDArray] = None,
+                  tracks: Optional[NDArray[np.int64]] = None) -> EdgeEstimate:
+    """Estimate ``T_i_j`` between two frames (ids ``i``, ``j``, ``dt`` seconds apart).
+
+    Correspondences come from ``tracks`` ((M, 2) keypoint index pairs chained along the
+    gap-1 matches) when given and numerous enough, else from matching: guided by the motion
+    prediction ``T_pred`` when given, exhaustive otherwise or when the guided estimate fails.
+    """
+    attempts = []
+    if tracks is not None and len(tracks) >= cfg.min_matches:
+        attempts.append(("tracks", tracks, None))
+    if T_pred is not None:
+        attempts.append(("guided", None, T_pred))
+    attempts.append(("exhaustive", None, None))
+    best: Optional[EdgeEstimate] = None
+    for source, pairs, pred in attempts:
+        if pairs is None:
+            pairs = match(fi, fj, cfg, pred, intr.K)
+        res = _estimate(i, j, fi, fj, intr, cfg, dt, pairs)
+        res.info["source"] = source
+        if best is None or res.inliers > best.inliers or res.ok:
+            best = res
+        if res.ok:
+            break
+    return best
+
+
+def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
+              cfg: TeacherConfig, dt: float, pairs: NDArray[np.int64]) -> EdgeEstimate:
+    K = intr.K
+    n_match = len(pairs)
+    if n_match < cfg.min_matches:
+        return EdgeEstimate(i, j, "few_matches", matches=n_match)
+    uv_i = fi.uv[pairs[:, 0]].astype(np.float64)
+    uv_j = fj.uv[pairs[:, 1]].astype(np.float64)
+    if cfg.subpixel:
+        uv_j = _subpixel(fi, fj, uv_i, uv_j)
+    P_i = _backproject(uv_i, fi.z[pairs[:, 0]].astype(np.float64), K)
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(
+        P_i, uv_j, K, None, iterationsCount=cfg.ransac_iters, reprojectionError=cfg.ransac_reproj_px,
+        confidence=0.999, flags=cv2.SOLVEPNP_SQPNP)
+    if not ok or inl is None or len(inl) < 6:
+        return EdgeEstimate(i, j, "few_inliers", matches=n_match, inliers=0 if inl is None else len(inl))
+    inl = inl.ravel()
+    rvec, tvec = cv2.solvePnPRefineLM(P_i[inl], uv_j[inl], K, None, rvec, tvec)
+    R_j_i, _ = cv2.Rodrigues(rvec)
+    T0 = geo.inv_T(geo.make_T(R_j_i, tvec.ravel()))
+
+    # points of frame j with valid depth give the backward term
+    z_j = _depth_at(fj.depth, fj.depth_ok, uv_j.astype(np.float32)).astype(np.float64)
+    Q_all = _backproject(uv_j, z_j, K)
+    has_b = (z_j > 0) if cfg.two_way else np.zeros(len(z_j), bool)
+    T, r, cov = T0, None, None
+    for _ in range(cfg.refine_rounds):  # select inliers with the current pose, refine
+        in_f = _reproj_err(geo.inv_T(T), P_i, uv_j, K) < cfg.refine_inlier_px
+        in_b = has_b & in_f
+        in_b[in_b] = _reproj_err(T, Q_all[in_b], uv_i[in_b], K) < cfg.refine_inlier_px
+        if in_f.sum() < max(6, cfg.min_inliers):
+            return EdgeEstimate(i, j, "few_inliers", matches=n_match, inliers=int(in_f.sum()))
+        sf, sb = _even(np.flatnonzero(in_f), cfg.refine_max_points), _even(np.flatnonzero(in_b), cfg.refine_max_points)
+        T, cov, r = refine_two_way(T, P_i[sf], uv_j[sf], Q_all[sb], uv_i[sb], K, cfg.huber_px, cfg.refine_iters)
+    n_in = int(in_f.sum())
+    res = EdgeEstimate(i, j, "ok", matches=n_match, inliers=n_in, inlier_ratio=n_in / n_match,
+                       inlier_pairs=pairs[in_f])
+    res.rmse_px = float(np.sqrt(np.mean(r * r)))
+    res.T_i_j, res.cov = T, cov
+    trans = float(np.linalg.norm(T[:3, 3]))
+    rot = geo.rotation_angle_deg(T)
+    res.info = {"trans_m": trans, "rot_deg": rot}
+    spread = np.std(uv_j[in_f], axis=0) / np.array([intr.width, intr.height])
+    if res.inlier_ratio < cfg.min_inlier_ratio:
+        res.status = "low_inlier_ratio"
+    elif res.rmse_px > cfg.max_rmse_px:
+        res.status = "high_rmse"
+    elif spread.min() < cfg.min_spread or not np.all(np.isfinite(cov)) or np.linalg.eigvalsh(cov).min() <= 0:
+        res.status = "degenerate"
+    elif trans > cfg.max_speed * dt or rot > cfg.max_angular_speed_deg * dt:
+        res.status = "implausible_motion"
+    return res
+
+
+def _even(idx: NDArray[np.int64], n: int) -> NDArray[np.int64]:
+    """At most ``n`` evenly spaced entries of ``idx``."""
+    if len(idx) <= n:
+        return idx
+    return idx[np.linspace(0, len(idx) - 1, n).astype(np.int64)]
+
+
+def _reproj_err(T_j_i: NDArray, P_i: NDArray, uv_j: NDArray, K: NDArray) -> NDArray:
+    Y = P_i @ T_j_i[:3, :3].T + T_j_i[:3, 3]
+    err = np.full(len(P_i), np.inf)
+    front = Y[:, 2] > 1e-6
+    err[front] = np.linalg.norm(_project(Y[front], K) - uv_j[front], axis=1)
+    return err
+
+
+def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray) -> NDArray:
+    """Track ``uv_i`` into frame j with pyramidal LK, started at the ORB match ``uv_j``.
+
+    Points the tracker loses, or moves by more than 2 px from the match, keep the ORB position.
+    """
+    p0 = uv_i.astype(np.float32).reshape(-1, 1, 2)
+    p1 = uv_j.astype(np.float32).reshape(-1, 1, 2).copy()
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(
+        fi.gray, fj.gray, p0, p1, winSize=(11, 11), maxLevel=1,
+        criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01),
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    p1 = p1.reshape(-1, 2).astype(np.float64)
+    good = (st.ravel() == 1) & (np.linalg.norm(p1 - uv_j, axis=1) < 2.0)
+    out = uv_j.copy()
+    out[good] = p1[good]
+    return out
+
+
+def bridge_velocity(T_prev: Optional[NDArray]) -> NDArray:
+    """Constant-velocity guess for a failed gap-1 edge: the previous relative motion."""
+    return np.eye(4) if T_prev is None else T_prev.copy()
+
+
+__all__ = ["FrameFeatures", "EdgeEstimate", "extract", "match", "estimate_edge", "refine_two_way", "make_orb"]
