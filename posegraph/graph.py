@@ -500,12 +500,13 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional
     flagged = np.array([n in reason for n in range(len(edges))], bool)
     drop, weak = _apply_action(frame_ids, edges, flagged, np.arange(len(edges)), cfg)
 
-    def run(drop: NDArray[np.bool_], weak: NDArray[np.bool_]):
+    def run(drop: NDArray[np.bool_], weak: NDArray[np.bool_], start: NDArray[np.float64]):
         sel = [n for n in range(len(edges)) if not drop[n]]
         c = [covs[n] * (cfg.downweight_factor if weak[n] else 1.0) for n in sel]
-        return _solve_once(frame_ids, [edges[n] for n in sel], c, initial, cfg, [measured[n] for n in sel])
+        return _solve_once(frame_ids, [edges[n] for n in sel], c, start, cfg, [measured[n] for n in sel])
 
-    graph, values, result, iters = run(drop, weak)
+    graph, values, result, iters = run(drop, weak, initial)
+    initial_error = float(graph.error(values))
     poses = _poses_from_values(frame_ids, result)
     first_res = _residuals(result, edges, covs, measured)
     # 2) whitened residual after the first solve
@@ -517,7 +518,8 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional
             flagged = flagged | bad
             drop, weak = _apply_action(frame_ids, edges, flagged, np.argsort(first_res), cfg)
             log.info("re-solving without %d outlier edge(s)", int(bad.sum()))
-            graph, values, result, iters2 = run(drop, weak)
+            # warm start from the first solution (the prior stays on the first frame)
+            graph, values, result, iters2 = run(drop, weak, poses)
             iters += iters2
             poses = _poses_from_values(frame_ids, result)
     for n in np.flatnonzero(flagged):
@@ -530,7 +532,7 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional
     res = SolveResult(
         frame_ids=frame_ids, poses=poses, outliers=outliers,
         residuals=_residuals(result, edges, covs, measured) if flagged.any() else first_res, used=~drop,
-        initial_error=float(graph.error(values)), final_error=float(graph.error(result)),
+        initial_error=initial_error, final_error=float(graph.error(result)),
         solver=cfg.solver, iterations=iters, time_s=time.perf_counter() - t0, marginals=marg,
         first_residuals=first_res,
     )
