@@ -10,7 +10,7 @@ import torch
 from data import geometry as geo
 from learner import se3
 
-torch.set_default_dtype(torch.float64)
+F64 = torch.float64
 
 
 def _random_twists(rng: np.random.Generator, n: int, angle_scale: float = 1.0) -> np.ndarray:
@@ -57,17 +57,17 @@ def test_log_matches_gtsam_and_numpy(kind: str) -> None:
 
 def test_known_answers() -> None:
     # a quarter turn about z with v = 0 is a pure rotation
-    T = se3.se3_exp(torch.tensor([0.0, 0, 0, 0, 0, np.pi / 2])).numpy()
+    T = se3.se3_exp(torch.tensor([0.0, 0, 0, 0, 0, np.pi / 2], dtype=F64)).numpy()
     np.testing.assert_allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
     np.testing.assert_allclose(T[:3, 3], 0, atol=1e-12)
     # pure translation: t = v
-    T = se3.se3_exp(torch.tensor([1.0, 2, 3, 0, 0, 0])).numpy()
+    T = se3.se3_exp(torch.tensor([1.0, 2, 3, 0, 0, 0], dtype=F64)).numpy()
     np.testing.assert_allclose(T, geo.make_T(np.eye(3), [1, 2, 3]), atol=1e-15)
     # log of identity is zero; log(inv(a) @ a) ~ 0
-    a = se3.se3_exp(torch.tensor([0.3, -0.1, 0.2, 0.5, -0.4, 1.0]))
+    a = se3.se3_exp(torch.tensor([0.3, -0.1, 0.2, 0.5, -0.4, 1.0], dtype=F64))
     np.testing.assert_allclose(se3.se3_log(torch.linalg.inv(a) @ a).numpy(), 0, atol=1e-12)
     # the log returns V^-1 t, not the raw translation
-    xi = torch.tensor([1.0, 0, 0, 0, 0, 1.0])
+    xi = torch.tensor([1.0, 0, 0, 0, 0, 1.0], dtype=F64)
     T = se3.se3_exp(xi)
     assert not np.allclose(T[:3, 3].numpy(), [1, 0, 0])
     np.testing.assert_allclose(se3.se3_log(T).numpy(), xi.numpy(), atol=1e-12)
@@ -78,7 +78,7 @@ def test_gradients_finite_and_correct(scale: float) -> None:
     rng = np.random.default_rng(2)
     xi = torch.tensor(rng.normal(size=(4, 6)) * [1, 1, 1, scale, scale, scale], requires_grad=True)
     out = se3.se3_log(se3.se3_exp(xi))
-    (out * torch.arange(1.0, 7.0)).sum().backward()
+    (out * torch.arange(1.0, 7.0, dtype=F64)).sum().backward()
     assert torch.all(torch.isfinite(xi.grad))
     # log(exp(xi)) = xi, so the gradient of sum(c * out) is c
     np.testing.assert_allclose(xi.grad.numpy(), np.tile(np.arange(1.0, 7.0), (4, 1)), atol=1e-6)
