@@ -215,3 +215,14 @@ def test_cache_dir_from_environment(monkeypatch, tmp_path: Path):
     cfg = PRESETS["office"]
     changed = dataclasses.replace(cfg, sensor=dataclasses.replace(cfg.sensor, depth_noise_coeff=2e-3))
     assert syn.scene_dir("office", cfg, tmp_path) != syn.scene_dir("office", changed, tmp_path)
+
+
+def test_open3d_barycentric_convention():
+    # the renderer interpolates surface coordinates as (1-a-b) uv0 + a uv1 + b uv2
+    import open3d as o3d
+
+    rc = o3d.t.geometry.RaycastingScene()
+    rc.add_triangles(np.array([[0, 0, 1], [1, 0, 1], [0, 1, 1]], np.float32), np.array([[0, 1, 2]], np.uint32))
+    ans = rc.cast_rays(np.array([[0.2, 0.3, 0, 0, 0, 1]], np.float32))
+    np.testing.assert_allclose(ans["primitive_uvs"].numpy()[0], [0.2, 0.3], atol=1e-6)
+    np.testing.assert_allclose(ans["t_hit"].numpy()[0], 1.0, atol=1e-6)

@@ -146,7 +146,7 @@ class SceneBuilder:
         self.quad([W, 0, 0], [0, D, 0], [0, 0, H], walls[1])
         self.quad([W, D, 0], [-W, 0, 0], [0, 0, H], walls[2])
         self.quad([0, D, 0], [0, -D, 0], [0, 0, H], walls[3])
-        for _ in range(30):
+        for _ in range(6):  # a few bare-wall views (some of them starve ORB on plain walls)
             wall = int(self.rng.integers(0, 4))
             s = self.rng.uniform(0.1, 0.9)
             z = self.rng.uniform(0.6, 2.0)
@@ -239,6 +239,7 @@ def office(rng: np.random.Generator) -> Scene:
     r = b.rng
     wall = b.material("wall", lambda g: tx.tex_plain(g, _c(0.85, 0.84, 0.8)), 2.0)
     wall2 = b.material("wall2", lambda g: tx.tex_plain(g, _c(0.6, 0.7, 0.8)), 2.0)
+    paper = b.material("wallpaper", lambda g: tx.tex_noise(g, _c(0.55, 0.5, 0.42), _c(0.9, 0.86, 0.78)), 1.5)
     bricks = b.material("bricks", lambda g: tx.tex_bricks(g, _c(0.6, 0.3, 0.2), _c(0.75, 0.72, 0.7)), 1.2)
     carpet = b.material("carpet", lambda g: tx.tex_noise(g, _c(0.25, 0.28, 0.35), _c(0.5, 0.5, 0.55)), 1.0)
     ceil = b.material("ceiling", lambda g: tx.tex_plain(g, _c(0.9, 0.9, 0.9)), 3.0)
@@ -251,7 +252,7 @@ def office(rng: np.random.Generator) -> Scene:
     posters = [b.material(f"poster{k}", lambda g: tx.tex_clutter(g, _c(*g.uniform(0.5, 1, 3))), 0.8) for k in range(4)]
     small = [b.material(f"obj{k}", lambda g: tx.tex_clutter(g, _c(*g.uniform(0.2, 1, 3)), n_shapes=30), 0.3)
              for k in range(3)] + [wood, metal]
-    b.room([wall, bricks, wall2, wall], carpet, ceil)
+    b.room([paper, bricks, wall2, wall], carpet, ceil)
     # desks with monitors and clutter along wall 0 and wall 3
     for wall_i, ss in ((0, (0.25, 0.7)), (3, (0.3,))):
         for s in ss:
@@ -271,7 +272,13 @@ def office(rng: np.random.Generator) -> Scene:
     b.poster(0, 0.5, 1.6, 0.6, 0.8, posters[1])
     b.poster(1, 0.15, 1.4, 0.5, 0.7, posters[2])
     b.poster(2, 0.65, 1.9, 0.6, 0.5, posters[3])
+    b.poster(3, 0.55, 1.6, 0.9, 0.6, posters[1])
+    b.poster(3, 0.92, 1.3, 0.5, 0.7, posters[2])
+    b.poster(3, 0.08, 1.5, 0.45, 0.6, posters[0])
+    b.poster(0, 0.95, 1.4, 0.4, 0.5, posters[3])
     b.against_wall(1, 0.85, (0.6, 0.6, 1.3), grey, front=posters[3])
+    b.against_wall(3, 0.6, (1.2, 0.4, 0.8), wood, front=books)
+    b.clutter_on(b.wall_point(3, 0.6, 0.2, 0.8), (1.1, 0.3), b.wall_yaw(3), 3, small)
     _ceiling_lights(b, 2, 2.2)
     return b.build(free_margin=1.3)
 
