@@ -25,7 +25,7 @@ class TeacherConfig:
     within this radius of its position predicted by the motion prior."""
     max_hamming: int = 64
     """Reject matches whose Hamming distance exceeds this (of 256 bits)."""
-    subpixel: bool = False
+    subpixel: bool = True
     """Refine each match in frame j to sub-pixel precision with pyramidal Lucas-Kanade
     started at the matched keypoint (ORB keypoints are integer pixels of pyramid levels)."""
     depth_min: float = 0.3
@@ -45,6 +45,10 @@ class TeacherConfig:
     """After refinement, correspondences within this reprojection error are inliers."""
     huber_px: float = 1.0
     """Huber threshold (pixels) of the robust two-way refinement."""
+    min_sigma_px: float = 0.29
+    """Floor of the residual standard deviation in the covariance: keypoints sit on integer
+    pixels of their pyramid level, so their localisation error is at least the 1/sqrt(12)
+    px of uniform quantisation even when the residuals of a small motion look smaller."""
     refine_max_points: int = 300
     """At most this many correspondences (evenly spaced) enter the refinement; more add
     time but little accuracy, as their errors are correlated."""
@@ -63,7 +67,7 @@ class TeacherConfig:
     """Inlier ratio below this: edge failed (``low_inlier_ratio``)."""
     max_rmse_px: float = 1.5
     """Reprojection RMSE of the inliers above this: edge failed (``high_rmse``)."""
-    min_spread: float = 0.08
+    min_spread: float = 0.04
     """Inliers must cover at least this fraction of the image in both axes (std of u and
     v over width/height), else the geometry is ``degenerate``."""
     max_speed: float = 1.5

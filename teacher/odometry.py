@@ -81,14 +81,20 @@ def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConf
 
 
 def _depth_at(depth: NDArray[np.float32], ok: NDArray[np.bool_], uv: NDArray[np.float32]) -> NDArray[np.float32]:
-    """Depth at the nearest pixel of each point; 0 where invalid or outside the image."""
+    """Depth at sub-pixel points, bilinear (safe: ``ok`` pixels have no depth edge in their
+    5x5 neighbourhood); 0 where the nearest pixel is not ``ok`` or outside the image."""
     h, w = depth.shape
     u = np.rint(uv[:, 0]).astype(np.int64)
     v = np.rint(uv[:, 1]).astype(np.int64)
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    inside = (u >= 1) & (u < w - 1) & (v >= 1) & (v < h - 1)
     z = np.zeros(len(uv), np.float32)
-    ui, vi = u[inside], v[inside]
-    z[inside] = np.where(ok[vi, ui], depth[vi, ui], 0.0)
+    idx = np.flatnonzero(inside)
+    idx = idx[ok[v[idx], u[idx]]]
+    x, y = uv[idx, 0].astype(np.float64), uv[idx, 1].astype(np.float64)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = x - x0, y - y0
+    z[idx] = ((1 - fx) * (1 - fy) * depth[y0, x0] + fx * (1 - fy) * depth[y0, x0 + 1]
+              + (1 - fx) * fy * depth[y0 + 1, x0] + fx * fy * depth[y0 + 1, x0 + 1])
     return z
 
 
@@ -233,9 +239,12 @@ def _residuals(T: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDAr
 
 
 def refine_two_way(T0: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDArray, K: NDArray,
-                   huber: float, iters: int = 10) -> tuple[NDArray, NDArray, NDArray]:
+                   huber: float, iters: int = 10, min_sigma_px: float = 0.0) -> tuple[NDArray, NDArray, NDArray]:
     """Robust (Huber IRLS) Gauss-Newton with Levenberg damping on the two-way reprojection
-    error. Returns (T_i_j, covariance (6, 6) in (v, w) order, final residual vector)."""
+    error. Returns (T_i_j, covariance (6, 6) in (v, w) order, final residual vector).
+
+    The covariance is ``sigma^2 (J^T W J)^-1`` with ``sigma^2`` the weighted residual
+    variance, floored at ``min_sigma_px^2``."""
     T = T0.copy()
     lam = 1e-4
     r, J = _residuals(T, P_i, uv_j, Q_j, uv_i, K, True)
@@ -260,7 +269,7 @@ def refine_two_way(T0: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i:
     w = _huber_weights(r, huber)
     H = J.T @ (J * w[:, None])
     dof = max(len(r) - 6, 1)
-    sigma2 = float(np.sum(w * r * r) / dof)
+    sigma2 = max(float(np.sum(w * r * r) / dof), min_sigma_px ** 2)
     cov = sigma2 * np.linalg.inv(H)
     return geo.orthonormalize(T), 0.5 * (cov + cov.T), r
 
@@ -336,7 +345,8 @@ def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
         if in_f.sum() < max(6, cfg.min_inliers):
             return EdgeEstimate(i, j, "few_inliers", matches=n_match, inliers=int(in_f.sum()))
         sf, sb = _even(np.flatnonzero(in_f), cfg.refine_max_points), _even(np.flatnonzero(in_b), cfg.refine_max_points)
-        T, cov, r = refine_two_way(T, P_i[sf], uv_j[sf], Q_all[sb], uv_i[sb], K, cfg.huber_px, cfg.refine_iters)
+        T, cov, r = refine_two_way(T, P_i[sf], uv_j[sf], Q_all[sb], uv_i[sb], K, cfg.huber_px, cfg.refine_iters,
+                                   cfg.min_sigma_px)
     n_in = int(in_f.sum())
     res = EdgeEstimate(i, j, "ok", matches=n_match, inliers=n_in, inlier_ratio=n_in / n_match,
                        inlier_pairs=pairs[in_f])
