@@ -94,7 +94,8 @@ def test_depth_holes_outside_working_range():
     assert (out[zz > 4.9] == 0).all()
     assert ((out > 0) & ((out < 0.5) | (out > 4.5))).sum() == 0
     mid = (zz > 0.7) & (zz < 4.0)
-    assert (out[mid] > 0).mean() > 0.95
+    assert 0.93 < (out[mid] > 0).mean() < 0.99  # blobs, dropouts and the invalid right band
+    assert (out[:, -8:] == 0).all()
 
 
 def test_projector_shadow_width_matches_geometry():

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 #: Bump when the renderer's output changes for the same config (invalidates caches).
-RENDER_VERSION = 2
+RENDER_VERSION = 3
 
 
 @dataclass(frozen=True)
@@ -61,9 +61,15 @@ class SensorConfig:
     probability ``1 - cos / grazing_cos``."""
     dropout_prob: float = 0.003
     """Probability of an isolated random depth hole per pixel."""
+    hole_blob_fraction: float = 0.03
+    """Fraction of pixels lost in random blobs (dark or specular spots, missed speckle)."""
+    hole_blob_px: int = 10
+    """Typical size of the hole blobs, pixels."""
+    invalid_right_cols: int = 8
+    """Always-invalid columns at the right image border (Kinect v1; 7-Scenes shows 8)."""
     rgb_shift_px: tuple[float, float] = (2.5, -1.5)
     """RGB-depth misregistration: shift (x, y) of the colour image in pixels."""
-    rgb_blur_sigma: float = 0.7
+    rgb_blur_sigma: float = 1.0
     """Optical blur of the colour camera (Gaussian sigma, pixels)."""
     motion_blur_exposure: float = 0.4
     """Exposure time as a fraction of the frame period for motion blur; 0 = off."""
@@ -73,9 +79,9 @@ class SensorConfig:
     """Typical period of the exposure changes, seconds."""
     vignetting: float = 0.25
     """Relative brightness loss at the image corners."""
-    read_noise_dn: float = 2.0
+    read_noise_dn: float = 1.5
     """Colour read noise std in 8-bit digital numbers."""
-    shot_noise_gain: float = 0.5
+    shot_noise_gain: float = 0.15
     """Shot noise: variance grows by ``shot_noise_gain * value`` (DN^2 per DN)."""
 
 

@@ -101,6 +101,13 @@ def depth_sensor(z: NDArray[np.float32], cos_incidence: NDArray[np.float32], fx:
         valid &= cos_incidence > np.float32(cfg.grazing_cos) * bank.uniform(z.shape, rng)
     if cfg.dropout_prob > 0:
         valid &= bank.uniform(z.shape, rng) >= np.float32(cfg.dropout_prob)
+    if cfg.hole_blob_fraction > 0:
+        from scipy.special import ndtri
+
+        field = correlated_noise(rng, z.shape, cfg.hole_blob_px)
+        valid &= field < np.float32(ndtri(1.0 - cfg.hole_blob_fraction))
+    if cfg.invalid_right_cols > 0:
+        valid[:, -cfg.invalid_right_cols:] = False
     with np.errstate(divide="ignore"):
         inv = np.where(valid, 1.0 / np.maximum(z, 1e-6), 0).astype(np.float32)
     if cfg.depth_noise_coeff > 0:
