@@ -17,10 +17,10 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m teacher.demo
+	$(PY) -m posegraph.pipeline
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -p no:dash
 
 bench: $(STAMP)
 	$(PY) bench/teacher.py

@@ -1,0 +1,142 @@
+"""Teacher benchmark: this teacher vs Open3D's hybrid RGB-D odometry vs OpenCV's
+``cv2.Odometry`` (RGB_DEPTH), side by side on the same frames in one run.
+
+For each scene: frames per second end to end (decode included; the teacher also
+estimates its gap 2..K edges, the peers only gap 1) and gap-1 RPE (trans, rot), ATE and
+the paper's se(3) L2 of the chained gap-1 trajectory, all metrics through evo.
+
+    .venv/bin/python bench/teacher.py                       # redkitchen sample + synthetic/office
+    .venv/bin/python bench/teacher.py --scenes synthetic/lab --frames 0:300
+
+Results go to stdout (a Markdown table) and to ``--json`` if given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from data import geometry as geo  # noqa: E402
+from data.formats import Trajectory  # noqa: E402
+from data.metrics import trajectory_report  # noqa: E402
+from data.scenes import open_scene  # noqa: E402
+from teacher.config import TeacherConfig  # noqa: E402
+from teacher.generate import run_sequence  # noqa: E402
+
+REDKITCHEN = REPO.parent / "shared" / "data" / "7scenes" / "redkitchen" / "seq-sample"
+
+
+def _chain(rel: list[np.ndarray]) -> np.ndarray:
+    poses = [np.eye(4)]
+    for T in rel:
+        poses.append(poses[-1] @ T)
+    return np.array(poses)
+
+
+def run_open3d(seq) -> tuple[np.ndarray, float, int]:
+    """Gap-1 chain of Open3D's compute_rgbd_odometry (hybrid term), T_k_{k+1} = inv(T_target_source)."""
+    import open3d as o3d
+
+    K = seq.intrinsics
+    intr = o3d.camera.PinholeCameraIntrinsic(K.width, K.height, K.fx, K.fy, K.cx, K.cy)
+    option = o3d.pipelines.odometry.OdometryOption()
+    jac = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
+
+    def rgbd(k):
+        return o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(np.ascontiguousarray(seq.rgb(k))), o3d.geometry.Image(seq.depth(k)),
+            depth_scale=1.0, depth_trunc=4.5, convert_rgb_to_intensity=True)
+
+    t0 = time.perf_counter()
+    prev, rel, fails, init = rgbd(0), [], 0, np.eye(4)
+    for k in range(1, len(seq)):
+        cur = rgbd(k)
+        ok, T_t_s, _ = o3d.pipelines.odometry.compute_rgbd_odometry(prev, cur, intr, init, jac, option)
+        if not ok:
+            fails += 1
+            T_t_s = init
+        rel.append(geo.inv_T(np.asarray(T_t_s)))
+        init = np.asarray(T_t_s)
+        prev = cur
+    return _chain(rel), time.perf_counter() - t0, fails
+
+
+def run_opencv(seq) -> tuple[np.ndarray, float, int]:
+    """Gap-1 chain of OpenCV 5's cv2.Odometry (RGB_DEPTH), T_k_{k+1} = inv(T_dst_src)."""
+    settings = cv2.OdometrySettings()
+    settings.setCameraMatrix(seq.intrinsics.K.astype(np.float32))
+    odo = cv2.Odometry(cv2.OdometryType_RGB_DEPTH, settings, cv2.OdometryAlgoType_COMMON)
+
+    def frame(k):
+        return seq.depth(k), cv2.cvtColor(seq.rgb(k), cv2.COLOR_RGB2GRAY)
+
+    t0 = time.perf_counter()
+    prev, rel, fails = frame(0), [], 0
+    for k in range(1, len(seq)):
+        cur = frame(k)
+        ok, Rt = odo.compute(prev[0], prev[1], cur[0], cur[1])
+        if not ok or not np.all(np.isfinite(Rt)):
+            fails += 1
+            Rt = np.eye(4)
+        rel.append(geo.inv_T(np.asarray(Rt, dtype=np.float64)))
+        prev = cur
+    return _chain(rel), time.perf_counter() - t0, fails
+
+
+def bench_scene(spec: str, frames: str | None) -> list[dict]:
+    seq = open_scene(spec, frames=frames)[0]
+    gt = Trajectory(seq.times(), seq.groundtruth())
+    rows = []
+    run = run_sequence(seq, TeacherConfig(), progress=False)
+    gap1_fail = sum(1 for e in run.edges if not e.ok and e.j == e.i + 1)
+    rows.append({"method": "this teacher (gaps 1-5)", "poses": run.poses, "seconds": run.seconds, "fails": gap1_fail})
+    poses, sec, fails = run_open3d(seq)
+    rows.append({"method": "Open3D hybrid (gap 1)", "poses": poses, "seconds": sec, "fails": fails})
+    poses, sec, fails = run_opencv(seq)
+    rows.append({"method": "cv2.Odometry RGB_DEPTH (gap 1)", "poses": poses, "seconds": sec, "fails": fails})
+    out = []
+    for r in rows:
+        rep = trajectory_report(gt, Trajectory(seq.times(), r["poses"]))
+        out.append({"scene": spec, "frames": len(seq), "method": r["method"], "fps": len(seq) / r["seconds"],
+                    "gap1_failures": r["fails"], **rep})
+    base = out[1]["fps"]
+    for r in out:
+        r["fps_vs_open3d"] = r["fps"] / base
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", nargs="+", default=[str(REDKITCHEN), "synthetic/office"])
+    ap.add_argument("--frames", default=None, help="frame range START:STOP of every scene")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+    cv2.setNumThreads(2)
+    results = []
+    for spec in args.scenes:
+        if not spec.startswith("synthetic/") and not Path(spec).exists():
+            print(f"skipping {spec}: not found", file=sys.stderr)
+            continue
+        results += bench_scene(spec, args.frames)
+    print("| scene | frames | method | fps | fps / Open3D | gap-1 fails | RPE trans (mm) | RPE rot (deg) | ATE (mm) | se(3) L2 |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for r in results:
+        name = Path(r["scene"]).name if not r["scene"].startswith("synthetic/") else r["scene"]
+        print(f"| {name} | {r['frames']} | {r['method']} | {r['fps']:.1f} | {r['fps_vs_open3d']:.1f}x | {r['gap1_failures']} | "
+              f"{1000 * r['rpe_trans_rmse_m']:.2f} | {r['rpe_rot_rmse_deg']:.3f} | {1000 * r['ate_rmse_m']:.1f} | "
+              f"{r['se3_l2_mean']:.5f} |")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()
