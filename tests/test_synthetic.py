@@ -227,3 +227,21 @@ def test_open3d_barycentric_convention():
     ans = rc.cast_rays(np.array([[0.2, 0.3, 0, 0, 0, 1]], np.float32))
     np.testing.assert_allclose(ans["primitive_uvs"].numpy()[0], [0.2, 0.3], atol=1e-6)
     np.testing.assert_allclose(ans["t_hit"].numpy()[0], 1.0, atol=1e-6)
+
+
+def test_rolling_shutter_row_poses():
+    cfg = dataclasses.replace(PRESETS["tiny"], frames=6)
+    fr = syn.FrameRenderer(cfg, *syn.build(cfg))
+    rows = fr.row_poses(3)
+    assert rows.shape == (cfg.height, 4, 4) and all(is_rigid(T, atol=1e-9) for T in rows[::60])
+    mid = (rows[239] + rows[240]) / 2
+    np.testing.assert_allclose(mid[:3, 3], fr.poses[3][:3, 3], atol=1e-6)
+    # the top-to-bottom motion is the readout time times the camera speed
+    speed = np.linalg.norm(fr.poses[4][:3, 3] - fr.poses[2][:3, 3]) / 2 * cfg.fps
+    travel = np.linalg.norm(rows[-1][:3, 3] - rows[0][:3, 3])
+    np.testing.assert_allclose(travel, speed * cfg.sensor.rolling_shutter_s, rtol=0.05)
+    # the noise-free mode renders an exact pinhole, global-shutter image
+    clean = dataclasses.replace(cfg, sensor=dataclasses.replace(cfg.sensor, noise_free=True))
+    fc = syn.FrameRenderer(clean, *syn.build(clean))
+    _, depth, exact = fc.frame(3)
+    np.testing.assert_array_equal(depth, fc.renderer.render(fc.poses[3]).depth)

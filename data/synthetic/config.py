@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 #: Bump when the renderer's output changes for the same config (invalidates caches).
-RENDER_VERSION = 3
+RENDER_VERSION = 4
 
 
 @dataclass(frozen=True)
@@ -43,6 +43,11 @@ class SensorConfig:
     """Fraction of the depth noise variance that is spatially correlated (0..1)."""
     depth_noise_corr_px: int = 6
     """Correlation length of the correlated depth noise, pixels."""
+    depth_bias_coeff: float = 1.0e-3
+    """Std of a fixed, smooth inverse-depth bias pattern in 1/m (Kinect v1 depth distortion,
+    fixed in image coordinates: ~1 mm at 1 m, ~1 cm at 3 m). 0 = none."""
+    depth_bias_px: int = 80
+    """Correlation length of the depth bias pattern, pixels."""
     disparity_step: float = 2.85e-3
     """Quantisation step of inverse depth, 1/m (depth step ``~ step * z**2``); 0 = none."""
     depth_min_m: float = 0.5
@@ -67,6 +72,13 @@ class SensorConfig:
     """Typical size of the hole blobs, pixels."""
     invalid_right_cols: int = 8
     """Always-invalid columns at the right image border (Kinect v1; 7-Scenes shows 8)."""
+    rolling_shutter_s: float = 0.02
+    """Readout time from the top to the bottom row (colour and depth), seconds; each row is
+    seen from the pose at its own time, the ground truth is the pose at the middle row.
+    0 = global shutter."""
+    residual_distortion_k1: float = 0.015
+    """Unmodelled radial distortion (division model ``x = x_d / (1 + k1 r_d^2)``, ~3 px at
+    the corners) of the camera whose pinhole intrinsics are written. 0 = exact pinhole."""
     rgb_shift_px: tuple[float, float] = (2.5, -1.5)
     """RGB-depth misregistration: shift (x, y) of the colour image in pixels."""
     rgb_blur_sigma: float = 1.0
@@ -113,9 +125,11 @@ class SceneConfig:
     """Typical camera speed, m/s (7-Scenes redkitchen: ~7 mm per frame = 0.21 m/s)."""
     min_speed_mps: float = 0.08
     """Slowest desired speed where rotation does not limit it, m/s."""
-    max_speed_mps: float = 0.45
+    speed_variability: float = 0.5
+    """Log-amplitude of the slow random variation of the desired speed (0 = constant)."""
+    max_speed_mps: float = 0.47
     """Fastest camera speed of the smooth path, m/s (hand jitter adds a little)."""
-    max_angular_dps: float = 25.0
+    max_angular_dps: float = 26.5
     """Fastest rotation of the smooth path, deg/s (hand jitter adds a little)."""
     view_distance_m: tuple[float, float] = (0.9, 2.6)
     """Range of distances from the camera to the points it looks at, metres."""
@@ -137,7 +151,7 @@ class SceneConfig:
 
 PRESETS: dict[str, SceneConfig] = {
     "office": SceneConfig(layout="office", seed=11, frames=300),
-    "kitchen": SceneConfig(layout="kitchen", seed=22, frames=300, mean_speed_mps=0.2),
+    "kitchen": SceneConfig(layout="kitchen", seed=25, frames=300, mean_speed_mps=0.26),
     "lab": SceneConfig(layout="lab", seed=33, frames=300, mean_speed_mps=0.25),
     "tiny": SceneConfig(layout="office", seed=44, frames=20),
 }

@@ -8,7 +8,7 @@ enter, points worth looking at, and the rectangle the camera may move in.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Optional
 
 import numpy as np

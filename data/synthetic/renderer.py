@@ -38,7 +38,7 @@ class Renderer:
     """Renders ``scene`` through a pinhole camera (fx, fy, cx, cy, width x height)."""
 
     def __init__(self, scene: Scene, fx: float, fy: float, cx: float, cy: float, width: int, height: int,
-                 nthreads: int = 0) -> None:
+                 nthreads: int = 0, distortion_k1: float = 0.0) -> None:
         self.scene = scene
         self.width, self.height, self.fx = width, height, fx
         self.nthreads = nthreads
@@ -55,18 +55,27 @@ class Renderer:
         self._tri_texel = (self.atlas.scale_m[scene.tri_mat] / self.atlas.size).astype(np.float32)
         self._tri_mat = scene.tri_mat.astype(np.int32)
         v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-        self._xc = ((u - cx) / fx).astype(np.float32)  # (H, W) camera ray x at z = 1
-        self._yc = ((v - cy) / fy).astype(np.float32)
+        xd, yd = (u - cx) / fx, (v - cy) / fy
+        f = 1.0 / (1.0 + distortion_k1 * (xd ** 2 + yd ** 2))  # division model, 1 when k1 = 0
+        self._xc = (xd * f).astype(np.float32)  # (H, W) camera ray x at z = 1
+        self._yc = (yd * f).astype(np.float32)
         self._inv_norm = (1.0 / np.sqrt(1.0 + self._xc ** 2 + self._yc ** 2)).astype(np.float32)
         self._lights = scene.lights.astype(np.float32)
 
     def render(self, T_world_cam: NDArray[np.float64]) -> ExactFrame:
-        """Exact rendering of the view ``T_world_cam`` (4, 4)."""
+        """Exact rendering of the view ``T_world_cam``: (4, 4), or (H, 4, 4) one pose per
+        image row (rolling shutter)."""
         H, W = self.height, self.width
-        R = np.asarray(T_world_cam[:3, :3], np.float32)
-        o = np.asarray(T_world_cam[:3, 3], np.float32)
+        T = np.asarray(T_world_cam, np.float32)
+        if T.ndim == 3:  # per-row poses: coefficients broadcast as (H, 1)
+            R = T[:, :3, :3, None]
+            o = [T[:, i, 3, None] for i in range(3)]
+            Rij = lambda i, j: R[:, i, j]  # noqa: E731
+        else:
+            o = [T[i, 3] for i in range(3)]
+            Rij = lambda i, j: T[i, j]  # noqa: E731
         xc, yc = self._xc, self._yc
-        d = [R[i, 0] * xc + R[i, 1] * yc + R[i, 2] for i in range(3)]  # world ray directions, (H, W) each
+        d = [Rij(i, 0) * xc + Rij(i, 1) * yc + Rij(i, 2) for i in range(3)]  # world ray directions, (H, W) each
         rays = np.empty((H, W, 6), np.float32)
         rays[..., 0], rays[..., 1], rays[..., 2] = o
         rays[..., 3], rays[..., 4], rays[..., 5] = d

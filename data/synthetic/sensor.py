@@ -85,10 +85,20 @@ def correlated_noise(rng: np.random.Generator, shape: tuple[int, int], scale_px:
     return up / max(float(up.std()), 1e-6)
 
 
+def depth_bias_field(cfg: SensorConfig, shape: tuple[int, int], seed: int) -> NDArray[np.float32] | None:
+    """The sensor's fixed inverse-depth bias pattern (H, W) in 1/m, or None when disabled."""
+    if cfg.noise_free or cfg.depth_bias_coeff <= 0:
+        return None
+    rng = np.random.default_rng([seed, 5])
+    return np.float32(cfg.depth_bias_coeff) * correlated_noise(rng, shape, cfg.depth_bias_px)
+
+
 def depth_sensor(z: NDArray[np.float32], cos_incidence: NDArray[np.float32], fx: float,
-                 cfg: SensorConfig, rng: np.random.Generator, bank: NoiseBank | None = None) -> NDArray[np.float32]:
+                 cfg: SensorConfig, rng: np.random.Generator, bank: NoiseBank | None = None,
+                 bias: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
     """Measured depth (H, W) float32 metres (0 = hole) from exact z-depth ``z`` (0 = miss)
-    and |cos| of the viewing ray against the surface normal (H, W)."""
+    and |cos| of the viewing ray against the surface normal (H, W); ``bias`` (H, W) is the
+    fixed inverse-depth bias of :func:`depth_bias_field`."""
     if cfg.noise_free:
         return z.copy()
     valid = z > 0
@@ -110,6 +120,8 @@ def depth_sensor(z: NDArray[np.float32], cos_incidence: NDArray[np.float32], fx:
         valid[:, -cfg.invalid_right_cols:] = False
     with np.errstate(divide="ignore"):
         inv = np.where(valid, 1.0 / np.maximum(z, 1e-6), 0).astype(np.float32)
+    if bias is not None:
+        inv = inv + bias
     if cfg.depth_noise_coeff > 0:
         a = np.float32(np.sqrt(cfg.depth_noise_correlated))
         b = np.float32(np.sqrt(1.0 - cfg.depth_noise_correlated))

@@ -114,7 +114,7 @@ def make_trajectory(cfg: SceneConfig, scene: Scene, rng: np.random.Generator) ->
         rel = np.einsum("nji,njk->nik", R[:-1], R[1:])
         dth = np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1))
         um = (u[:-1] + u[1:]) / 2
-        v_des = cfg.mean_speed_mps * np.exp(0.35 * _smooth_noise(rng, um, (0.1, 0.4)))
+        v_des = cfg.mean_speed_mps * np.exp(cfg.speed_variability * _smooth_noise(rng, um, (0.1, 0.4)))
         v_des = np.clip(v_des, cfg.min_speed_mps, cfg.max_speed_mps)
         dt = np.maximum.reduce([ds / v_des, dth / w_max, np.full_like(ds, 1e-6)])
         t = np.concatenate([[0.0], np.cumsum(dt)])
