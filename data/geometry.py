@@ -158,10 +158,13 @@ def se3_exp(xi: ArrayLike) -> Mat4:
     xi = np.asarray(xi, dtype=np.float64).reshape(6)
     v, w = xi[:3], xi[3:]
     theta = float(np.linalg.norm(w))
-    R = Rotation.from_rotvec(w).as_matrix()
     W = hat(w)
+    W2 = W @ W
+    # Rodrigues: R = I + a W + b W^2 with a = sin(t)/t, b = (1 - cos t)/t^2 (series near 0)
+    a = 1.0 - theta * theta / 6.0 if theta < _SMALL_ANGLE else np.sin(theta) / theta
     b, c = _V_coeffs(theta)
-    V = np.eye(3) + b * W + c * (W @ W)
+    R = np.eye(3) + a * W + b * W2
+    V = np.eye(3) + b * W + c * W2
     return make_T(R, V @ v)
 
 

@@ -23,7 +23,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--frames", default=None, help="frame range START:STOP[:STEP] of each sequence")
     g.add_argument("--split", default="all", choices=["train", "test", "all"], help="split of a 7-Scenes scene folder")
     g.add_argument("--preset", default="default", choices=sorted(PRESETS), help="teacher preset")
-    g.add_argument("--workers", type=int, default=None, help="threads (default 2)")
+    g.add_argument("--workers", type=int, default=None, help="worker processes (default 2)")
     g.add_argument("--overwrite", action="store_true", help="redo sequences whose outputs exist")
     g.add_argument("-v", "--verbose", action="store_true")
     return p

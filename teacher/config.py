@@ -12,7 +12,7 @@ class TeacherConfig:
 
     gaps: int = 5
     """Edges are estimated for every frame pair (i, i+g), g = 1..gaps."""
-    n_features: int = 1000
+    n_features: int = 2000
     """ORB features per frame (cv2.ORB nfeatures)."""
     fast_threshold: int = 12
     """FAST threshold of the ORB detector; lower finds corners in weak texture."""
@@ -28,6 +28,8 @@ class TeacherConfig:
     subpixel: bool = True
     """Refine each match in frame j to sub-pixel precision with pyramidal Lucas-Kanade
     started at the matched keypoint (ORB keypoints are integer pixels of pyramid levels)."""
+    lk_window: int = 11
+    """Window (pixels) of the Lucas-Kanade sub-pixel refinement."""
     depth_min: float = 0.3
     """Keypoint depths below this (m) are ignored."""
     depth_max: float = 4.5
@@ -75,7 +77,10 @@ class TeacherConfig:
     max_angular_speed_deg: float = 180.0
     """Rotations faster than this (deg/s) are ``implausible_motion``."""
     workers: int = 2
-    """Threads for decoding, feature extraction and edge estimation."""
+    """Worker processes; each handles chunks of consecutive frames (with a helper thread
+    that decodes and extracts features ahead). 1: everything in the calling process."""
+    chunk_frames: int = 150
+    """Frames per chunk; sequences shorter than two chunks run in the calling process."""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -83,5 +88,5 @@ class TeacherConfig:
 
 DEFAULT = TeacherConfig()
 #: a fast preset for tests: fewer features and gaps
-TINY = TeacherConfig(gaps=2, n_features=600)
+TINY = TeacherConfig(gaps=2, n_features=800)
 PRESETS = {"default": DEFAULT, "tiny": TINY}

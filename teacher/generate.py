@@ -3,11 +3,12 @@
 Pipeline per sequence (frames streamed once, each frame's features reused by all its
 edges):
 
-1. a thread pool decodes frames and extracts ORB features ahead of the main loop;
+0. the sequence is cut into chunks that worker processes handle independently;
+1. a helper thread decodes frames and extracts ORB features ahead of the main loop;
 2. the gap-1 edge (k-1, k) is matched with a constant-velocity prediction (guided
    matching) and estimated by PnP-RANSAC + two-way refinement;
-3. its inlier matches extend feature tracks; each longer edge (k-g, k) is estimated in the
-   pool from the tracks that survive from k-g to k (falling back to guided matching with
+3. its inlier matches extend feature tracks; each longer edge (k-g, k) is estimated
+   from the tracks that survive from k-g to k (falling back to guided matching with
    the chained gap-1 motion, then to exhaustive matching);
 4. the gap-1 trajectory is chained; a failed gap-1 edge is bridged by the shortest good
    edge that spans it, else by constant velocity, and the report lists every bridge.
@@ -19,13 +20,14 @@ ground truth), report.json, config.json.
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import sys
 import time
 from collections import Counter, deque
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 from numpy.typing import NDArray
@@ -64,38 +66,79 @@ class TeacherRun:
 
 
 def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> TeacherRun:
-    """Estimate every edge (i, i+g), g = 1..cfg.gaps, and the chained gap-1 trajectory."""
+    """Estimate every edge (i, i+g), g = 1..cfg.gaps, and the chained gap-1 trajectory.
+
+    With ``cfg.workers > 1`` and enough frames, the sequence is cut into chunks of about
+    ``cfg.chunk_frames`` frames that worker processes estimate independently (each chunk
+    also reads the ``gaps`` frames after it, so no edge is lost at a boundary); processes,
+    not threads, because the refinement is NumPy code that holds the GIL.
+    """
+    n = len(seq)
+    t0 = time.perf_counter()
+    bounds = _chunks(n, cfg)
+    bar = tqdm(total=n, desc=f"teacher {seq.name}", unit="frame", disable=not (progress and sys.stderr.isatty()))
+    edges: list[EdgeEstimate] = []
+    if len(bounds) == 1:
+        edges = _run_chunk(seq, cfg, 0, n, bar.update)
+    else:
+        # fork: children inherit the opened sequence and need no importable __main__ (spawn
+        # would re-run a user's script); they use no OpenMP/torch state of the parent
+        ctx = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
+        with ProcessPoolExecutor(cfg.workers, mp_context=ctx) as pool:
+            futs = {pool.submit(_run_chunk, seq, cfg, a, b): (a, b) for a, b in bounds}
+            for f in as_completed(futs):
+                edges += f.result()
+                a, b = futs[f]
+                bar.update(b - a)
+    bar.close()
+    edges.sort(key=lambda e: (e.i, e.j))
+    poses, bridges = chain_trajectory(seq.ids(), edges, cfg.gaps)
+    return TeacherRun(edges, poses, bridges, time.perf_counter() - t0)
+
+
+def _chunks(n: int, cfg: TeacherConfig) -> list[tuple[int, int]]:
+    """Frame-position ranges [a, b) of the chunks (one chunk when not worth splitting)."""
+    if cfg.workers <= 1 or n < 2 * cfg.chunk_frames:
+        return [(0, n)]
+    k = max(cfg.workers, round(n / cfg.chunk_frames))
+    edges = np.linspace(0, n, k + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
+               on_frame: Optional[Callable[[int], object]] = None) -> list[EdgeEstimate]:
+    """Edges (i, j) whose first frame position lies in [k0, k1), with j - i <= gaps.
+
+    Frames k0 .. k1 + gaps - 1 are streamed once: one helper thread decodes and extracts
+    features ahead; the main thread estimates the gap-1 edge of each new frame (matching
+    guided by constant velocity), extends the feature tracks with its inliers, and then the
+    longer edges ending at that frame (from the tracks, predicted by the chained motion).
+    """
     n = len(seq)
     ids, times = seq.ids(), seq.times()
     intr = seq.intrinsics
-    t0 = time.perf_counter()
-    gap1: list[Optional[EdgeEstimate]] = [None] * max(n - 1, 0)
-    long_futs: list[Future] = []
-    orbs: dict[int, object] = {}
+    k_end = min(n, k1 + cfg.gaps)
+    edges: list[EdgeEstimate] = []
+    orb = make_orb(cfg)
 
     def _extract(k: int) -> FrameFeatures:
-        import threading
+        return extract(seq.rgb(k), seq.depth(k), cfg, orb)  # one thread uses this ORB
 
-        tid = threading.get_ident()
-        if tid not in orbs:
-            orbs[tid] = make_orb(cfg)
-        return extract(seq.rgb(k), seq.depth(k), cfg, orbs[tid])
-
-    with ThreadPoolExecutor(max(1, cfg.workers)) as pool:
-        ahead = 2 * max(1, cfg.workers) + 2
-        feat_futs: dict[int, Future] = {k: pool.submit(_extract, k) for k in range(min(n, ahead))}
+    with ThreadPoolExecutor(1) as pool:
+        ahead = 3
+        feat_futs: dict[int, Future] = {k: pool.submit(_extract, k) for k in range(k0, min(k_end, k0 + ahead))}
         window: deque[_WindowEntry] = deque()
         v_prev: Optional[NDArray] = None  # last good gap-1 motion (constant-velocity prior)
-        bar = tqdm(total=n, desc=f"teacher {seq.name}", unit="frame", disable=not (progress and sys.stderr.isatty()))
-        for k in range(n):
+        for k in range(k0, k_end):
             fk = feat_futs.pop(k).result()
-            if k + ahead < n:
+            if k + ahead < k_end:
                 feat_futs[k + ahead] = pool.submit(_extract, k + ahead)
-            if k > 0:
+            if k > k0:
                 prev = window[-1]
                 dt = float(times[k] - times[k - 1])
                 e = estimate_edge(int(ids[k - 1]), int(ids[k]), prev.feats, fk, intr, cfg, dt, T_pred=v_prev)
-                gap1[k - 1] = e
+                if k - 1 < k1:
+                    edges.append(e)
                 step = e.T_i_j if e.ok else (v_prev if v_prev is not None else np.eye(4))
                 if e.ok:
                     v_prev = e.T_i_j
@@ -106,21 +149,20 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> Te
                     w.link = m[w.link]
                     w.T_k_cur = w.T_k_cur @ step
                 for w in list(window)[:-1]:  # gaps >= 2
+                    if w.k >= k1:
+                        continue
                     tracks = np.flatnonzero(w.link >= 0)
                     tracks = np.stack([tracks, w.link[tracks]], axis=1)
-                    long_futs.append(pool.submit(
-                        estimate_edge, int(ids[w.k]), int(ids[k]), w.feats, fk, intr, cfg,
-                        float(times[k] - times[w.k]), w.T_k_cur.copy(), tracks))
+                    edges.append(estimate_edge(int(ids[w.k]), int(ids[k]), w.feats, fk, intr, cfg,
+                                               float(times[k] - times[w.k]), w.T_k_cur.copy(), tracks))
             window.append(_WindowEntry(k, fk, np.arange(len(fk.uv)), np.eye(4)))
             while window and k - window[0].k >= cfg.gaps:
                 window.popleft()
-            bar.update(1)
-        bar.close()
-        longer = [f.result() for f in long_futs]
-    edges = [e for e in gap1 if e is not None] + longer
-    edges.sort(key=lambda e: (e.i, e.j))
-    poses, bridges = chain_trajectory(ids, edges, cfg.gaps)
-    return TeacherRun(edges, poses, bridges, time.perf_counter() - t0)
+            if on_frame is not None and k < k1:
+                on_frame(1)
+    for e in edges:
+        e.inlier_pairs = None  # only needed while tracking; keeps results small
+    return edges
 
 
 def chain_trajectory(ids: NDArray[np.int64], edges: list[EdgeEstimate], gaps: int

@@ -19,7 +19,6 @@ from data import geometry as geo
 from data.sequence import Intrinsics
 from teacher.config import TeacherConfig
 
-_EDGE_KERNEL = np.ones((5, 5), np.uint8)
 
 
 @dataclass
@@ -27,8 +26,8 @@ class FrameFeatures:
     """Everything the teacher needs of one frame; computed once, reused by all its edges.
 
     ``uv`` (N, 2) keypoint pixels, ``desc`` (N, 32) ORB descriptors, ``z`` (N,) depth at the
-    keypoint (0 where invalid or on a depth edge), ``gray`` (H, W) uint8 for sub-pixel
-    tracking, ``depth`` (H, W) float32 metres.
+    keypoint (0 where invalid or on a depth edge, see :func:`depth_at`), ``gray`` (H, W)
+    uint8 for sub-pixel tracking, ``depth`` (H, W) float32 metres.
     """
 
     uv: NDArray[np.float32]
@@ -36,7 +35,6 @@ class FrameFeatures:
     z: NDArray[np.float32]
     gray: NDArray[np.uint8]
     depth: NDArray[np.float32]
-    depth_ok: NDArray[np.bool_]
     _tree: Optional[cKDTree] = None
 
     @property
@@ -56,13 +54,36 @@ def make_orb(cfg: TeacherConfig) -> cv2.ORB:
                           fastThreshold=cfg.fast_threshold, edgeThreshold=19, patchSize=19)
 
 
-def valid_depth_mask(depth: NDArray[np.float32], cfg: TeacherConfig) -> NDArray[np.bool_]:
-    """Pixels with a depth in range and no depth discontinuity in their 5x5 neighbourhood."""
-    big = np.float32(1e6)
-    dmin = cv2.erode(np.where(depth > 0, depth, big), _EDGE_KERNEL)
-    dmax = cv2.dilate(depth, _EDGE_KERNEL)
-    thr = np.maximum(np.float32(cfg.depth_edge_abs), np.float32(cfg.depth_edge_rel) * depth)
-    return (depth >= cfg.depth_min) & (depth <= cfg.depth_max) & (dmin < big) & ((dmax - dmin) <= thr)
+_OFFS = np.array([(dy, dx) for dy in range(-2, 3) for dx in range(-2, 3)])  # 5x5 window
+
+
+def depth_at(depth: NDArray[np.float32], uv: NDArray, cfg: TeacherConfig) -> NDArray[np.float32]:
+    """Depth (m) at sub-pixel points, 0 where unusable.
+
+    A point is usable if its nearest pixel lies 2+ px inside the image, every pixel of its
+    5x5 neighbourhood has a depth, the depth range there is within
+    ``max(depth_edge_abs, depth_edge_rel * z)`` (no discontinuity) and ``z`` is within
+    ``[depth_min, depth_max]``. Usable points get the bilinear depth (safe: no edge nearby).
+    Checked per point, not per image: a few thousand look-ups instead of two 640x480
+    morphology passes.
+    """
+    h, w = depth.shape
+    z = np.zeros(len(uv), np.float32)
+    if len(uv) == 0:
+        return z
+    u = np.rint(uv[:, 0]).astype(np.int64)
+    v = np.rint(uv[:, 1]).astype(np.int64)
+    idx = np.flatnonzero((u >= 2) & (u < w - 2) & (v >= 2) & (v < h - 2))
+    win = depth[v[idx, None] + _OFFS[:, 0], u[idx, None] + _OFFS[:, 1]]  # (M, 25)
+    lo, hi, zc = win.min(axis=1), win.max(axis=1), win[:, 12]
+    thr = np.maximum(cfg.depth_edge_abs, cfg.depth_edge_rel * zc)
+    idx = idx[(lo > 0) & (hi - lo <= thr) & (zc >= cfg.depth_min) & (zc <= cfg.depth_max)]
+    x, y = uv[idx, 0].astype(np.float64), uv[idx, 1].astype(np.float64)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = x - x0, y - y0
+    z[idx] = ((1 - fx) * (1 - fy) * depth[y0, x0] + fx * (1 - fy) * depth[y0, x0 + 1]
+              + (1 - fx) * fy * depth[y0 + 1, x0] + fx * fy * depth[y0 + 1, x0 + 1])
+    return z
 
 
 def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConfig,
@@ -71,31 +92,11 @@ def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConf
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     orb = orb or make_orb(cfg)
     kps, desc = orb.detectAndCompute(gray, None)
-    ok = valid_depth_mask(depth, cfg)
     if not kps or desc is None:
         return FrameFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8),
-                             np.zeros(0, np.float32), gray, depth, ok)
+                             np.zeros(0, np.float32), gray, depth)
     uv = np.array([k.pt for k in kps], dtype=np.float32)
-    z = _depth_at(depth, ok, uv)
-    return FrameFeatures(uv, desc, z, gray, depth, ok)
-
-
-def _depth_at(depth: NDArray[np.float32], ok: NDArray[np.bool_], uv: NDArray[np.float32]) -> NDArray[np.float32]:
-    """Depth at sub-pixel points, bilinear (safe: ``ok`` pixels have no depth edge in their
-    5x5 neighbourhood); 0 where the nearest pixel is not ``ok`` or outside the image."""
-    h, w = depth.shape
-    u = np.rint(uv[:, 0]).astype(np.int64)
-    v = np.rint(uv[:, 1]).astype(np.int64)
-    inside = (u >= 1) & (u < w - 1) & (v >= 1) & (v < h - 1)
-    z = np.zeros(len(uv), np.float32)
-    idx = np.flatnonzero(inside)
-    idx = idx[ok[v[idx], u[idx]]]
-    x, y = uv[idx, 0].astype(np.float64), uv[idx, 1].astype(np.float64)
-    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-    fx, fy = x - x0, y - y0
-    z[idx] = ((1 - fx) * (1 - fy) * depth[y0, x0] + fx * (1 - fy) * depth[y0, x0 + 1]
-              + (1 - fx) * fy * depth[y0 + 1, x0] + fx * fy * depth[y0 + 1, x0 + 1])
-    return z
+    return FrameFeatures(uv, desc, depth_at(depth, uv, cfg), gray, depth)
 
 
 def match(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
@@ -260,7 +261,7 @@ def refine_two_way(T0: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i:
         if c_new <= cost and len(r_new) == len(r):
             T, r, J, cost = T_new, r_new, J_new, c_new
             lam = max(lam / 10, 1e-7)
-            if np.linalg.norm(step) < 1e-7:
+            if np.linalg.norm(step) < 1e-6:  # 1 um / 1 urad: converged
                 break
         else:
             lam *= 10
@@ -321,7 +322,7 @@ def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     uv_i = fi.uv[pairs[:, 0]].astype(np.float64)
     uv_j = fj.uv[pairs[:, 1]].astype(np.float64)
     if cfg.subpixel:
-        uv_j = _subpixel(fi, fj, uv_i, uv_j)
+        uv_j = _subpixel(fi, fj, uv_i, uv_j, cfg.lk_window)
     P_i = _backproject(uv_i, fi.z[pairs[:, 0]].astype(np.float64), K)
     ok, rvec, tvec, inl = cv2.solvePnPRansac(
         P_i, uv_j, K, None, iterationsCount=cfg.ransac_iters, reprojectionError=cfg.ransac_reproj_px,
@@ -334,7 +335,7 @@ def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     T0 = geo.inv_T(geo.make_T(R_j_i, tvec.ravel()))
 
     # points of frame j with valid depth give the backward term
-    z_j = _depth_at(fj.depth, fj.depth_ok, uv_j.astype(np.float32)).astype(np.float64)
+    z_j = depth_at(fj.depth, uv_j, cfg).astype(np.float64)
     Q_all = _backproject(uv_j, z_j, K)
     has_b = (z_j > 0) if cfg.two_way else np.zeros(len(z_j), bool)
     T, r, cov = T0, None, None
@@ -382,7 +383,7 @@ def _reproj_err(T_j_i: NDArray, P_i: NDArray, uv_j: NDArray, K: NDArray) -> NDAr
     return err
 
 
-def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray) -> NDArray:
+def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray, win: int = 11) -> NDArray:
     """Track ``uv_i`` into frame j with pyramidal LK, started at the ORB match ``uv_j``.
 
     Points the tracker loses, or moves by more than 2 px from the match, keep the ORB position.
@@ -390,7 +391,7 @@ def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray
     p0 = uv_i.astype(np.float32).reshape(-1, 1, 2)
     p1 = uv_j.astype(np.float32).reshape(-1, 1, 2).copy()
     p1, st, _ = cv2.calcOpticalFlowPyrLK(
-        fi.gray, fj.gray, p0, p1, winSize=(11, 11), maxLevel=1,
+        fi.gray, fj.gray, p0, p1, winSize=(win, win), maxLevel=1,
         criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01),
         flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
     p1 = p1.reshape(-1, 2).astype(np.float64)
