@@ -57,7 +57,7 @@ def stage_breakdown(cfg: syn.SceneConfig, n: int = 5) -> dict[str, float]:
         rng = np.random.default_rng(k)
         d = depth_sensor(ex.depth, ex.cos_incidence, cfg.fx, cfg.sensor, rng, fr.bank)
         t2 = time.process_time()
-        rgb = fr.colour_sensor(ex.colour, 1.0, fr.image_flow(int(k), ex), rng)
+        rgb = fr.colour_sensor(ex.colour, 1.0, fr.image_flow(int(k), ex), rng, ex.depth, cfg.fx)
         t3 = time.process_time()
         cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), _PNG_PARAMS)
         cv2.imencode(".png", depth_to_png_mm(d), _PNG_PARAMS)

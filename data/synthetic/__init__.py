@@ -165,7 +165,7 @@ class FrameRenderer:
         rng = np.random.default_rng([c.seed, 3, k])
         depth = depth_sensor(exact.depth, exact.cos_incidence, c.fx, c.sensor, rng, self.bank, self.depth_bias)
         flow = self.image_flow(k, exact) if (c.sensor.motion_blur_exposure > 0 and not c.sensor.noise_free) else np.zeros(2)
-        rgb = self.colour_sensor(exact.colour, float(self.gains[k]), flow, rng)
+        rgb = self.colour_sensor(exact.colour, float(self.gains[k]), flow, rng, exact.depth, c.fx)
         return rgb, depth, exact
 
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 #: Bump when the renderer's output changes for the same config (invalidates caches).
-RENDER_VERSION = 4
+RENDER_VERSION = 5
 
 
 @dataclass(frozen=True)
@@ -81,6 +81,9 @@ class SensorConfig:
     the corners) of the camera whose pinhole intrinsics are written. 0 = exact pinhole."""
     rgb_shift_px: tuple[float, float] = (2.5, -1.5)
     """RGB-depth misregistration: shift (x, y) of the colour image in pixels."""
+    rgb_depth_baseline_error_m: float = 0.005
+    """Error of the RGB-depth registration baseline, metres: the colour image is also shifted
+    by ``fx * err / z`` pixels along x (depth-dependent misregistration; 0 = none)."""
     rgb_blur_sigma: float = 1.0
     """Optical blur of the colour camera (Gaussian sigma, pixels)."""
     motion_blur_exposure: float = 0.4

@@ -190,12 +190,21 @@ class ColourSensor:
         self.kx = shifted_gaussian(cfg.rgb_blur_sigma, cfg.rgb_shift_px[0])
         self.ky = shifted_gaussian(cfg.rgb_blur_sigma, cfg.rgb_shift_px[1])
         self.bank = NoiseBank(0, width * height * 3)
+        gy, gx = np.mgrid[0:height, 0:width].astype(np.float32)
+        self._gx, self._gy = gx, gy
 
     def __call__(self, img: NDArray[np.float32], gain: float, flow: NDArray[np.float64],
-                 rng: np.random.Generator) -> NDArray[np.uint8]:
+                 rng: np.random.Generator, depth: NDArray[np.float32] | None = None, fx: float = 0.0) -> NDArray[np.uint8]:
+        """8-bit RGB from the linear rendering ``img`` (H, W, 3); ``depth`` (H, W) exact z and
+        ``fx`` drive the depth-dependent misregistration."""
         cfg = self.cfg
         if cfg.noise_free:
             return np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
+        if cfg.rgb_depth_baseline_error_m and depth is not None:
+            with np.errstate(divide="ignore"):
+                shift = np.where(depth > 0, np.float32(fx * cfg.rgb_depth_baseline_error_m) / depth, 0)
+            img = cv2.remap(img, self._gx - shift.astype(np.float32), self._gy, cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_REFLECT)
         img = img * (np.float32(gain) * self.vignette)
         if cfg.motion_blur_exposure > 0:
             k = motion_kernel(flow, cfg.motion_blur_exposure)
