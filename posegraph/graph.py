@@ -78,78 +78,185 @@ class SolveResult:
     """(N, 6, 6) marginal covariances in project order (v, w), right perturbation."""
     first_residuals: Optional[NDArray[np.float64]] = field(default=None, repr=False)
     """(E,) whitened residual norms after the first solve (before outlier handling)."""
+    cpu_s: float = 0.0
+    """Process CPU time of the solve (s); ``time_s`` is wall-clock."""
 
 
 # ----------------------------------------------------------------------------------
 # validation and graph structure
 # ----------------------------------------------------------------------------------
-def validate_edges(frame_ids: NDArray[np.int64], edges: Sequence[Edge]) -> None:
+@dataclass
+class EdgeArrays:
+    """The edges as arrays (one Python pass over the Edge objects, then vectorised work)."""
+
+    ids: NDArray[np.int64]
+    """(E, 2) frame ids ``(i, j)``."""
+    pos: NDArray[np.int64]
+    """(E, 2) positions of ``i`` and ``j`` in the sorted frame ids (-1 for unknown ids)."""
+    T: NDArray[np.float64]
+    """(E, 4, 4) measured ``T_i_j``."""
+    cov: NDArray[np.float64]
+    """(E, 6, 6) covariances, project order (v, w)."""
+    source: list[str]
+    """(E,) ``edge.extra["source"]`` (``"edges"`` when absent)."""
+
+    @property
+    def gap(self) -> NDArray[np.int64]:
+        """(E,) frame gap ``|pos_j - pos_i|`` in positions."""
+        return np.abs(self.pos[:, 1] - self.pos[:, 0])
+
+
+def edge_arrays(frame_ids: NDArray[np.int64], edges: Sequence[Edge]) -> EdgeArrays:
+    """Stack ``edges`` into :class:`EdgeArrays` (``frame_ids`` sorted)."""
+    frame_ids = np.asarray(frame_ids, dtype=np.int64)
+    if not edges:
+        return EdgeArrays(np.zeros((0, 2), np.int64), np.zeros((0, 2), np.int64), np.zeros((0, 4, 4)),
+                          np.zeros((0, 6, 6)), [])
+    ids = np.array([(e.i, e.j) for e in edges], dtype=np.int64)
+    try:
+        T = np.array([e.T_i_j for e in edges], dtype=np.float64).reshape(len(edges), 4, 4)
+        cov = np.array([e.cov for e in edges], dtype=np.float64).reshape(len(edges), 6, 6)
+    except ValueError:
+        bad = next(n for n, e in enumerate(edges) if np.size(e.T_i_j) != 16 or np.size(e.cov) != 36)
+        raise GraphError(f"edge {edges[bad].i}->{edges[bad].j}: needs a 4x4 pose and a 6x6 covariance") from None
+    pos = np.searchsorted(frame_ids, ids)
+    pos_c = np.minimum(pos, len(frame_ids) - 1)
+    pos = np.where(frame_ids[pos_c] == ids, pos_c, -1)
+    return EdgeArrays(ids, pos, T, cov, [str(e.extra.get("source", "edges")) for e in edges])
+
+
+def validate_edges(frame_ids: NDArray[np.int64], edges: Sequence[Edge],
+                   arrays: Optional[EdgeArrays] = None) -> None:
     """Raise :class:`GraphError` for edges on unknown frames, bad covariances or poses
-    (vectorised: large graphs validate in milliseconds)."""
+    (vectorised: 50k edges validate in about 0.1 s). ``frame_ids`` need not be sorted."""
+    frame_ids = np.sort(np.asarray(frame_ids, dtype=np.int64))
     if len(frame_ids) < 2:
         raise GraphError(f"a pose graph needs at least two frames, got {len(frame_ids)}")
     if np.any(frame_ids < 0):
         raise GraphError("frame ids must be non-negative")
     if not edges:
         return
+    a = arrays if arrays is not None else edge_arrays(frame_ids, edges)
     lo, hi = int(frame_ids.min()), int(frame_ids.max())
-    ij = np.array([(e.i, e.j) for e in edges], dtype=np.int64)
-    covs = np.stack([np.asarray(e.cov, dtype=np.float64).reshape(6, 6) for e in edges])
-    Ts = np.stack([np.asarray(e.T_i_j, dtype=np.float64).reshape(4, 4) for e in edges])
 
     def fail(n: int, why: str) -> None:
         e = edges[int(n)]
         raise GraphError(f"edge {e.i}->{e.j} ({e.extra.get('source', 'edges')}): {why}")
 
-    known = np.isin(ij, frame_ids)
+    known = a.pos >= 0
     if not known.all():
         n, c = np.argwhere(~known)[0]
-        fail(n, f"references frame {ij[n, c]}, which does not exist ({len(frame_ids)} frames, ids {lo}..{hi})")
-    same = np.flatnonzero(ij[:, 0] == ij[:, 1])
+        fail(n, f"references frame {a.ids[n, c]}, which does not exist ({len(frame_ids)} frames, ids {lo}..{hi})")
+    same = np.flatnonzero(a.ids[:, 0] == a.ids[:, 1])
     if len(same):
         fail(same[0], "connects a frame to itself")
+    covs, Ts = a.cov, a.T
     bad = ~np.isfinite(covs).all(axis=(1, 2))
     if bad.any():
         fail(np.flatnonzero(bad)[0], "covariance must be a finite 6x6 matrix")
-    sym = np.isclose(covs, covs.transpose(0, 2, 1), rtol=1e-6, atol=1e-12).all(axis=(1, 2))
-    pd = np.linalg.eigvalsh(0.5 * (covs + covs.transpose(0, 2, 1))).min(axis=1) > 0
+    covT = covs.transpose(0, 2, 1)
+    sym = (np.abs(covs - covT) <= 1e-12 + 1e-6 * np.abs(covT)).all(axis=(1, 2))
+    pd = np.linalg.eigvalsh(0.5 * (covs + covT))[:, 0] > 0
     if not (sym & pd).all():
         fail(np.flatnonzero(~(sym & pd))[0], "covariance is not symmetric positive definite")
-    R = Ts[:, :3, :3]
     with np.errstate(invalid="ignore"):
-        rigid = (np.isfinite(Ts).all(axis=(1, 2))
-                 & np.isclose(R.transpose(0, 2, 1) @ R, np.eye(3), atol=1e-4).all(axis=(1, 2))
-                 & (np.abs(np.linalg.det(np.nan_to_num(R)) - 1.0) < 1e-4)
-                 & np.isclose(Ts[:, 3], [0, 0, 0, 1], atol=1e-4).all(axis=1))
+        finite = np.isfinite(Ts).all(axis=(1, 2))
+        R = np.where(finite[:, None, None], Ts[:, :3, :3], 0.0)
+        rigid = (finite
+                 & (np.abs(R.transpose(0, 2, 1) @ R - np.eye(3)) <= 1e-4).all(axis=(1, 2))
+                 & (np.abs(np.linalg.det(R) - 1.0) < 1e-4)
+                 & (np.abs(Ts[:, 3] - [0, 0, 0, 1]) <= 1e-4).all(axis=1))
     if not rigid.all():
         fail(np.flatnonzero(~rigid)[0], "relative pose is not a finite rigid transform")
 
 
 def _orthonormalize_batch(Ts: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(N, 4, 4) transforms with rotation blocks projected onto SO(3) (batched SVD,
-    same projection as :func:`data.geometry.orthonormalize`)."""
+    """(N, 4, 4) transforms with rotation blocks projected onto SO(3): the orthogonal
+    polar factor, as :func:`data.geometry.orthonormalize` (SVD ``U V^T``). Nearly
+    orthonormal blocks (``|R^T R - I| < 1e-3``, all validated edges) take three
+    Newton-Schulz steps ``R <- R (3 I - R^T R) / 2`` (quadratic convergence to the same
+    polar factor, vectorised); the others a batched SVD."""
     Ts = np.array(Ts, dtype=np.float64).reshape(-1, 4, 4)
-    U, _, Vt = np.linalg.svd(Ts[:, :3, :3])
-    d = np.sign(np.linalg.det(U @ Vt))
-    U[:, :, -1] *= d[:, None]
-    Ts[:, :3, :3] = U @ Vt
+    R = Ts[:, :3, :3]
+    err = np.abs(R.transpose(0, 2, 1) @ R - np.eye(3)).max(axis=(1, 2), initial=0.0)
+    near = np.flatnonzero((err > 1e-12) & (err < 1e-3))  # exactly orthonormal ones stay as they are
+    if len(near):
+        Rn = R[near]
+        for _ in range(3):
+            Rn = 0.5 * Rn @ (3.0 * np.eye(3) - Rn.transpose(0, 2, 1) @ Rn)
+        R[near] = Rn
+    far = np.flatnonzero(~(err < 1e-3))
+    if len(far):
+        U, _, Vt = np.linalg.svd(R[far])
+        d = np.sign(np.linalg.det(U @ Vt))
+        U[:, :, -1] *= d[:, None]
+        R[far] = U @ Vt
     Ts[:, 3] = [0, 0, 0, 1]
     return Ts
 
 
 def _pose3s(Ts: NDArray[np.float64]) -> list:
-    """``gtsam.Pose3`` objects of (N, 4, 4) transforms."""
+    """``gtsam.Pose3`` objects of (N, 4, 4) transforms (orthonormalised first)."""
     import gtsam
 
     return [gtsam.Pose3(T) for T in _orthonormalize_batch(Ts)]
 
 
-def _covs_gtsam(covs: Sequence[NDArray[np.float64]]) -> NDArray[np.float64]:
+def _covs_gtsam(covs: NDArray[np.float64]) -> NDArray[np.float64]:
     """(E, 6, 6) covariances re-ordered to GTSAM's (w, v) with the conversion module's
     vector permutation applied to rows and columns (batched cov_to_gtsam)."""
-    c = np.stack([np.asarray(x, dtype=np.float64) for x in covs])
+    c = np.asarray(covs, dtype=np.float64).reshape(-1, 6, 6)
     c = geo.vec_to_gtsam(geo.vec_to_gtsam(c).transpose(0, 2, 1))
     return 0.5 * (c + c.transpose(0, 2, 1))
+
+
+def _se3_log_batch(T: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(E, 6) logarithms ``(v, w)`` of (E, 4, 4) rigid transforms: the batched form of
+    :func:`data.geometry.se3_log` (scipy rotation vectors, ``v = V^-1 t`` with the same
+    series near zero), for residuals of large graphs."""
+    from scipy.spatial.transform import Rotation
+
+    T = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
+    if len(T) == 0:
+        return np.zeros((0, 6))
+    w = Rotation.from_matrix(T[:, :3, :3]).as_rotvec().reshape(-1, 3)
+    theta = np.linalg.norm(w, axis=1)
+    W = np.zeros((len(T), 3, 3))
+    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    W -= W.transpose(0, 2, 1)
+    small = theta < 1e-4
+    th = np.where(small, 1.0, theta)
+    half = 0.5 * th
+    d = np.where(small, 1.0 / 12.0 + theta**2 / 720.0, (1.0 - half * np.cos(half) / np.sin(half)) / th**2)
+    V_inv = np.eye(3) - 0.5 * W + d[:, None, None] * (W @ W)
+    v = np.einsum("nij,nj->ni", V_inv, T[:, :3, 3])
+    return np.concatenate([v, w], axis=1)
+
+
+def edge_residuals(poses: NDArray[np.float64], pos: NDArray[np.int64], T_meas: NDArray[np.float64],
+                   info: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(E,) whitened residual norms ``sqrt(d^T C^-1 d)`` with ``d = log(inv(T_meas) @
+    inv(T_i) @ T_j)`` (right perturbation at the measurement, project order).
+
+    Args:
+        poses: (N, 4, 4) ``T_world_cam``.
+        pos: (E, 2) positions of the edges' frames in ``poses``.
+        T_meas: (E, 4, 4) measured relative poses.
+        info: (E, 6, 6) inverse covariances, project order.
+    """
+    if len(pos) == 0:
+        return np.zeros(0)
+    Pi, Pj = poses[pos[:, 0]], poses[pos[:, 1]]
+    Ri_t = Pi[:, :3, :3].transpose(0, 2, 1)
+    Mi_t = T_meas[:, :3, :3].transpose(0, 2, 1)
+    R_rel = Ri_t @ Pj[:, :3, :3]
+    t_rel = np.einsum("nij,nj->ni", Ri_t, Pj[:, :3, 3] - Pi[:, :3, 3])
+    D = np.zeros((len(pos), 4, 4))
+    D[:, :3, :3] = Mi_t @ R_rel
+    D[:, :3, 3] = np.einsum("nij,nj->ni", Mi_t, t_rel - T_meas[:, :3, 3])
+    D[:, 3, 3] = 1.0
+    d = _se3_log_batch(D)
+    return np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", d, info, d), 0.0))
 
 
 class _UnionFind:
@@ -170,60 +277,74 @@ class _UnionFind:
         return True
 
 
+def _component_labels(n: int, pos: NDArray[np.int64]) -> NDArray[np.int64]:
+    """(n,) connected-component label of every frame position (scipy, vectorised)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    adj = coo_matrix((np.ones(len(pos)), (pos[:, 0], pos[:, 1])), shape=(n, n))
+    return connected_components(adj, directed=False)[1]
+
+
 def components(frame_ids: NDArray[np.int64], edges: Sequence[Edge]) -> list[list[int]]:
-    """Connected components (lists of frame ids, sorted by first id)."""
-    pos = {int(k): p for p, k in enumerate(frame_ids)}
-    uf = _UnionFind(len(frame_ids))
-    for e in edges:
-        uf.union(pos[e.i], pos[e.j])
+    """Connected components (lists of frame ids, sorted by first id); ``frame_ids`` sorted."""
+    frame_ids = np.asarray(frame_ids, dtype=np.int64)
+    labels = _component_labels(len(frame_ids), edge_arrays(frame_ids, edges).pos)
     groups: dict[int, list[int]] = {}
-    for p, k in enumerate(frame_ids):
-        groups.setdefault(uf.find(p), []).append(int(k))
+    for lab, k in zip(labels.tolist(), frame_ids.tolist()):
+        groups.setdefault(lab, []).append(k)
     return sorted(groups.values(), key=lambda g: g[0])
 
 
-def check_connected(frame_ids: NDArray[np.int64], edges: Sequence[Edge]) -> None:
+def check_connected(frame_ids: NDArray[np.int64], edges: Sequence[Edge],
+                    arrays: Optional[EdgeArrays] = None) -> None:
     """Raise :class:`GraphError` naming the split when the graph is not connected."""
+    frame_ids = np.asarray(frame_ids, dtype=np.int64)
+    pos = (arrays if arrays is not None else edge_arrays(frame_ids, edges)).pos
+    if len(np.unique(_component_labels(len(frame_ids), pos))) == 1:
+        return
     comps = components(frame_ids, edges)
-    if len(comps) > 1:
-        sizes = ", ".join(f"{c[0]}..{c[-1]} ({len(c)} frames)" for c in comps[:4])
-        more = f" and {len(comps) - 4} more" if len(comps) > 4 else ""
-        raise GraphError(f"the pose graph is disconnected: {len(comps)} components: {sizes}{more}; "
-                         "every frame needs a chain of edges to the first frame")
+    sizes = ", ".join(f"{c[0]}..{c[-1]} ({len(c)} frames)" for c in comps[:4])
+    more = f" and {len(comps) - 4} more" if len(comps) > 4 else ""
+    raise GraphError(f"the pose graph is disconnected: {len(comps)} components: {sizes}{more}; "
+                     "every frame needs a chain of edges to the first frame")
 
 
 def chain_poses(frame_ids: NDArray[np.int64], edges: Sequence[Edge],
                 T_world_first: Optional[NDArray[np.float64]] = None) -> NDArray[np.float64]:
     """Chain edges into ``T_world_cam`` poses (N, 4, 4) along a spanning tree.
 
-    Breadth-first from the first frame, trying each frame's edges in order of
-    increasing frame gap, so a complete gap-1 chain is used as is (dead reckoning).
-    Raises :class:`GraphError` if some frame cannot be reached.
+    The tree is the minimum spanning tree by frame gap (Kruskal: smallest gaps first,
+    ties in edge order), walked breadth-first from the first frame, so a complete gap-1
+    chain is used as is (dead reckoning) and longer edges only bridge missing steps.
+    ``frame_ids`` must be sorted. Raises :class:`GraphError` if some frame cannot be reached.
     """
-    pos = {int(k): p for p, k in enumerate(frame_ids)}
-    adj: list[list[tuple[int, int, int, bool]]] = [[] for _ in frame_ids]
-    for n, e in enumerate(edges):
-        a, b = pos[e.i], pos[e.j]
-        adj[a].append((abs(b - a), b, n, False))
-        adj[b].append((abs(b - a), a, n, True))  # traversed backwards: inverse, computed lazily
-    for lst in adj:
-        lst.sort(key=lambda x: (x[0], x[1]))
-    poses = np.full((len(frame_ids), 4, 4), np.nan)
+    frame_ids = np.asarray(frame_ids, dtype=np.int64)
+    a = edge_arrays(frame_ids, edges)
+    if (a.pos < 0).any():
+        validate_edges(frame_ids, edges, a)
+    n = len(frame_ids)
+    uf = _UnionFind(n)
+    adj: list[list[tuple[int, int, bool]]] = [[] for _ in range(n)]
+    for e in np.argsort(a.gap, kind="stable").tolist():
+        p, q = int(a.pos[e, 0]), int(a.pos[e, 1])
+        if uf.union(p, q):
+            adj[p].append((q, e, False))
+            adj[q].append((p, e, True))  # traversed backwards: inverse
+    poses = np.full((n, 4, 4), np.nan)
     poses[0] = np.eye(4) if T_world_first is None else T_world_first
-    seen = np.zeros(len(frame_ids), bool)
+    seen = np.zeros(n, bool)
     seen[0] = True
     queue = deque([0])
-    # Process frames in increasing order where possible: a gap-1 chain then wins.
     while queue:
-        a = queue.popleft()
-        for _, b, n, backwards in adj[a]:
-            if not seen[b]:
-                seen[b] = True
-                T_a_b = geo.inv_T(edges[n].T_i_j) if backwards else edges[n].T_i_j
-                poses[b] = poses[a] @ T_a_b
-                queue.append(b)
+        p = queue.popleft()
+        for q, e, backwards in adj[p]:
+            if not seen[q]:
+                seen[q] = True
+                poses[q] = poses[p] @ (geo.inv_T(a.T[e]) if backwards else a.T[e])
+                queue.append(q)
     if not seen.all():
-        check_connected(frame_ids, edges)
+        check_connected(frame_ids, edges, a)
     return poses
 
 
@@ -247,23 +368,22 @@ def _prior(frame_id: int, T: NDArray[np.float64], cfg: PoseGraphConfig):
     return gtsam.PriorFactorPose3(int(frame_id), geo.to_gtsam_pose3(T), gtsam.noiseModel.Diagonal.Sigmas(sig))
 
 
-def _factors(edges: Sequence[Edge], covs: Sequence[NDArray[np.float64]], cfg: PoseGraphConfig,
-             measured: Optional[list] = None) -> list:
-    """One robust ``BetweenFactorPose3`` per edge; noise models are shared between edges
-    with identical covariances."""
+def _factors(ids: NDArray[np.int64], measured: Sequence, covs: NDArray[np.float64], cfg: PoseGraphConfig) -> list:
+    """One robust ``BetweenFactorPose3`` per edge (``ids`` (E, 2) frame ids, ``measured``
+    their ``gtsam.Pose3``, ``covs`` (E, 6, 6) project order); noise models are shared
+    between edges with identical covariances."""
     import gtsam
 
-    if not edges:
+    if len(ids) == 0:
         return []
-    measured = measured if measured is not None else _pose3s(np.stack([e.T_i_j for e in edges]))
     cache: dict[bytes, object] = {}
     out = []
-    for e, P, c in zip(edges, measured, _covs_gtsam(covs)):
+    for (i, j), P, c in zip(ids.tolist(), measured, _covs_gtsam(covs)):
         key = c.tobytes()
         model = cache.get(key)
         if model is None:
             model = cache[key] = _robust(gtsam.noiseModel.Gaussian.Covariance(c), cfg)
-        out.append(gtsam.BetweenFactorPose3(int(e.i), int(e.j), P, model))
+        out.append(gtsam.BetweenFactorPose3(i, j, P, model))
     return out
 
 
@@ -275,9 +395,11 @@ def build_graph(frame_ids: NDArray[np.int64], edges: Sequence[Edge], covs: Seque
     ``measured`` optionally gives the edges' ``gtsam.Pose3`` (already converted)."""
     import gtsam
 
+    a = edge_arrays(np.asarray(frame_ids, dtype=np.int64), edges)
+    measured = measured if measured is not None else _pose3s(a.T)
     graph = gtsam.NonlinearFactorGraph()
     graph.add(_prior(frame_ids[0], initial[0], cfg))
-    for f in _factors(edges, covs, cfg, measured):
+    for f in _factors(a.ids, measured, np.asarray(covs, dtype=np.float64).reshape(-1, 6, 6), cfg):
         graph.add(f)
     return graph, _values(frame_ids, initial)
 
@@ -286,13 +408,23 @@ def _values(frame_ids: NDArray[np.int64], poses: NDArray[np.float64]):
     import gtsam
 
     values = gtsam.Values()
-    for k, P in zip(frame_ids, _pose3s(poses)):
-        values.insert(int(k), P)
+    for k, P in zip(np.asarray(frame_ids).tolist(), _pose3s(poses)):
+        values.insert(k, P)
     return values
 
 
 def _poses_from_values(frame_ids: NDArray[np.int64], values) -> NDArray[np.float64]:
-    return np.stack([geo.from_gtsam_pose3(values.atPose3(int(k))) for k in frame_ids])
+    """(N, 4, 4) poses of the (sorted) frame ids; the values hold exactly these Pose3 keys."""
+    import gtsam
+
+    X = gtsam.utilities.extractPose3(values)  # key order, rows: R row-major (9), t (3)
+    if X.shape[0] != len(frame_ids):
+        return np.stack([geo.from_gtsam_pose3(values.atPose3(int(k))) for k in frame_ids])
+    out = np.zeros((len(X), 4, 4))
+    out[:, :3, :3] = X[:, :9].reshape(-1, 3, 3)
+    out[:, :3, 3] = X[:, 9:]
+    out[:, 3, 3] = 1.0
+    return out
 
 
 def _indeterminant(exc: RuntimeError) -> GraphError:
@@ -305,42 +437,61 @@ def _indeterminant(exc: RuntimeError) -> GraphError:
     return GraphError(f"GTSAM failed: {' '.join(msg.split())[:300]}")
 
 
-def _run_lm(graph, values, cfg: PoseGraphConfig):
+def _lm_params(cfg: PoseGraphConfig):
     import gtsam
 
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(cfg.max_iterations)
     params.setRelativeErrorTol(cfg.relative_error_tol)
-    params.setAbsoluteErrorTol(0.0)
+    params.setAbsoluteErrorTol(cfg.absolute_error_tol)
+    params.setLinearSolverType(cfg.linear_solver)
+    params.setOrderingType(cfg.ordering)
+    return params
+
+
+def _run_lm(graph, values, cfg: PoseGraphConfig, check: bool = True):
+    """Batch Levenberg-Marquardt; with ``check``, one undamped elimination at the solution
+    (LM hides an indeterminant system behind its damping; this costs about one iteration)."""
+    import gtsam
+
     try:
-        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, _lm_params(cfg))
         result = opt.optimize()
-        # LM hides an indeterminant system behind its damping; one undamped
-        # elimination at the solution exposes it (costs about one LM iteration).
-        graph.linearize(result).eliminateMultifrontal()
+        if check:
+            check_determinate(graph, result)
     except RuntimeError as exc:
         raise _indeterminant(exc) from None
     return result, int(opt.iterations())
 
 
-def _run_isam2(frame_ids: NDArray[np.int64], edges: Sequence[Edge], covs: Sequence[NDArray[np.float64]],
-               initial: NDArray[np.float64], cfg: PoseGraphConfig, measured: Optional[list] = None):
+def check_determinate(graph, values) -> None:
+    """Raise :class:`GraphError` when the undamped linear system at ``values`` is singular."""
+    try:
+        graph.linearize(values).eliminateMultifrontal()
+    except RuntimeError as exc:
+        raise _indeterminant(exc) from None
+
+
+def _run_isam2(frame_ids: NDArray[np.int64], pos: NDArray[np.int64], T_meas: NDArray[np.float64], factors: list,
+               initial: NDArray[np.float64], cfg: PoseGraphConfig):
     """Incremental solve: frames enter in id order; a frame's edges to frames already
-    in the graph are added with it (a frame with none waits until it is connected)."""
+    in the graph are added with it (a frame with none waits until it is connected).
+    ``pos`` (E, 2) positions, ``T_meas`` (E, 4, 4) and ``factors`` describe the edges."""
     import gtsam
 
     params = gtsam.ISAM2Params()
     params.setRelinearizeThreshold(cfg.isam2_relinearize_threshold)
     params.relinearizeSkip = 1
     isam = gtsam.ISAM2(params)
-    factors = _factors(edges, covs, cfg, measured)
-    pos = {int(k): p for p, k in enumerate(frame_ids)}
+    gap = np.abs(pos[:, 1] - pos[:, 0])
     adj: list[list[int]] = [[] for _ in frame_ids]
-    for n, e in enumerate(edges):
-        adj[pos[e.i]].append(n)
-        adj[pos[e.j]].append(n)
+    for n, (p, q) in enumerate(pos.tolist()):
+        adj[p].append(n)
+        adj[q].append(n)
+    for lst in adj:
+        lst.sort(key=lambda n: gap[n])
     inserted = np.zeros(len(frame_ids), bool)
-    added = np.zeros(len(edges), bool)
+    added = np.zeros(len(pos), bool)
     pending: list[int] = []
     est: dict[int, NDArray[np.float64]] = {}
     steps = 0
@@ -360,12 +511,11 @@ def _run_isam2(frame_ids: NDArray[np.int64], edges: Sequence[Edge], covs: Sequen
                 grew = False
                 for q in list(pending):
                     anchor, T_anchor_q = None, None
-                    for n in sorted(adj[q], key=lambda n: abs(pos[edges[n].j] - pos[edges[n].i])):
-                        e = edges[n]
-                        other = pos[e.j] if pos[e.i] == q else pos[e.i]
-                        if inserted[other]:  # predict the new pose through its shortest edge
-                            anchor = other
-                            T_anchor_q = e.T_i_j if pos[e.i] == other else geo.inv_T(e.T_i_j)
+                    for n in adj[q]:  # predict the new pose through its shortest edge
+                        other = pos[n, 1] if pos[n, 0] == q else pos[n, 0]
+                        if inserted[other]:
+                            anchor = int(other)
+                            T_anchor_q = T_meas[n] if pos[n, 0] == other else geo.inv_T(T_meas[n])
                             break
                     if anchor is None:
                         continue
@@ -375,8 +525,7 @@ def _run_isam2(frame_ids: NDArray[np.int64], edges: Sequence[Edge], covs: Sequen
                     pending.remove(q)
                     grew = True
                     for n in adj[q]:
-                        e = edges[n]
-                        if not added[n] and inserted[pos[e.i]] and inserted[pos[e.j]]:
+                        if not added[n] and inserted[pos[n, 0]] and inserted[pos[n, 1]]:
                             graph.add(factors[n])
                             added[n] = True
             if values.size() or graph.size():
@@ -398,59 +547,113 @@ def _run_isam2(frame_ids: NDArray[np.int64], edges: Sequence[Edge], covs: Sequen
     return result, steps
 
 
-def _sigma_figures(cov: NDArray[np.float64]) -> tuple[float, float]:
-    """(largest translation sigma in m, largest rotation sigma in deg) of a (v, w) covariance."""
-    st = math.sqrt(max(float(np.linalg.eigvalsh(cov[:3, :3]).max()), 0.0))
-    sr = math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(cov[3:, 3:]).max()), 0.0)))
+def _sigma_figures(covs: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(E,) largest translation sigma (m) and (E,) largest rotation sigma (deg) of (E, 6, 6)
+    covariances in (v, w) order."""
+    st = np.sqrt(np.maximum(np.linalg.eigvalsh(covs[:, :3, :3])[:, -1], 0.0))
+    sr = np.degrees(np.sqrt(np.maximum(np.linalg.eigvalsh(covs[:, 3:, 3:])[:, -1], 0.0)))
     return st, sr
-
-
-def _residuals(values, edges: Sequence[Edge], covs: Sequence[NDArray[np.float64]],
-               measured: Optional[list] = None) -> NDArray[np.float64]:
-    """(E,) whitened residual norms without kernel: GTSAM's between-factor error
-    (right perturbation at the measurement, GTSAM order) whitened by the covariance."""
-    import gtsam
-
-    if not edges:
-        return np.zeros(0)
-    measured = measured if measured is not None else _pose3s(np.stack([e.T_i_j for e in edges]))
-    unit = gtsam.noiseModel.Unit.Create(6)
-    err = np.array([gtsam.BetweenFactorPose3(int(e.i), int(e.j), P, unit).unwhitenedError(values)
-                    for e, P in zip(edges, measured)])
-    info = np.linalg.inv(_covs_gtsam(covs))
-    return np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", err, info, err), 0.0))
 
 
 def whitened_residuals(poses: NDArray[np.float64], frame_ids: NDArray[np.int64], edges: Sequence[Edge],
                        covs: Optional[Sequence[NDArray[np.float64]]] = None) -> NDArray[np.float64]:
     """(E,) ``sqrt(d^T C^-1 d)``, ``d`` the right-perturbation residual of each edge at
-    ``poses`` (N, 4, 4) (``T_i_j(poses) = T_i_j @ exp(d)``), no robust kernel."""
-    return _residuals(_values(frame_ids, poses), edges, [e.cov for e in edges] if covs is None else covs)
+    ``poses`` (N, 4, 4) of the sorted ``frame_ids`` (``T_i_j(poses) = T_i_j @ exp(d)``),
+    no robust kernel."""
+    a = edge_arrays(np.asarray(frame_ids, dtype=np.int64), edges)
+    c = a.cov if covs is None else np.asarray(covs, dtype=np.float64).reshape(-1, 6, 6)
+    return edge_residuals(np.asarray(poses, dtype=np.float64), a.pos, _orthonormalize_batch(a.T), np.linalg.inv(c))
 
 
-def _keep_connected(frame_ids: NDArray[np.int64], edges: Sequence[Edge], drop: NDArray[np.bool_],
+def _keep_connected(n_frames: int, pos: NDArray[np.int64], drop: NDArray[np.bool_],
                     order: NDArray[np.int64]) -> NDArray[np.bool_]:
     """Of the edges marked in ``drop``, return those that must stay (down-weighted) to
     keep the graph connected; tried in ``order`` (best first)."""
-    pos = {int(k): p for p, k in enumerate(frame_ids)}
-    uf = _UnionFind(len(frame_ids))
-    for n, e in enumerate(edges):
-        if not drop[n]:
-            uf.union(pos[e.i], pos[e.j])
-    keep = np.zeros(len(edges), bool)
-    for n in order:
-        if drop[n] and uf.union(pos[edges[n].i], pos[edges[n].j]):
+    keep = np.zeros(len(pos), bool)
+    if not drop.any():
+        return keep
+    labels = _component_labels(n_frames, pos[~drop])
+    if len(np.unique(labels)) == 1:
+        return keep
+    # union frames by component label, then add dropped edges best first while they join components
+    uf = _UnionFind(n_frames)
+    first: dict[int, int] = {}
+    for p, lab in enumerate(labels.tolist()):
+        uf.union(first.setdefault(lab, p), p)
+    for n in np.asarray(order).tolist():
+        if drop[n] and uf.union(int(pos[n, 0]), int(pos[n, 1])):
             keep[n] = True
     return keep
 
 
-def _solve_once(frame_ids, edges, covs, initial, cfg, measured):
-    graph, values = build_graph(frame_ids, edges, covs, initial, cfg, measured)
-    if cfg.solver == "lm":
-        result, iters = _run_lm(graph, values, cfg)
-    else:
-        result, iters = _run_isam2(frame_ids, edges, covs, initial, cfg, measured)
-    return graph, values, result, iters
+def _apply_action(n_frames: int, pos: NDArray[np.int64], flagged: NDArray[np.bool_], order: NDArray[np.int64],
+                  cfg: PoseGraphConfig) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """(drop, downweight) masks for the flagged edges under ``cfg.outlier_action``."""
+    if cfg.outlier_action == "downweight":
+        return np.zeros(len(pos), bool), flagged.copy()
+    keep = _keep_connected(n_frames, pos, flagged, order)
+    return flagged & ~keep, keep
+
+
+class _Problem:
+    """One graph's edges, converted once, solved repeatedly with different masks and
+    covariance scales (first solve, outlier pass, re-solve)."""
+
+    def __init__(self, frame_ids: NDArray[np.int64], a: EdgeArrays, initial: NDArray[np.float64],
+                 cfg: PoseGraphConfig) -> None:
+        self.frame_ids, self.a, self.cfg = frame_ids, a, cfg
+        self.T = _orthonormalize_batch(a.T)
+        self.measured = _pose3s(self.T)  # the one per-edge conversion
+        self.prior = _prior(frame_ids[0], initial[0], cfg)
+        self.info = np.linalg.inv(a.cov) if len(a.cov) else np.zeros((0, 6, 6))
+        """(E, 6, 6) inverse covariances, project order."""
+        self._base: list = [None] * len(a.ids)  # factors with the given covariances, built on demand
+
+    def factors(self, scale: NDArray[np.float64]) -> list:
+        """(E,) factors with covariances ``cov * scale[:, None, None]``, (E,) ``scale``; edges
+        at scale 1 share their factor objects between calls (built once)."""
+        one = scale == 1.0
+        miss = np.array([n for n in np.flatnonzero(one).tolist() if self._base[n] is None], dtype=np.int64)
+        other = np.flatnonzero(~one)
+        for idx, sc, store in ((miss, None, True), (other, scale, False)):
+            if len(idx) == 0:
+                continue
+            covs = self.a.cov[idx] if sc is None else self.a.cov[idx] * sc[idx, None, None]
+            made = _factors(self.a.ids[idx], [self.measured[n] for n in idx.tolist()], covs, self.cfg)
+            if store:
+                for n, f in zip(idx.tolist(), made):
+                    self._base[n] = f
+            else:
+                extra = dict(zip(idx.tolist(), made))
+        out = list(self._base)
+        if len(other):
+            for n, f in extra.items():
+                out[n] = f
+        return out
+
+    def solve(self, use: NDArray[np.bool_], scale: NDArray[np.float64], start):
+        """(graph, start values, result values, iterations); ``start`` is a ``gtsam.Values``
+        or (N, 4, 4) poses."""
+        import gtsam
+
+        facs = self.factors(scale)
+        sel = np.flatnonzero(use)
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(self.prior)
+        for n in sel.tolist():
+            graph.add(facs[n])
+        values = start if isinstance(start, gtsam.Values) else _values(self.frame_ids, start)
+        if self.cfg.solver == "lm":
+            result, iters = _run_lm(graph, values, self.cfg, check=False)
+        else:
+            poses = _poses_from_values(self.frame_ids, values)
+            result, iters = _run_isam2(self.frame_ids, self.a.pos[sel], self.T[sel], [facs[n] for n in sel.tolist()],
+                                       poses, self.cfg)
+        return graph, values, result, iters
+
+    def residuals(self, poses: NDArray[np.float64], scale: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(E,) whitened residual norms of every edge at ``poses`` under ``cov * scale``."""
+        return edge_residuals(poses, self.a.pos, self.T, self.info / scale[:, None, None])
 
 
 def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional[NDArray[np.float64]] = None,
@@ -464,89 +667,80 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional
         cfg: solver, kernel and outlier settings.
 
     Steps: validate; reject by covariance size; first solve; reject edges whose
-    whitened residual exceeds ``cfg.residual_threshold``; solve again if any were
-    rejected; optional marginals. Raises :class:`GraphError` on bad input.
+    whitened residual exceeds ``cfg.residual_threshold``; solve again (warm-started)
+    if any were rejected; check the final linear system is determinate; optional
+    marginals. Raises :class:`GraphError` on bad input.
     """
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     frame_ids = np.asarray(frame_ids, dtype=np.int64)
     order = np.argsort(frame_ids, kind="stable")
     frame_ids = frame_ids[order]
     if len(np.unique(frame_ids)) != len(frame_ids):
         raise GraphError("duplicate frame ids")
     edges = list(edges)
-    validate_edges(frame_ids, edges)
-    check_connected(frame_ids, edges)
+    a = edge_arrays(frame_ids, edges)
+    validate_edges(frame_ids, edges, a)
+    check_connected(frame_ids, edges, a)
     if initial is None:
         initial = chain_poses(frame_ids, edges)
     else:
         initial = np.asarray(initial, dtype=np.float64)[order]
         if initial.shape != (len(frame_ids), 4, 4) or not np.all(np.isfinite(initial)):
             raise GraphError(f"initial poses must be finite with shape ({len(frame_ids)}, 4, 4)")
+    n_frames, n_edges = len(frame_ids), len(edges)
+    prob = _Problem(frame_ids, a, initial, cfg)
+    ones = np.ones(n_edges)
 
-    covs = [np.asarray(e.cov, dtype=np.float64) for e in edges]
-    measured = _pose3s(np.stack([e.T_i_j for e in edges]))
-    outliers: list[OutlierRecord] = []
-    drop = np.zeros(len(edges), bool)
-    weak = np.zeros(len(edges), bool)
     reason: dict[int, tuple[str, float]] = {}
     # 1) covariance above threshold
-    if math.isfinite(cfg.max_trans_sigma_m) or math.isfinite(cfg.max_rot_sigma_deg):
-        for n, c in enumerate(covs):
-            st, sr = _sigma_figures(c)
-            if st > cfg.max_trans_sigma_m:
-                reason[n] = ("covariance_trans_sigma_m", st)
-            elif sr > cfg.max_rot_sigma_deg:
-                reason[n] = ("covariance_rot_sigma_deg", sr)
-    flagged = np.array([n in reason for n in range(len(edges))], bool)
-    drop, weak = _apply_action(frame_ids, edges, flagged, np.arange(len(edges)), cfg)
+    flagged = np.zeros(n_edges, bool)
+    if n_edges and (math.isfinite(cfg.max_trans_sigma_m) or math.isfinite(cfg.max_rot_sigma_deg)):
+        st, sr = _sigma_figures(a.cov)
+        for n in np.flatnonzero(st > cfg.max_trans_sigma_m).tolist():
+            reason[n] = ("covariance_trans_sigma_m", float(st[n]))
+        for n in np.flatnonzero((sr > cfg.max_rot_sigma_deg) & (st <= cfg.max_trans_sigma_m)).tolist():
+            reason[n] = ("covariance_rot_sigma_deg", float(sr[n]))
+        flagged = np.array([n in reason for n in range(n_edges)], bool)
+    drop, weak = _apply_action(n_frames, a.pos, flagged, np.arange(n_edges), cfg)
 
-    def run(drop: NDArray[np.bool_], weak: NDArray[np.bool_], start: NDArray[np.float64]):
-        sel = [n for n in range(len(edges)) if not drop[n]]
-        c = [covs[n] * (cfg.downweight_factor if weak[n] else 1.0) for n in sel]
-        return _solve_once(frame_ids, [edges[n] for n in sel], c, start, cfg, [measured[n] for n in sel])
+    def scale_of(weak: NDArray[np.bool_]) -> NDArray[np.float64]:
+        return np.where(weak, cfg.downweight_factor, 1.0)
 
-    graph, values, result, iters = run(drop, weak, initial)
-    initial_error = float(graph.error(values))
+    graph, values0, result, iters = prob.solve(~drop, scale_of(weak), initial)
+    initial_error = float(graph.error(values0))
     poses = _poses_from_values(frame_ids, result)
-    first_res = _residuals(result, edges, covs, measured)
+    first_res = prob.residuals(poses, ones)
+    final_res = first_res
     # 2) whitened residual after the first solve
     if math.isfinite(cfg.residual_threshold):
         bad = (first_res > cfg.residual_threshold) & ~flagged
         if bad.any():
-            for n in np.flatnonzero(bad):
-                reason[int(n)] = ("residual", float(first_res[n]))
+            for n in np.flatnonzero(bad).tolist():
+                reason[n] = ("residual", float(first_res[n]))
             flagged = flagged | bad
-            drop, weak = _apply_action(frame_ids, edges, flagged, np.argsort(first_res), cfg)
+            drop, weak = _apply_action(n_frames, a.pos, flagged, np.argsort(first_res), cfg)
             log.info("re-solving without %d outlier edge(s)", int(bad.sum()))
             # warm start from the first solution (the prior stays on the first frame)
-            graph, values, result, iters2 = run(drop, weak, poses)
+            graph, _, result, iters2 = prob.solve(~drop, scale_of(weak), result)
             iters += iters2
             poses = _poses_from_values(frame_ids, result)
-    for n in np.flatnonzero(flagged):
-        e = edges[n]
-        outliers.append(OutlierRecord(int(e.i), int(e.j), str(e.extra.get("source", "edges")), reason[int(n)][0],
-                                      reason[int(n)][1], "removed" if drop[n] else "downweighted"))
+            final_res = prob.residuals(poses, ones)
+    outliers = [OutlierRecord(int(a.ids[n, 0]), int(a.ids[n, 1]), a.source[n], reason[n][0], reason[n][1],
+                              "removed" if drop[n] else "downweighted") for n in np.flatnonzero(flagged).tolist()]
     marg = None
-    if cfg.marginals:
+    if cfg.marginals:  # factorises the undamped system: also the determinacy check
         marg = marginal_covariances(graph, result, frame_ids)
+    else:
+        check_determinate(graph, result)
     res = SolveResult(
-        frame_ids=frame_ids, poses=poses, outliers=outliers,
-        residuals=_residuals(result, edges, covs, measured) if flagged.any() else first_res, used=~drop,
+        frame_ids=frame_ids, poses=poses, outliers=outliers, residuals=final_res, used=~drop,
         initial_error=initial_error, final_error=float(graph.error(result)),
         solver=cfg.solver, iterations=iters, time_s=time.perf_counter() - t0, marginals=marg,
-        first_residuals=first_res,
+        first_residuals=first_res, cpu_s=time.process_time() - c0,
     )
-    log.info("%s: %d poses, %d edges (%d outliers), error %.4g -> %.4g in %.2f s", cfg.solver, len(frame_ids),
-             len(edges), len(outliers), res.initial_error, res.final_error, res.time_s)
+    log.info("%s: %d poses, %d edges (%d outliers), error %.4g -> %.4g in %.2f s", cfg.solver, n_frames,
+             n_edges, len(outliers), res.initial_error, res.final_error, res.time_s)
     return res
-
-
-def _apply_action(frame_ids, edges, flagged, order, cfg) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-    """(drop, downweight) masks for the flagged edges under ``cfg.outlier_action``."""
-    if cfg.outlier_action == "downweight":
-        return np.zeros(len(edges), bool), flagged.copy()
-    keep = _keep_connected(frame_ids, edges, flagged, order)
-    return flagged & ~keep, keep
 
 
 def marginal_covariances(graph, result, frame_ids: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -560,5 +754,6 @@ def marginal_covariances(graph, result, frame_ids: NDArray[np.int64]) -> NDArray
         raise _indeterminant(exc) from None
 
 
-__all__ = ["GraphError", "OutlierRecord", "SolveResult", "build_graph", "chain_poses", "check_connected",
-           "components", "marginal_covariances", "solve", "validate_edges", "whitened_residuals"]
+__all__ = ["EdgeArrays", "GraphError", "OutlierRecord", "SolveResult", "build_graph", "chain_poses",
+           "check_connected", "check_determinate", "components", "edge_arrays", "edge_residuals",
+           "marginal_covariances", "solve", "validate_edges", "whitened_residuals"]
