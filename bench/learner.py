@@ -1,14 +1,23 @@
-"""CPU throughput of the learner's ``cpu`` preset (targets: training >= 100 pairs/s,
-MC-dropout prediction with K=10 >= 100 pairs/s). Synthetic random frames; no data needed.
+"""CPU throughput of the learner (targets for the ``cpu`` preset: training >= 100 pairs/s,
+MC-dropout prediction with K=10 >= 100 pairs/s). Random frames; no data needed.
 
-    .venv/bin/python bench/learner.py                    # cpu preset, defaults below
-    .venv/bin/python bench/learner.py --steps 20 --threads 2
+    .venv/bin/python bench/learner.py                       # cpu preset, all cores
+    .venv/bin/python bench/learner.py --threads 1 --steps 8 --json out.json
 
-Training throughput counts encoder pairs per second in the two phases: single pairs
-(phase 1, batch ``batch_pairs``) and windows of W consecutive pairs with all direct pairs
-of gaps up to G (phase 2, CTC + regression, batch ``batch_windows``). Prediction counts
-frame pairs per second through :func:`learner.predict.mc_edges` (encoder once, K dropout
-samples of the heads), all gaps 1..max_gap.
+Training runs the real training step of ``learner fit`` (:func:`learner.train._pairs_step`
+/ :func:`learner.train._windows_step`: gathering the cached uint8 frames and labels, the
+forward pass, the loss, backward and Adam) on a sequence of ``--frames`` random frames with
+teacher-style labels and covariances:
+
+* phase 1: batches of ``batch_pairs`` single pairs of gaps 1..G (``*-aug`` label noise on);
+* phase 2 (``ctc``): batches of ``batch_windows`` windows of ``--window`` consecutive pairs,
+  each with all its direct pairs of gaps up to G (CTC + regression);
+
+and counts encoder pairs per second. Prediction counts edges per second of
+:func:`learner.predict.mc_edges` (every pair of gaps 1..max_gap encoded once, K dropout
+samples of the heads). Each figure is given per wall-clock second and per CPU second
+of this process (``time.process_time``; on a busy machine the wall figure drops while the
+CPU figure holds, and ``threads x`` the CPU figure bounds what an idle machine gives).
 """
 
 from __future__ import annotations
@@ -18,87 +27,113 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 # this script is named like the package it measures: keep bench/ off the import path
 sys.path = [q for q in sys.path if Path(q or ".").resolve() != Path(__file__).resolve().parent]
 
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from learner import loss as L  # noqa: E402
 from learner.config import PRESETS, PredictConfig  # noqa: E402
+from learner.dataset import SequenceData  # noqa: E402
 from learner.model import CTCNet  # noqa: E402
 from learner.predict import mc_edges  # noqa: E402
+from learner.train import _pair_batches, _pairs_step, _window_batches, _windows_step  # noqa: E402
+
+
+def fake_sequence(n: int, width: int, height: int, max_gap: int, seed: int = 0) -> SequenceData:
+    """``n`` random uint8 frames with small random labels of every gap and diagonal
+    covariances (1 cm / 0.5 deg), as :func:`learner.dataset.load_sequences` returns."""
+    g = torch.Generator().manual_seed(seed)
+    frames = torch.randint(0, 256, (n, 3, height, width), dtype=torch.uint8, generator=g)
+    labels = torch.randn(max_gap + 1, n, 6, generator=g) * 0.01
+    mask = torch.ones(max_gap + 1, n, dtype=torch.bool)
+    mask[0] = False
+    for gap in range(1, max_gap + 1):
+        mask[gap, n - gap:] = False
+    chol = torch.diag(torch.tensor([0.01] * 3 + [0.01] * 3)).expand(max_gap + 1, n, 6, 6).contiguous()
+    return SequenceData("bench", np.arange(n), np.arange(n) / 30.0, frames, labels, mask, chol, None)
+
+
+def timed(fn: Callable[[], int], steps: int) -> tuple[float, float, int]:
+    """(wall s, CPU s, pairs) of ``steps`` calls after one warm-up call."""
+    fn()
+    t0, c0, pairs = time.perf_counter(), time.process_time(), 0
+    for _ in range(steps):
+        pairs += fn()
+    return time.perf_counter() - t0, time.process_time() - c0, pairs
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--preset", default="cpu")
-    ap.add_argument("--steps", type=int, default=10)
-    ap.add_argument("--threads", type=int, default=torch.get_num_threads())
-    ap.add_argument("--window", type=int, default=18)
-    ap.add_argument("--frames", type=int, default=200)
-    ap.add_argument("--samples", type=int, default=10)
+    ap.add_argument("--preset", default="cpu", choices=list(PRESETS))
+    ap.add_argument("--steps", type=int, default=6, help="timed optimiser steps per training phase")
+    ap.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch intra-op threads")
+    ap.add_argument("--window", type=int, help="phase-2 window length (default: the preset's window_max)")
+    ap.add_argument("--frames", type=int, default=200, help="frames of the random sequence")
+    ap.add_argument("--samples", type=int, default=10, help="K, MC-dropout samples")
+    ap.add_argument("--json", type=Path, help="also write the results here")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     p = PRESETS[args.preset]
     m, t = p.model, p.train
     torch.manual_seed(0)
     net = CTCNet(m)
+    with torch.no_grad():
+        net.output_scale.fill_(0.01)
     opt = torch.optim.Adam(net.parameters(), lr=1e-4)
-    out = {"preset": p.name, "threads": args.threads, "input": f"{m.width}x{m.height}"}
+    data = [fake_sequence(args.frames, m.width, m.height, t.max_gap)]
+    rng = np.random.default_rng(0)
+    gen = torch.Generator().manual_seed(0)
+    out: dict = {"preset": p.name, "threads": args.threads, "input": f"{m.width}x{m.height}",
+                 "conv_widths": ",".join(map(str, m.conv_widths)), "batch_pairs": t.batch_pairs}
 
-    def timed(fn, steps: int) -> float:
-        fn()  # warm-up
-        t0 = time.perf_counter()
-        for _ in range(steps):
-            fn()
-        return (time.perf_counter() - t0) / steps
-
-    # phase 1: single pairs
-    B = t.batch_pairs
-    x = torch.randint(0, 256, (B, 6, m.height, m.width), dtype=torch.uint8)
-    lab = torch.zeros(B, 6)
-
-    def step_pairs() -> None:
-        xi, _ = net(x)
-        terms = L.pair_loss(xi, lab, torch.ones(B), t.beta)
-        opt.zero_grad()
+    def optimise(terms: L.LossTerms) -> None:
+        terms.items()  # the fit loop reads the loss values every step
+        opt.zero_grad(set_to_none=True)
         terms.total.backward()
         opt.step()
 
     net.train()
-    dt = timed(step_pairs, args.steps)
-    out["train_pairs_per_s_phase1"] = B / dt
-    # phase 2: windows
-    W, G, Bw = args.window, t.max_gap, t.batch_windows
-    P = len(L.window_pairs(W, G))
-    xw = torch.randint(0, 256, (Bw * P, 6, m.height, m.width), dtype=torch.uint8)
-    labw = torch.zeros(Bw, P, 6)
-    idx = torch.arange(Bw)[:, None] * P + torch.arange(W)[None]
+    # phase 1: single pairs, aug labels (the costliest label path)
+    batches = iter(_pair_batches(data, t, rng) * 10)
 
-    def step_windows() -> None:
-        xi_d, xi_s = net(xw, idx)
-        terms = L.window_loss(xi_s, xi_d.view(Bw, P, 6), labw[:, :W], torch.ones(Bw, W), labw, torch.ones(Bw, P),
-                              G, t.alpha, t.beta)
-        opt.zero_grad()
-        terms.total.backward()
-        opt.step()
+    def step_pairs() -> int:
+        rows = next(batches)
+        optimise(_pairs_step(net, data, rows, t, True, gen, torch.device("cpu")))
+        return len(rows)
 
-    dt = timed(step_windows, max(1, args.steps // 3))
-    out["train_pairs_per_s_phase2"] = Bw * P / dt
-    out["phase2_window"] = W
-    out["phase2_pairs_per_step"] = Bw * P
+    wall, cpu, n = timed(step_pairs, args.steps)
+    out.update(train_phase1_pairs_per_s=n / wall, train_phase1_pairs_per_cpu_s=n / cpu)
+    # phase 2: windows, CTC on
+    W = args.window or t.window_max
+    wins = iter(_window_batches(data, W, t, rng) * 10)
+    P = len(L.window_pairs(W, t.max_gap))
+
+    def step_windows() -> int:
+        rows = next(wins)
+        optimise(_windows_step(net, data, rows, W, t, False, gen, torch.device("cpu")))
+        return len(rows) * P
+
+    wall, cpu, n = timed(step_windows, max(1, args.steps // 2))
+    out.update(train_phase2_pairs_per_s=n / wall, train_phase2_pairs_per_cpu_s=n / cpu,
+               phase2_window=W, phase2_pairs_per_step=t.batch_windows * P)
     # prediction
     net.eval()
-    frames = torch.randint(0, 256, (args.frames, 3, m.height, m.width), dtype=torch.uint8)
     cfg = PredictConfig(samples=args.samples)
-    t0 = time.perf_counter()
+    frames = data[0].frames
+    mc_edges(net, frames[:20], uses_lstm=True, window=t.window_max, cfg=cfg)  # warm-up
+    t0, c0 = time.perf_counter(), time.process_time()
     edges = mc_edges(net, frames, uses_lstm=True, window=t.window_max, cfg=cfg)
-    dt = time.perf_counter() - t0
-    out["predict_pairs_per_s"] = len(edges.i) / dt
-    out["predict_samples"] = args.samples
-    out["predict_edges"] = len(edges.i)
-    print(json.dumps({k: (round(v, 1) if isinstance(v, float) else v) for k, v in out.items()}, indent=2))
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    out.update(predict_pairs_per_s=len(edges.i) / wall, predict_pairs_per_cpu_s=len(edges.i) / cpu,
+               predict_samples=args.samples, predict_edges=len(edges.i))
+    res = {k: (round(v, 1) if isinstance(v, float) else v) for k, v in out.items()}
+    print(json.dumps(res, indent=2))
+    if args.json:
+        args.json.write_text(json.dumps(res, indent=2) + "\n")
 
 
 if __name__ == "__main__":
