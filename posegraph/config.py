@@ -94,6 +94,32 @@ class PoseGraphConfig:
     ``sqrt(r^T Sigma^-1 r)`` (without the robust kernel) exceeds this are outliers
     (chi-square with 6 dof: 5.0 is a p-value of about 3e-4); ``inf`` disables it."""
 
+    calibrate: bool = True
+    """Estimate one covariance scale per edge source (``edge.extra["source"]``) from the
+    whitened residuals of a robust solve and rescale that source's covariances before
+    the outlier pass (variance-component estimation, iterated with warm-started
+    solves): ``scale *= median(r^2) / (5.348 * rho)`` over the source's edges, 5.348
+    being the median of chi-square with 6 dof and ``rho = 1 - (N - 1) / E`` the graph's
+    redundancy (the share of an edge's error the fit leaves in its residual, taken
+    equal for every edge). A source whose covariances are far too small (an
+    overconfident learner) would otherwise pull the graph onto itself and get the
+    other source's edges rejected."""
+
+    calibration_iterations: int = 6
+    """Most re-solves with updated scales."""
+
+    calibration_tolerance: float = 0.25
+    """Scales are updated only while some source's estimated factor is outside
+    ``[1 / (1 + tol), 1 + tol]``: a source that is calibrated to this precision (the
+    median of a few hundred residuals is good to about 5 %) is left as given."""
+
+    calibration_min_edges: int = 20
+    """A source with fewer edges in the graph keeps scale 1 (its median is too noisy)."""
+
+    calibration_scale_range: tuple[float, float] = (1e-2, 1e6)
+    """Bounds of a source's covariance scale (an exactly consistent source would
+    otherwise shrink towards 0)."""
+
     outlier_action: str = "remove"
     """``remove`` outlier edges, or ``downweight`` them (covariance times
     :attr:`downweight_factor`). An edge whose removal would disconnect the graph is
@@ -123,6 +149,10 @@ class PoseGraphConfig:
             raise ConfigError("prior standard deviations must be positive")
         if self.max_iterations < 1 or self.relative_error_tol < 0 or self.absolute_error_tol < 0:
             raise ConfigError("max_iterations must be at least 1 and the error tolerances non-negative")
+        lo, hi = self.calibration_scale_range
+        if not (0 < lo <= 1 <= hi) or self.calibration_iterations < 0 or self.calibration_tolerance <= 0:
+            raise ConfigError("calibration_scale_range must satisfy 0 < low <= 1 <= high, calibration_iterations "
+                              ">= 0 and calibration_tolerance > 0")
         if self.max_gap is not None and self.max_gap < 1:
             raise ConfigError("max_gap must be at least 1")
         if self.residual_threshold <= 0 or self.max_trans_sigma_m <= 0 or self.max_rot_sigma_deg <= 0:
@@ -140,8 +170,9 @@ class PoseGraphConfig:
 
 #: Robust Huber LM with residual-based outlier removal.
 DEFAULT = PoseGraphConfig()
-#: Plain least squares, no kernel, no outlier rejection (for known-answer tests).
-PLAIN = PoseGraphConfig(kernel="none", residual_threshold=float("inf"))
+#: Plain least squares with the covariances as given: no kernel, no calibration, no
+#: outlier rejection (for known-answer tests).
+PLAIN = PoseGraphConfig(kernel="none", residual_threshold=float("inf"), calibrate=False)
 #: Incremental (online) mode.
 ONLINE = PoseGraphConfig(solver="isam2")
 

@@ -80,6 +80,10 @@ class SolveResult:
     """(E,) whitened residual norms after the first solve (before outlier handling)."""
     cpu_s: float = 0.0
     """Process CPU time of the solve (s); ``time_s`` is wall-clock."""
+    source_scales: dict[str, float] = field(default_factory=dict)
+    """Covariance scale applied to each edge source (1.0 without calibration)."""
+    calibration: Optional[dict] = None
+    """Per-source covariance calibration from residuals (see :func:`calibrate_sources`)."""
 
 
 # ----------------------------------------------------------------------------------
@@ -656,6 +660,26 @@ class _Problem:
         return edge_residuals(poses, self.a.pos, self.T, self.info / scale[:, None, None])
 
 
+#: Median of the chi-square distribution with 6 degrees of freedom.
+CHI2_6_MEDIAN = 5.348120627447122
+
+
+def _scale_factors(res: NDArray[np.float64], src: NDArray[np.int64], est: NDArray[np.bool_], n_src: int,
+                   redundancy: float, cfg: PoseGraphConfig) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Per source: (factor by which its covariances should grow, number of edges used).
+
+    ``median(r^2) / (CHI2_6_MEDIAN * redundancy)`` over the source's edges in ``est``;
+    1 for a source with fewer than ``cfg.calibration_min_edges`` edges or when the graph
+    has (almost) no redundancy (residuals then say nothing about the noise)."""
+    factor, counts = np.ones(n_src), np.zeros(n_src, np.int64)
+    for k in range(n_src):
+        r = res[(src == k) & est]
+        counts[k] = len(r)
+        if len(r) >= cfg.calibration_min_edges and redundancy > 0.05:
+            factor[k] = max(float(np.median(r**2)), 1e-300) / (CHI2_6_MEDIAN * redundancy)
+    return factor, counts
+
+
 def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional[NDArray[np.float64]] = None,
           cfg: PoseGraphConfig = DEFAULT) -> SolveResult:
     """Optimise the pose graph.
@@ -666,10 +690,13 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional
         initial: (N, 4, 4) initial ``T_world_cam`` (default: :func:`chain_poses`).
         cfg: solver, kernel and outlier settings.
 
-    Steps: validate; reject by covariance size; first solve; reject edges whose
-    whitened residual exceeds ``cfg.residual_threshold``; solve again (warm-started)
-    if any were rejected; check the final linear system is determinate; optional
-    marginals. Raises :class:`GraphError` on bad input.
+    Steps: validate; reject by covariance size; first (robust) solve; with
+    ``cfg.calibrate``, estimate one covariance scale per source from the whitened
+    residuals and re-solve (warm-started) until the scales settle; reject edges whose
+    whitened residual under the calibrated covariances exceeds
+    ``cfg.residual_threshold``; solve again (warm-started) if any were rejected; check
+    the final linear system is determinate; optional marginals. Raises
+    :class:`GraphError` on bad input.
     """
     t0, c0 = time.perf_counter(), time.process_time()
     frame_ids = np.asarray(frame_ids, dtype=np.int64)
@@ -689,7 +716,6 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional
             raise GraphError(f"initial poses must be finite with shape ({len(frame_ids)}, 4, 4)")
     n_frames, n_edges = len(frame_ids), len(edges)
     prob = _Problem(frame_ids, a, initial, cfg)
-    ones = np.ones(n_edges)
 
     reason: dict[int, tuple[str, float]] = {}
     # 1) covariance above threshold
@@ -703,15 +729,44 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional
         flagged = np.array([n in reason for n in range(n_edges)], bool)
     drop, weak = _apply_action(n_frames, a.pos, flagged, np.arange(n_edges), cfg)
 
+    names = list(dict.fromkeys(a.source))
+    index = {n: k for k, n in enumerate(names)}
+    src = np.array([index[x] for x in a.source], dtype=np.int64)
+    src_scale = np.ones(len(names))
+
     def scale_of(weak: NDArray[np.bool_]) -> NDArray[np.float64]:
-        return np.where(weak, cfg.downweight_factor, 1.0)
+        return src_scale[src] * np.where(weak, cfg.downweight_factor, 1.0)
 
     graph, values0, result, iters = prob.solve(~drop, scale_of(weak), initial)
     initial_error = float(graph.error(values0))
     poses = _poses_from_values(frame_ids, result)
-    first_res = prob.residuals(poses, ones)
+    calib = None
+    # 2) per-source covariance scale from the residuals (before any residual-based rejection)
+    if cfg.calibrate:
+        calib = {"sources": {}, "iterations": 0, "converged": False,
+                 "redundancy": 1.0 - (n_frames - 1) / max(int((~drop).sum()), 1)}
+        est = ~drop & ~weak
+        for it in range(cfg.calibration_iterations + 1):
+            factor, counts = _scale_factors(prob.residuals(poses, src_scale[src]), src, est, len(names),
+                                            calib["redundancy"], cfg)
+            new = np.clip(src_scale * factor, *cfg.calibration_scale_range)
+            calib["sources"] = {n: {"edges": int(counts[k]), "scale": float(src_scale[k]),
+                                    "residual_factor": float(factor[k])} for k, n in enumerate(names)}
+            if np.all(np.abs(np.log(new / src_scale)) <= math.log1p(cfg.calibration_tolerance)):
+                calib["converged"] = True
+                break
+            if it == cfg.calibration_iterations:
+                break
+            src_scale = new
+            calib["iterations"] += 1
+            log.info("covariance scales %s; re-solving", ", ".join(f"{n} {v:.3g}" for n, v in zip(names, new)))
+            graph, _, result, it_n = prob.solve(~drop, scale_of(weak), result)
+            iters += it_n
+            poses = _poses_from_values(frame_ids, result)
+        calib["sources"] = {n: {**v, "scale": float(src_scale[k])} for k, (n, v) in enumerate(calib["sources"].items())}
+    first_res = prob.residuals(poses, src_scale[src])
     final_res = first_res
-    # 2) whitened residual after the first solve
+    # 3) whitened residual (under the calibrated covariances) after the first solve
     if math.isfinite(cfg.residual_threshold):
         bad = (first_res > cfg.residual_threshold) & ~flagged
         if bad.any():
@@ -724,7 +779,7 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional
             graph, _, result, iters2 = prob.solve(~drop, scale_of(weak), result)
             iters += iters2
             poses = _poses_from_values(frame_ids, result)
-            final_res = prob.residuals(poses, ones)
+            final_res = prob.residuals(poses, src_scale[src])
     outliers = [OutlierRecord(int(a.ids[n, 0]), int(a.ids[n, 1]), a.source[n], reason[n][0], reason[n][1],
                               "removed" if drop[n] else "downweighted") for n in np.flatnonzero(flagged).tolist()]
     marg = None
@@ -737,6 +792,7 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional
         initial_error=initial_error, final_error=float(graph.error(result)),
         solver=cfg.solver, iterations=iters, time_s=time.perf_counter() - t0, marginals=marg,
         first_residuals=first_res, cpu_s=time.process_time() - c0,
+        source_scales={n: float(v) for n, v in zip(names, src_scale)}, calibration=calib,
     )
     log.info("%s: %d poses, %d edges (%d outliers), error %.4g -> %.4g in %.2f s", cfg.solver, n_frames,
              n_edges, len(outliers), res.initial_error, res.final_error, res.time_s)

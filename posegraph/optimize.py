@@ -199,10 +199,12 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
         "edges_total": len(edges),
         "edges_per_source": {n: len(srcs[n].edges) for n in used},
         "rows": blocks,
+        "covariance_scales": result.source_scales,
+        "covariance_calibration": result.calibration,
         "outliers": [o.to_dict() for o in result.outliers],
         "residuals": {"median": float(np.median(result.residuals)), "max": float(np.max(result.residuals))},
         "solver": {"name": result.solver, "iterations": result.iterations, "initial_error": result.initial_error,
-                   "final_error": result.final_error, "time_s": result.time_s},
+                   "final_error": result.final_error, "time_s": result.time_s, "cpu_s": result.cpu_s},
     }
     json.dumps(report, allow_nan=False)  # fail here, not half-way through writing
     md = rep.report_markdown(report)

@@ -15,7 +15,10 @@ Per row (``report.json`` ``rows.<name>``): the standard keys of
   the fraction of edges inside the 1-sigma (68.27 %) and 2-sigma (95.45 %) chi-square
   regions of 6 dof.
 
-Metrics that need ground truth are ``null`` without it.
+Metrics that need ground truth are ``null`` without it. The top-level
+``covariance_scales`` / ``covariance_calibration`` (see
+:func:`posegraph.graph.solve`) give the scale each source's covariances were
+multiplied by in the graph, estimated from residuals without ground truth.
 """
 
 from __future__ import annotations
@@ -171,6 +174,16 @@ def report_markdown(report: dict) -> str:
             lines.append(f"| {n} | {c['calibration_n']} | {_cell(c['nees_mean'], '.3f')} | "
                          f"{_cell(c['nees_over_dof'], '.3f')} | {_cell(c['coverage_1sigma'], '.3f')} | "
                          f"{_cell(c['coverage_2sigma'], '.3f')} |")
+    cc = report.get("covariance_calibration")
+    if cc:
+        lines += ["", "## Covariance scale per source (from the graph's residuals)", "",
+                  f"Each source's covariances were multiplied by `scale` before the outlier pass "
+                  f"({cc['iterations']} re-solve(s), {'converged' if cc['converged'] else 'not converged'}, "
+                  f"redundancy {cc['redundancy']:.3f}); `residual factor` is the last estimate "
+                  "median(r^2) / (5.348 redundancy), about 1 when calibrated.", "",
+                  "| source | edges | scale | residual factor |", "|---|---|---|---|"]
+        lines += [f"| {n} | {c['edges']} | {c['scale']:.4g} | {c['residual_factor']:.3f} |"
+                  for n, c in cc["sources"].items()]
     out = report["outliers"]
     lines += ["", f"## Outliers ({len(out)})", ""]
     if out:

@@ -196,3 +196,53 @@ def test_default_tolerance_is_converged_well_inside_the_noise():
     assert diff < 1e-4, diff
     assert fast.iterations < tight.iterations
     assert [(o.i, o.j) for o in fast.outliers] == [(o.i, o.j) for o in tight.outliers]
+
+
+def test_overconfident_source_is_rescaled_before_outlier_rejection():
+    """Teacher edges with correct covariances (gaps 1-2) fused with learner edges that are
+    3x noisier but claim covariances 1000x too small (gaps 1-4). Without calibration the
+    outlier pass throws away a large part of the good edges; with it the learner's
+    scale comes out near 1000, few teacher edges are rejected and the fused poses are
+    at least as good as the teacher alone."""
+    n = 120
+    gt = syn.helix(n, turns=1.2)
+    rng = np.random.default_rng(11)
+    teacher = syn.make_edges(gt, [1, 2], syn.diag_cov(0.01, 0.005), rng, source="teacher")
+    learner = syn.make_edges(gt, [1, 2, 3, 4], syn.diag_cov(0.03, 0.015), rng, source="learner")
+    for e in learner:
+        e.cov = e.cov / 1000.0
+    gt0 = np.array([geo.relative_pose(gt[0], T) for T in gt])
+
+    def max_err(res):
+        return max(np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in zip(gt0, res.poses))
+
+    def rejected(res, source):
+        return sum(o.source == source for o in res.outliers)
+
+    ids = np.arange(n)
+    alone = solve(ids, teacher, None, DEFAULT)
+    naive = solve(ids, teacher + learner, None, dataclasses.replace(DEFAULT, calibrate=False))
+    fused = solve(ids, teacher + learner, None, DEFAULT)
+    assert rejected(naive, "teacher") > 0.1 * len(teacher)  # the failure being fixed
+    assert naive.source_scales == {"teacher": 1.0, "learner": 1.0} and naive.calibration is None
+    assert rejected(fused, "teacher") <= 0.02 * len(teacher)
+    assert rejected(fused, "learner") <= 0.05 * len(learner)
+    assert 500 < fused.source_scales["learner"] < 2000, fused.source_scales
+    assert 0.5 < fused.source_scales["teacher"] < 1.5, fused.source_scales
+    cal = fused.calibration
+    assert cal["converged"] and cal["iterations"] >= 2
+    assert all(abs(np.log(c["residual_factor"])) <= np.log(1.25) for c in cal["sources"].values())
+    assert max_err(fused) <= 1.05 * max_err(alone) < max_err(naive)
+
+
+def test_calibrated_single_source_is_left_as_given():
+    """A source whose covariances are right keeps scale 1 (no re-solve); the same edges
+    with covariances 50x too small get scale ~50 and the same poses."""
+    gt = syn.helix(100)
+    edges = syn.make_edges(gt, [1, 2, 3], syn.diag_cov(0.01, 0.005), np.random.default_rng(12))
+    right = solve(np.arange(100), edges, None, DEFAULT)
+    small = solve(np.arange(100), [Edge(e.i, e.j, e.T_i_j, e.cov / 50.0) for e in edges], None, DEFAULT)
+    assert right.source_scales == {"edges": 1.0} and right.calibration["iterations"] == 0
+    assert 35 < small.source_scales["edges"] < 70
+    assert _max_err(right.poses, small.poses) < 1e-3
+    assert len(small.outliers) == len(right.outliers) <= 2

@@ -140,3 +140,25 @@ def test_bad_input_is_one_clear_error(case, dirs, tmp_path, capsys):
     assert lines[-1].startswith("error: ") and msg in lines[-1], err
     assert "Traceback" not in err
     assert not out.exists()
+
+
+def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
+    """Learner covariances 1000x too small: report.json/report.md give its estimated
+    scale and the teacher's edges survive the outlier pass."""
+    from data.formats import read_g2o, write_g2o
+
+    t, l = dirs
+    edges, _ = read_g2o(l / "edges.g2o")
+    for e in edges:
+        e.cov = e.cov / 1000.0
+    write_g2o(l / "edges.g2o", edges)
+    out = tmp_path / "out"
+    rc, err = _run(["optimize", "--teacher", str(t), "--learner", str(l), "--out", str(out), "--no-plots"], capsys)
+    assert rc == 0, err
+    rep = json.loads((out / "report.json").read_text())
+    assert 300 < rep["covariance_scales"]["learner"] < 3000, rep["covariance_scales"]
+    assert 0.3 < rep["covariance_scales"]["teacher"] < 3
+    assert rep["covariance_calibration"]["sources"]["learner"]["edges"] == 4 * N - 10
+    assert sum(o["source"] == "teacher" for o in rep["outliers"]) <= 1
+    assert rep["rows"]["learner"]["calibration"]["nees_over_dof"] > 300  # the raw covariances, vs GT
+    assert "Covariance scale per source" in (out / "report.md").read_text()
