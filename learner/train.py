@@ -214,8 +214,11 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
     state = None
     if resume:
         state = load_checkpoint(ckpt_path)
-        if state["preset"] != p.name or state["model_config"] != to_dict(mcfg):
+        if state["preset"] != p.name:
             raise ConfigError(f"{ckpt_path} was trained with preset {state['preset']!r}, not {p.name!r}")
+        if state["model_config"] != to_dict(mcfg):
+            raise ConfigError(f"{ckpt_path} was trained with another network shape of preset {p.name!r} "
+                              "(the preset changed since); start a new run")
         if state["variant"] != variant:
             raise ConfigError(f"{ckpt_path} was trained as variant {state['variant']!r}, not {variant!r}")
     elif ckpt_path.exists():

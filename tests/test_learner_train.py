@@ -207,6 +207,13 @@ def test_resume_with_another_preset_or_variant_fails(fixture_seq, tmp_path) -> N
         fit([str(seq)], variant="cnn-unsup", preset="cpu", out=tmp_path / "run", teacher_root=teacher, resume=True)
     with pytest.raises(ConfigError, match="variant 'cnn-unsup', not 'ctc'"):
         fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=teacher, resume=True)
+    import dataclasses
+
+    from learner.config import TINY
+
+    reshaped = dataclasses.replace(TINY, model=dataclasses.replace(TINY.model, lstm_hidden=8))
+    with pytest.raises(ConfigError, match="another network shape of preset 'tiny'"):
+        fit([str(seq)], variant="cnn-unsup", preset=reshaped, out=tmp_path / "run", teacher_root=teacher, resume=True)
     with pytest.raises(ConfigError, match="already holds a checkpoint"):
         fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher)
 
