@@ -210,7 +210,7 @@ def _cross(a: NDArray, b: NDArray) -> NDArray:
 
 
 def _residuals(T: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDArray, K: NDArray,
-               with_jac: bool) -> tuple[NDArray, Optional[NDArray]]:
+               with_jac: bool, P_b: Optional[NDArray] = None, w3: float = 0.0) -> tuple[NDArray, Optional[NDArray]]:
     """Two-way reprojection residuals of ``T = T_i_j`` and their Jacobians w.r.t. a right
     perturbation ``T @ exp(delta)``, delta = (v, w).
 
@@ -223,7 +223,12 @@ def _residuals(T: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDAr
     X = Q_j @ R.T + t  # Q_j in frame i
     fy, bx = Y[:, 2] > 1e-6, X[:, 2] > 1e-6
     Y, uv_j, X, Q, uv_i = Y[fy], uv_j[fy], X[bx], Q_j[bx], uv_i[bx]
-    r = np.concatenate([(_project(Y, K) - uv_j).ravel(), (_project(X, K) - uv_i).ravel()])
+    parts = [(_project(Y, K) - uv_j).ravel(), (_project(X, K) - uv_i).ravel()]
+    if w3 > 0:
+        Pb = P_b[bx]
+        s3 = w3 / (Pb[:, 2:3] ** 2)  # Kinect depth noise grows with z^2
+        parts.append(((X - Pb) * s3).ravel())
+    r = np.concatenate(parts)
     if not with_jac:
         return r, None
     # forward: Y(delta) = exp(-delta) Y -> dY = [-I | hat(Y)];  a^T hat(Y) = (a x Y)^T
@@ -236,11 +241,25 @@ def _residuals(T: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDAr
         b = a_b @ R
         Jb[:, k, :3] = b
         Jb[:, k, 3:] = _cross(Q, b)
-    return r, np.concatenate([Jf.reshape(-1, 6), Jb.reshape(-1, 6)], axis=0)
+    blocks = [Jf.reshape(-1, 6), Jb.reshape(-1, 6)]
+    if w3 > 0:
+        J3 = np.empty((len(X), 3, 6))
+        J3[:, :, :3] = R
+        J3[:, :, 3:] = -R @ _skew(Q)
+        blocks.append((J3 * s3[:, :, None]).reshape(-1, 6))
+    return r, np.concatenate(blocks, axis=0)
+
+
+def _skew(p: NDArray) -> NDArray:
+    S = np.zeros((len(p), 3, 3))
+    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
+    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = p[:, 2], -p[:, 1], p[:, 0]
+    return S
 
 
 def refine_two_way(T0: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDArray, K: NDArray,
-                   huber: float, iters: int = 10, min_sigma_px: float = 0.0) -> tuple[NDArray, NDArray, NDArray]:
+                   huber: float, iters: int = 10, min_sigma_px: float = 0.0, P_b: Optional[NDArray] = None,
+                   w3: float = 0.0) -> tuple[NDArray, NDArray, NDArray]:
     """Robust (Huber IRLS) Gauss-Newton with Levenberg damping on the two-way reprojection
     error. Returns (T_i_j, covariance (6, 6) in (v, w) order, final residual vector).
 
@@ -248,7 +267,7 @@ def refine_two_way(T0: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i:
     variance, floored at ``min_sigma_px^2``."""
     T = T0.copy()
     lam = 1e-4
-    r, J = _residuals(T, P_i, uv_j, Q_j, uv_i, K, True)
+    r, J = _residuals(T, P_i, uv_j, Q_j, uv_i, K, True, P_b, w3)
     cost = _huber_cost(r, huber)
     for _ in range(iters):
         w = _huber_weights(r, huber)
@@ -256,7 +275,7 @@ def refine_two_way(T0: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i:
         g = J.T @ (w * r)
         step = -np.linalg.solve(H + lam * np.diag(np.diag(H)) + 1e-12 * np.eye(6), g)
         T_new = T @ geo.se3_exp(step)
-        r_new, J_new = _residuals(T_new, P_i, uv_j, Q_j, uv_i, K, True)
+        r_new, J_new = _residuals(T_new, P_i, uv_j, Q_j, uv_i, K, True, P_b, w3)
         c_new = _huber_cost(r_new, huber)
         if c_new <= cost and len(r_new) == len(r):
             T, r, J, cost = T_new, r_new, J_new, c_new
@@ -347,11 +366,12 @@ def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
             return EdgeEstimate(i, j, "few_inliers", matches=n_match, inliers=int(in_f.sum()))
         sf, sb = _even(np.flatnonzero(in_f), cfg.refine_max_points), _even(np.flatnonzero(in_b), cfg.refine_max_points)
         T, cov, r = refine_two_way(T, P_i[sf], uv_j[sf], Q_all[sb], uv_i[sb], K, cfg.huber_px, cfg.refine_iters,
-                                   cfg.min_sigma_px)
+                                   cfg.min_sigma_px, P_i[sb], cfg.depth_weight)
     n_in = int(in_f.sum())
     res = EdgeEstimate(i, j, "ok", matches=n_match, inliers=n_in, inlier_ratio=n_in / n_match,
                        inlier_pairs=pairs[in_f])
-    res.rmse_px = float(np.sqrt(np.mean(r * r)))
+    r_px = _residuals(T, P_i[sf], uv_j[sf], Q_all[sb], uv_i[sb], K, False)[0]  # pixels only
+    res.rmse_px = float(np.sqrt(np.mean(r_px * r_px)))
     res.T_i_j, res.cov = T, cov
     trans = float(np.linalg.norm(T[:3, 3]))
     rot = geo.rotation_angle_deg(T)
