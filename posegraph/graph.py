@@ -617,23 +617,17 @@ class _Problem:
         """(E,) factors with covariances ``cov * scale[:, None, None]``, (E,) ``scale``; edges
         at scale 1 share their factor objects between calls (built once)."""
         one = scale == 1.0
-        miss = np.array([n for n in np.flatnonzero(one).tolist() if self._base[n] is None], dtype=np.int64)
-        other = np.flatnonzero(~one)
-        for idx, sc, store in ((miss, None, True), (other, scale, False)):
-            if len(idx) == 0:
-                continue
-            covs = self.a.cov[idx] if sc is None else self.a.cov[idx] * sc[idx, None, None]
-            made = _factors(self.a.ids[idx], [self.measured[n] for n in idx.tolist()], covs, self.cfg)
-            if store:
-                for n, f in zip(idx.tolist(), made):
-                    self._base[n] = f
-            else:
-                extra = dict(zip(idx.tolist(), made))
+        miss = np.flatnonzero(one & np.array([f is None for f in self._base], dtype=bool))
+        for n, f in zip(miss.tolist(), self._make(miss, self.a.cov[miss])):
+            self._base[n] = f
         out = list(self._base)
-        if len(other):
-            for n, f in extra.items():
-                out[n] = f
+        other = np.flatnonzero(~one)
+        for n, f in zip(other.tolist(), self._make(other, self.a.cov[other] * scale[other, None, None])):
+            out[n] = f
         return out
+
+    def _make(self, idx: NDArray[np.int64], covs: NDArray[np.float64]) -> list:
+        return _factors(self.a.ids[idx], [self.measured[n] for n in idx.tolist()], covs, self.cfg)
 
     def solve(self, use: NDArray[np.bool_], scale: NDArray[np.float64], start):
         """(graph, start values, result values, iterations); ``start`` is a ``gtsam.Values``
