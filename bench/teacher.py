@@ -108,6 +108,7 @@ def bench_scene(spec: str, frames: str | None) -> list[dict]:
         rep = trajectory_report(gt, Trajectory(seq.times(), r["poses"]))
         out.append({"scene": spec, "frames": len(seq), "method": r["method"], "fps": len(seq) / r["seconds"],
                     "gap1_failures": r["fails"], **rep})
+        print(f"{spec}: {out[-1]}", file=sys.stderr, flush=True)
     base = out[1]["fps"]
     for r in out:
         r["fps_vs_open3d"] = r["fps"] / base
