@@ -35,6 +35,8 @@ def _parser() -> argparse.ArgumentParser:
     o.add_argument("--max-trans-sigma", dest="max_trans_sigma_m", type=float, help="metres")
     o.add_argument("--max-rot-sigma", dest="max_rot_sigma_deg", type=float, help="degrees")
     o.add_argument("--outlier-action", choices=OUTLIER_ACTIONS)
+    o.add_argument("--no-calibrate", dest="calibrate", action="store_false", default=None,
+                   help="use every source's covariances as given (no per-source scale from residuals)")
     o.add_argument("--marginals", action="store_true", default=None, help="write marginals.npz")
     o.add_argument("--no-plots", dest="plots", action="store_false", default=None)
     return p

@@ -144,7 +144,8 @@ def test_bad_input_is_one_clear_error(case, dirs, tmp_path, capsys):
 
 def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
     """Learner covariances 1000x too small: report.json/report.md give its estimated
-    scale and the teacher's edges survive the outlier pass."""
+    scale and the teacher's edges survive the outlier pass; ``--no-calibrate`` keeps
+    the covariances as given (and loses the learner's edges)."""
     from data.formats import read_g2o, write_g2o
 
     t, l = dirs
@@ -162,3 +163,10 @@ def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
     assert sum(o["source"] == "teacher" for o in rep["outliers"]) <= 1
     assert rep["rows"]["learner"]["calibration"]["nees_over_dof"] > 300  # the raw covariances, vs GT
     assert "Covariance scale per source" in (out / "report.md").read_text()
+    rc, err = _run(["optimize", "--teacher", str(t), "--learner", str(l), "--out", str(tmp_path / "raw"),
+                    "--no-plots", "--no-calibrate"], capsys)
+    raw = json.loads((tmp_path / "raw" / "report.json").read_text())
+    assert rc == 0 and raw["covariance_calibration"] is None and raw["covariance_scales"]["learner"] == 1.0
+    # as given, every learner edge is an outlier; calibrated, nearly none is
+    assert sum(o["source"] == "learner" for o in raw["outliers"]) == 4 * N - 10
+    assert sum(o["source"] == "learner" for o in rep["outliers"]) <= 4
