@@ -41,7 +41,7 @@ from data.sequence import Sequence
 from data.synthetic.config import PRESETS, RENDER_VERSION, SceneConfig, SensorConfig, known_names, resolve_preset
 from data.synthetic.layout import LAYOUTS, Scene
 from data.synthetic.renderer import ExactFrame, Renderer
-from data.synthetic.sensor import ColourSensor, NoiseBank, depth_bias_field, depth_sensor, exposure_gains
+from data.synthetic.sensor import ColourSensor, NoiseBank, colour_camera_pad, depth_bias_field, depth_sensor, exposure_gains
 from data.synthetic.trajectory import make_trajectory, motion_stats
 
 __all__ = [
@@ -112,8 +112,10 @@ class FrameRenderer:
         self.poses = poses
         c = config
         k1 = 0.0 if c.sensor.noise_free else c.sensor.residual_distortion_k1
-        self.renderer = Renderer(scene, c.fx, c.fy, c.cx, c.cy, c.width, c.height, nthreads=nthreads, distortion_k1=k1)
-        self.colour_sensor = ColourSensor(c.sensor, c.width, c.height, c.cx, c.cy)
+        self.pad = colour_camera_pad(c.sensor, c.width, c.height, c.fx)
+        self.renderer = Renderer(scene, c.fx, c.fy, c.cx, c.cy, c.width, c.height, nthreads=nthreads,
+                                 distortion_k1=k1, pad=self.pad)
+        self.colour_sensor = ColourSensor(c.sensor, c.width, c.height, c.cx, c.cy, c.fx)
         self.bank = NoiseBank(c.seed, c.width * c.height)
         self.depth_bias = depth_bias_field(c.sensor, (c.height, c.width), c.seed)
         self.gains = exposure_gains(c.sensor, np.arange(len(poses)) / c.fps, np.random.default_rng([c.seed, 2]))
@@ -143,29 +145,32 @@ class FrameRenderer:
         return ((proj[1] - proj[0]) / max(b - a, 1)).mean(0)
 
     def row_poses(self, k: int) -> NDArray[np.float64]:
-        """Rolling shutter: pose of every image row (H, 4, 4) of frame ``k``, from the
-        camera's velocity (central difference of the neighbouring poses); the middle row
-        has the frame's pose."""
+        """Rolling shutter: pose of every rendered row (H + 2 py, 4, 4) of frame ``k`` (rows
+        of the padding, see :attr:`pad`, included), from the camera's velocity (central
+        difference of the neighbouring poses); the middle row has the frame's pose."""
         c, n = self.config, len(self.poses)
         a, b = max(k - 1, 0), min(k + 1, n - 1)
         xi = se3_log(relative_pose(self.poses[a], self.poses[b])) / max(b - a, 1)  # (v, w) per frame
-        s = (np.arange(c.height) / max(c.height - 1, 1) - 0.5) * c.sensor.rolling_shutter_s * c.fps
+        py = self.pad[1]
+        s = ((np.arange(c.height + 2 * py) - py) / max(c.height - 1, 1) - 0.5) * c.sensor.rolling_shutter_s * c.fps
         Tk = self.poses[k]
-        out = np.repeat(Tk[None], c.height, 0)
+        out = np.repeat(Tk[None], len(s), 0)
         # first order in the (tiny) per-row motion: R_k exp(w s), t_k + R_k v s
         out[:, :3, :3] = Tk[:3, :3] @ Rotation.from_rotvec(np.outer(s, xi[3:])).as_matrix()
         out[:, :3, 3] += np.outer(s, Tk[:3, :3] @ xi[:3])
         return out
 
     def frame(self, k: int) -> tuple[NDArray[np.uint8], NDArray[np.float32], ExactFrame]:
-        """Frame ``k``: RGB (H, W, 3) uint8, measured depth (H, W) float32 m, exact rendering."""
+        """Frame ``k``: RGB (H, W, 3) uint8, measured depth (H, W) float32 m, exact rendering
+        of the depth camera (H, W)."""
         c = self.config
         rolling = c.sensor.rolling_shutter_s > 0 and not c.sensor.noise_free and len(self.poses) > 1
-        exact = self.renderer.render(self.row_poses(k) if rolling else self.poses[k])
+        padded = self.renderer.render(self.row_poses(k) if rolling else self.poses[k])
+        exact = padded.crop(*self.pad)
         rng = np.random.default_rng([c.seed, 3, k])
         depth = depth_sensor(exact.depth, exact.cos_incidence, c.fx, c.sensor, rng, self.bank, self.depth_bias)
         flow = self.image_flow(k, exact) if (c.sensor.motion_blur_exposure > 0 and not c.sensor.noise_free) else np.zeros(2)
-        rgb = self.colour_sensor(exact.colour, float(self.gains[k]), flow, rng, exact.depth, c.fx)
+        rgb = self.colour_sensor(padded.colour, float(self.gains[k]), flow, rng, padded.depth)
         return rgb, depth, exact
 
 

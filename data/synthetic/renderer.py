@@ -33,13 +33,27 @@ class ExactFrame:
     cos_incidence: NDArray[np.float32]
     triangle: NDArray[np.int64]
 
+    def crop(self, px: int, py: int) -> "ExactFrame":
+        """The frame without ``px`` columns left and right and ``py`` rows above and below."""
+        if px == 0 and py == 0:
+            return self
+        sl = (slice(py, self.depth.shape[0] - py), slice(px, self.depth.shape[1] - px))
+        return ExactFrame(self.colour[sl], self.depth[sl], self.cos_incidence[sl], self.triangle[sl])
+
 
 class Renderer:
     """Renders ``scene`` through a pinhole camera (fx, fy, cx, cy, width x height)."""
 
     def __init__(self, scene: Scene, fx: float, fy: float, cx: float, cy: float, width: int, height: int,
-                 nthreads: int = 0, distortion_k1: float = 0.0) -> None:
+                 nthreads: int = 0, distortion_k1: float = 0.0, pad: tuple[int, int] = (0, 0)) -> None:
+        """``pad`` (px, py): render ``px`` extra columns left and right and ``py`` extra rows
+        above and below the image (same camera, extended grid), so a second camera with a
+        wider field of view can be resampled from the rendering; outputs are then
+        (H + 2 py, W + 2 px)."""
         self.scene = scene
+        self.pad = (int(pad[0]), int(pad[1]))
+        width, height = width + 2 * self.pad[0], height + 2 * self.pad[1]
+        cx, cy = cx + self.pad[0], cy + self.pad[1]
         self.width, self.height, self.fx = width, height, fx
         self.nthreads = nthreads
         tris = scene.triangles.reshape(-1, 3)
@@ -64,7 +78,7 @@ class Renderer:
 
     def render(self, T_world_cam: NDArray[np.float64]) -> ExactFrame:
         """Exact rendering of the view ``T_world_cam``: (4, 4), or (H, 4, 4) one pose per
-        image row (rolling shutter)."""
+        image row (rolling shutter; H counts the padded rows)."""
         H, W = self.height, self.width
         T = np.asarray(T_world_cam, np.float32)
         if T.ndim == 3:  # per-row poses: coefficients broadcast as (H, 1)

@@ -179,40 +179,64 @@ def shifted_gaussian(sigma: float, shift: float) -> NDArray[np.float32]:
     return (k / k.sum()).astype(np.float32)
 
 
-class ColourSensor:
-    """Turns a linear rendering (H, W, 3) float32 into an 8-bit RGB image."""
+def colour_camera_pad(cfg: SensorConfig, width: int, height: int, fx: float) -> tuple[int, int]:
+    """Extra columns and rows (px, py) the depth camera's rendering needs on each side so the
+    colour camera (wider field of view, shifted, parallax down to 0.4 m) can be resampled
+    from it; (0, 0) for the noise-free (registered) mode."""
+    if cfg.noise_free:
+        return 0, 0
+    s = cfg.rgb_focal_scale
+    parallax = fx * abs(cfg.rgb_baseline_m) / 0.4
+    px = (width / 2) * max(1 / s - 1, 0) + abs(cfg.rgb_shift_px[0]) / s + parallax + 2
+    py = (height / 2) * max(1 / s - 1, 0) + abs(cfg.rgb_shift_px[1]) / s + 2
+    return int(np.ceil(px)), int(np.ceil(py))
 
-    def __init__(self, cfg: SensorConfig, width: int, height: int, cx: float, cy: float) -> None:
+
+class ColourSensor:
+    """Turns a linear rendering (He, We, 3) float32 of the depth camera, padded by
+    :func:`colour_camera_pad`, into the colour camera's 8-bit RGB image (H, W, 3)."""
+
+    def __init__(self, cfg: SensorConfig, width: int, height: int, cx: float, cy: float, fx: float = 585.0) -> None:
         self.cfg = cfg
+        self.pad = colour_camera_pad(cfg, width, height, fx)
+        self.fx = fx
         yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
         r2 = ((xx - cx) ** 2 + (yy - cy) ** 2) / (cx ** 2 + cy ** 2)
         self.vignette = (1.0 - cfg.vignetting * r2)[..., None].astype(np.float32)
-        self.kx = shifted_gaussian(cfg.rgb_blur_sigma, cfg.rgb_shift_px[0])
-        self.ky = shifted_gaussian(cfg.rgb_blur_sigma, cfg.rgb_shift_px[1])
+        self.k = shifted_gaussian(cfg.rgb_blur_sigma, 0.0)
         self.bank = NoiseBank(0, width * height * 3)
-        gy, gx = np.mgrid[0:height, 0:width].astype(np.float32)
-        self._gx, self._gy = gx, gy
+        # colour pixel (u, v) sees the depth camera's (padded) pixel (mx + parallax, my)
+        s = cfg.rgb_focal_scale
+        self._mx = (cx + (xx - cx - cfg.rgb_shift_px[0]) / s + self.pad[0]).astype(np.float32)
+        self._my = (cy + (yy - cy - cfg.rgb_shift_px[1]) / s + self.pad[1]).astype(np.float32)
 
     def __call__(self, img: NDArray[np.float32], gain: float, flow: NDArray[np.float64],
-                 rng: np.random.Generator, depth: NDArray[np.float32] | None = None, fx: float = 0.0) -> NDArray[np.uint8]:
-        """8-bit RGB from the linear rendering ``img`` (H, W, 3); ``depth`` (H, W) exact z and
-        ``fx`` drive the depth-dependent misregistration."""
+                 rng: np.random.Generator, depth: NDArray[np.float32] | None = None) -> NDArray[np.uint8]:
+        """8-bit RGB (H, W, 3) from the padded linear rendering ``img`` (He, We, 3); ``depth``
+        (He, We) exact z drives the parallax; ``flow`` (2,) is the image motion per frame in
+        depth-camera pixels (motion blur)."""
         cfg = self.cfg
         if cfg.noise_free:
             return np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
-        if cfg.rgb_depth_baseline_error_m and depth is not None:
-            with np.errstate(divide="ignore"):
-                shift = np.where(depth > 0, np.float32(fx * cfg.rgb_depth_baseline_error_m) / depth, 0)
-            img = cv2.remap(img, self._gx - shift.astype(np.float32), self._gy, cv2.INTER_LINEAR,
-                            borderMode=cv2.BORDER_REFLECT)
+        mx = self._mx
+        if cfg.rgb_baseline_m and depth is not None:
+            He, We = depth.shape
+            zi = np.clip(np.rint(self._my).astype(np.int32), 0, He - 1)
+            zj = np.clip(np.rint(mx).astype(np.int32), 0, We - 1)
+            z = depth[zi, zj]
+            mx = mx + np.where(z > 0, np.float32(self.fx * cfg.rgb_baseline_m) / np.maximum(z, np.float32(0.4)), 0)
+        img = cv2.remap(img, mx, self._my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         img = img * (np.float32(gain) * self.vignette)
         if cfg.motion_blur_exposure > 0:
-            k = motion_kernel(flow, cfg.motion_blur_exposure)
+            k = motion_kernel(np.asarray(flow) * cfg.rgb_focal_scale, cfg.motion_blur_exposure)
             if k is not None:
                 img = cv2.filter2D(img, -1, k, borderType=cv2.BORDER_REFLECT)
-        # optical blur and RGB-depth misregistration in one separable filter
-        img = cv2.sepFilter2D(img, -1, self.kx, self.ky, borderType=cv2.BORDER_REFLECT)
+        img = cv2.sepFilter2D(img, -1, self.k, self.k, borderType=cv2.BORDER_REFLECT)
         dn = np.clip(img, 0, 1) * np.float32(255)
         sd = np.sqrt(np.float32(cfg.read_noise_dn ** 2) + np.float32(cfg.shot_noise_gain) * dn)
         dn += sd * self.bank.normal(dn.shape, rng)
-        return np.clip(np.rint(dn), 0, 255).astype(np.uint8)
+        out = np.clip(np.rint(dn), 0, 255).astype(np.uint8)
+        if cfg.jpeg_quality > 0:
+            ok, buf = cv2.imencode(".jpg", cv2.cvtColor(out, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(cfg.jpeg_quality)])
+            out = cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        return out
