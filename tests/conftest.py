@@ -44,3 +44,18 @@ def _isolated_cache(tmp_path_factory, monkeypatch):
     """Synthetic renders go to a per-session temporary cache, never to the user's."""
     cache = tmp_path_factory.getbasetemp() / "vo-cache"
     monkeypatch.setenv("VO_CACHE_DIR", str(cache))
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """One torch intra-op thread for a test module (``pytestmark = usefixtures(...)``).
+
+    The tiny learner networks are dominated by per-op overhead: one thread is faster than
+    two and does not stall when the machine's cores are busy (OpenMP barriers of a
+    2-thread pool wait for a descheduled thread)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -13,15 +13,7 @@ from learner.config import PRESETS, TINY
 from learner.model import CTCNet, load_pretrained_vgg
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """The tiny networks here are dominated by per-op overhead: one intra-op thread is
-    faster than two and does not stall when the machine's cores are busy (OpenMP
-    barriers of a 2-thread pool wait for a descheduled thread)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _pairs(n: int, cfg) -> torch.Tensor:
