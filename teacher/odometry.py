@@ -261,7 +261,9 @@ def refine_two_way(T0: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i:
                    huber: float, iters: int = 10, min_sigma_px: float = 0.0, P_b: Optional[NDArray] = None,
                    w3: float = 0.0) -> tuple[NDArray, NDArray, NDArray]:
     """Robust (Huber IRLS) Gauss-Newton with Levenberg damping on the two-way reprojection
-    error. Returns (T_i_j, covariance (6, 6) in (v, w) order, final residual vector).
+    error, plus (``w3 > 0``) the z^2-weighted 3-D distance between the backward points
+    ``Q_j`` moved into frame i and their frame-i counterparts ``P_b``.
+    Returns (T_i_j, covariance (6, 6) in (v, w) order, final residual vector).
 
     The covariance is ``sigma^2 (J^T W J)^-1`` with ``sigma^2`` the weighted residual
     variance, floored at ``min_sigma_px^2``."""
@@ -419,11 +421,6 @@ def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray
     out = uv_j.copy()
     out[good] = p1[good]
     return out
-
-
-def bridge_velocity(T_prev: Optional[NDArray]) -> NDArray:
-    """Constant-velocity guess for a failed gap-1 edge: the previous relative motion."""
-    return np.eye(4) if T_prev is None else T_prev.copy()
 
 
 __all__ = ["FrameFeatures", "EdgeEstimate", "extract", "match", "estimate_edge", "refine_two_way", "make_orb"]
