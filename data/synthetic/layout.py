@@ -54,8 +54,11 @@ class Scene:
 class SceneBuilder:
     """Accumulates textured quads, boxes and cylinders into a :class:`Scene`."""
 
-    def __init__(self, rng: np.random.Generator, size: tuple[float, float, float]) -> None:
+    def __init__(self, rng: np.random.Generator, size: tuple[float, float, float], photo_like: bool = False) -> None:
+        """``photo_like``: pass every texture through :func:`~data.synthetic.textures.photo_like`
+        (softened edges, grime, grain), as the built-in layouts do."""
         self.rng = rng
+        self.photo_like = photo_like
         self.size = np.asarray(size, np.float64)
         self._tris: list[NDArray] = []
         self._uvs: list[NDArray] = []
@@ -71,7 +74,10 @@ class SceneBuilder:
         """Index of material ``name``; created with ``make(rng)`` on first use."""
         if name not in self._mat_index:
             self._mat_index[name] = len(self.materials)
-            self.materials.append(Material(name, make(self.rng), scale_m))
+            tex = make(self.rng)
+            if self.photo_like:
+                tex = tx.photo_like(self.rng, tex)
+            self.materials.append(Material(name, tex, scale_m))
         return self._mat_index[name]
 
     # -- primitives
@@ -235,7 +241,7 @@ def _ceiling_lights(b: SceneBuilder, n: int, power: float) -> None:
 # ---------------------------------------------------------------------------- layouts
 
 def office(rng: np.random.Generator) -> Scene:
-    b = SceneBuilder(rng, (6.0, 5.0, 2.7))
+    b = SceneBuilder(rng, (6.0, 5.0, 2.7), photo_like=True)
     r = b.rng
     wall = b.material("wall", lambda g: tx.tex_plain(g, _c(0.85, 0.84, 0.8)), 2.0)
     wall2 = b.material("wall2", lambda g: tx.tex_plain(g, _c(0.6, 0.7, 0.8)), 2.0)
@@ -284,7 +290,7 @@ def office(rng: np.random.Generator) -> Scene:
 
 
 def kitchen(rng: np.random.Generator) -> Scene:
-    b = SceneBuilder(rng, (5.0, 4.4, 2.6))
+    b = SceneBuilder(rng, (5.0, 4.4, 2.6), photo_like=True)
     r = b.rng
     paint = b.material("paint", lambda g: tx.tex_plain(g, _c(0.9, 0.85, 0.65)), 2.0)
     backsplash = b.material("backsplash", lambda g: tx.tex_tiles(g, _c(0.55, 0.7, 0.8), _c(0.9, 0.9, 0.9), 8), 0.8)
@@ -322,7 +328,7 @@ def kitchen(rng: np.random.Generator) -> Scene:
 
 
 def lab(rng: np.random.Generator) -> Scene:
-    b = SceneBuilder(rng, (7.0, 5.5, 3.0))
+    b = SceneBuilder(rng, (7.0, 5.5, 3.0), photo_like=True)
     r = b.rng
     bricks = b.material("bricks", lambda g: tx.tex_bricks(g, _c(0.75, 0.7, 0.6), _c(0.4, 0.4, 0.4)), 1.5)
     paint = b.material("paint", lambda g: tx.tex_plain(g, _c(0.75, 0.78, 0.75)), 2.0)

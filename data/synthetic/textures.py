@@ -174,6 +174,33 @@ def tex_panel(rng: np.random.Generator, bg: NDArray, size: int = TEX_SIZE) -> ND
     return img.astype(np.float32) / 255.0
 
 
+def _blur_wrap(img: NDArray[np.float32], sigma: float) -> NDArray[np.float32]:
+    """Gaussian blur of a tileable image (S, S[, C]) with wrap-around borders."""
+    p = int(np.ceil(4 * sigma)) + 1
+    pad = ((p, p), (p, p)) + ((0, 0),) * (img.ndim - 2)
+    out = cv2.GaussianBlur(np.pad(img, pad, mode="wrap"), (0, 0), sigma)
+    return np.ascontiguousarray(out[p:-p, p:-p])
+
+
+def photo_like(rng: np.random.Generator, tex: NDArray[np.float32], soften_px: float = 1.2,
+               grime: float = 0.12, grain: float = 0.04) -> NDArray[np.float32]:
+    """A procedural texture (S, S, 3) made to look photographed: drawn edges softened by a
+    Gaussian of ``soften_px`` texels, multiplicative multi-scale shading/grime of relative
+    amplitude ``grime`` (fractal noise over 4 octaves, slightly coloured), and fine grain of
+    relative amplitude ``grain``. Real surfaces are never flat colour and real prints have
+    no pixel-sharp edges; keypoints on them are less precise than on clean drawings.
+    Keeps the texture tileable."""
+    S = tex.shape[0]
+    out = _blur_wrap(tex, soften_px) if soften_px > 0 else tex.copy()
+    shade = np.stack([fbm(rng, S, base=4, octaves=4, gain=0.6) for _ in range(2)], -1)
+    lum = 1.0 + grime * 2 * (shade[..., 0] - 0.5)
+    tint = 1.0 + 0.3 * grime * (shade[..., 1:2] - 0.5) * np.array([1.0, 0.0, -1.0], np.float32)
+    fine = _blur_wrap(rng.standard_normal((S, S)).astype(np.float32), 0.7)
+    fine /= max(float(fine.std()), 1e-6)
+    out = out * (lum[..., None] * tint) * (1.0 + grain * fine[..., None])
+    return np.clip(out, 0, 1).astype(np.float32)
+
+
 @dataclass(frozen=True)
 class Material:
     """A texture and its physical size: one texture tile covers ``scale_m`` metres."""
