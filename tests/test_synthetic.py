@@ -129,7 +129,7 @@ def test_trajectories_are_hand_held_speeds(name):
     assert all(is_rigid(T, atol=1e-9) for T in poses)
     st = motion_stats(poses, cfg.fps)
     assert 0.1 <= st["mean_speed_mps"] <= 0.4, st
-    assert st["max_speed_mps"] <= 0.5, st
+    assert st["max_speed_mps"] <= 0.55, st  # redkitchen: 99th percentile 17.7 mm/frame = 0.53 m/s
     # redkitchen's per-frame rotation speed: median 12.6, 99th percentile 31, peak 43 deg/s
     rot = np.degrees([np.arccos(np.clip((np.trace(a[:3, :3].T @ b[:3, :3]) - 1) / 2, -1, 1))
                       for a, b in zip(poses[:-1], poses[1:])]) * cfg.fps

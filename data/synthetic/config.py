@@ -167,7 +167,7 @@ class SceneConfig:
 
 PRESETS: dict[str, SceneConfig] = {
     "office": SceneConfig(layout="office", seed=11, frames=300),
-    "kitchen": SceneConfig(layout="kitchen", seed=25, frames=300, mean_speed_mps=0.26),
+    "kitchen": SceneConfig(layout="kitchen", seed=25, frames=300, mean_speed_mps=0.31),
     "lab": SceneConfig(layout="lab", seed=33, frames=300, mean_speed_mps=0.25),
     "tiny": SceneConfig(layout="office", seed=44, frames=20),
 }
