@@ -16,7 +16,6 @@ as a Markdown table.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time

@@ -12,7 +12,7 @@ import data.synthetic as syn
 from data.errors import DataError
 from data.geometry import is_rigid
 from data.scenes import open_scene
-from data.synthetic.config import PRESETS, SceneConfig, SensorConfig
+from data.synthetic.config import PRESETS, SensorConfig
 from data.synthetic.layout import SceneBuilder
 from data.synthetic.renderer import Renderer
 from data.synthetic.sensor import ColourSensor, colour_camera_pad, depth_sensor, projector_shadow

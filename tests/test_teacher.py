@@ -17,7 +17,7 @@ from data.formats import read_edges_csv, read_g2o, read_tum
 from data.scenes import open_scene
 from teacher import cli
 from teacher.config import TeacherConfig
-from teacher.generate import chain_trajectory, generate, run_sequence
+from teacher.generate import chain_trajectory, run_sequence
 from teacher.odometry import EdgeEstimate, estimate_edge, extract
 
 

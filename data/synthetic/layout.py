@@ -308,7 +308,7 @@ def kitchen(rng: np.random.Generator) -> Scene:
     # counters along wall 0 and wall 3 with upper cabinets
     for wall_i, ss in ((0, (0.2, 0.4, 0.6, 0.8)), (3, (0.35, 0.6))):
         for s in ss:
-            c = b.against_wall(wall_i, s, (0.9 if wall_i == 0 else 0.85, 0.6, 0.88), steel, front=cab)
+            b.against_wall(wall_i, s, (0.9 if wall_i == 0 else 0.85, 0.6, 0.88), steel, front=cab)
             top = b.wall_point(wall_i, s, 0.31, 0.88)
             b.box(top + [0, 0, 0.02], (0.92 if wall_i == 0 else 0.87, 0.62, 0.04), b.wall_yaw(wall_i), counter)
             b.clutter_on(top + [0, 0, 0.04], (0.8, 0.5), b.wall_yaw(wall_i), int(r.integers(1, 4)), labels)
