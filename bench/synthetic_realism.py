@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from data import geometry as geo  # noqa: E402
 from data.formats import read_edges_csv, read_g2o, read_tum  # noqa: E402
-from data.metrics import rpe_rmse  # noqa: E402
+from data.metrics import relative_pose_error, rpe_rmse  # noqa: E402
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "7scenes" / "redkitchen" / "seq-sample"
 
@@ -45,8 +45,7 @@ def edge_errors(folder: Path) -> dict[int, np.ndarray]:
     out: dict[int, list] = {}
     for e in edges:
         a, b = row_of[e.i], row_of[e.j]
-        d = geo.inv_T(geo.relative_pose(gt.poses[a], gt.poses[b])) @ e.T_i_j
-        out.setdefault(b - a, []).append((np.linalg.norm(d[:3, 3]), geo.rotation_angle_deg(d)))
+        out.setdefault(b - a, []).append(relative_pose_error(geo.relative_pose(gt.poses[a], gt.poses[b]), e.T_i_j))
     return {g: np.array(v) for g, v in sorted(out.items())}
 
 

@@ -18,6 +18,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # before bench/, whose teacher.py would shadow the package
 
 from data import geometry as geo  # noqa: E402
+from data.metrics import relative_pose_error  # noqa: E402
 from data.scenes import open_scene  # noqa: E402
 from teacher.config import TeacherConfig  # noqa: E402
 from teacher.generate import run_sequence  # noqa: E402
@@ -29,8 +30,8 @@ _spec.loader.exec_module(bench_teacher)
 
 def gap1_errors_mm(gt: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """Translation error (mm) of every consecutive relative pose against ground truth."""
-    return np.array([1000 * np.linalg.norm((geo.inv_T(geo.relative_pose(gt[k], gt[k + 1]))
-                                            @ geo.relative_pose(poses[k], poses[k + 1]))[:3, 3])
+    return np.array([1000 * relative_pose_error(geo.relative_pose(gt[k], gt[k + 1]),
+                                                geo.relative_pose(poses[k], poses[k + 1]))[0]
                      for k in range(len(gt) - 1)])
 
 

@@ -129,9 +129,13 @@ def quat_wxyz_to_xyzw(q_wxyz: ArrayLike) -> NDArray[np.float64]:
 # so(3) / se(3) exp and log, project order xi = (v, w)
 # ----------------------------------------------------------------------------------
 def hat(w: ArrayLike) -> NDArray[np.float64]:
-    """Skew-symmetric matrix of a 3-vector."""
-    x, y, z = np.asarray(w, dtype=np.float64)
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    """Skew-symmetric matrix of a 3-vector (3,) -> (3, 3), or of each row (..., 3) -> (..., 3, 3)."""
+    w = np.asarray(w, dtype=np.float64)
+    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    S = np.zeros(w.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -z, y, -x
+    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = z, -y, x
+    return S
 
 
 def _V_coeffs(theta: float) -> tuple[float, float]:

@@ -65,6 +65,13 @@ def rpe_rmse(gt: Trajectory, est: Trajectory, delta: int = 1) -> tuple[float, fl
     return out[0], out[1]
 
 
+def relative_pose_error(T_ref_rel: NDArray[np.float64], T_est_rel: NDArray[np.float64]) -> tuple[float, float]:
+    """Error of an estimated relative pose against the reference one: (translation m,
+    rotation deg) of ``inv(T_ref_rel) @ T_est_rel`` (what evo's RPE measures per pair)."""
+    d = geo.inv_T(T_ref_rel) @ np.asarray(T_est_rel, dtype=np.float64)
+    return float(np.linalg.norm(d[:3, 3])), geo.rotation_angle_deg(d)
+
+
 def se3_l2_errors(gt_rel: NDArray[np.float64], est_rel: NDArray[np.float64]) -> NDArray[np.float64]:
     """The paper's local metric per pair: ``||log(T_gt_rel) - log(T_est_rel)||_2`` with
     ``log`` in the project se(3) order (v, w). Inputs are (N, 4, 4) relative poses."""

@@ -36,7 +36,7 @@ from tqdm import tqdm
 from data import geometry as geo
 from data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
 from data.io import ensure_dir, git_revision, write_json
-from data.metrics import trajectory_report
+from data.metrics import relative_pose_error, trajectory_report
 from data.scenes import open_scene, scene_slug
 from data.sequence import Sequence
 from teacher.config import TeacherConfig
@@ -208,20 +208,19 @@ def _edge_rows(edges: list[EdgeEstimate], ts: dict[int, float]) -> list[dict]:
     } for e in edges]
 
 
-def _label_errors(edges: list[EdgeEstimate], gt: NDArray, ids: NDArray, gaps: int) -> dict:
+def _label_errors(edges: list[EdgeEstimate], gt: NDArray, ids: NDArray) -> dict:
     """Per-gap RMS error of the good labels against ground truth (trans m, rot deg)."""
     pos = {int(f): p for p, f in enumerate(ids)}
+    by_gap: dict[int, list[tuple[float, float]]] = {}
+    for e in edges:
+        if e.ok:
+            a, b = pos[e.i], pos[e.j]
+            by_gap.setdefault(b - a, []).append(relative_pose_error(geo.relative_pose(gt[a], gt[b]), e.T_i_j))
     out = {}
-    for g in range(1, gaps + 1):
-        errs = []
-        for e in edges:
-            if e.ok and pos[e.j] - pos[e.i] == g:
-                d = geo.inv_T(geo.relative_pose(gt[pos[e.i]], gt[pos[e.j]])) @ e.T_i_j
-                errs.append((np.linalg.norm(d[:3, 3]), geo.rotation_angle_deg(d)))
-        if errs:
-            a = np.array(errs)
-            out[str(g)] = {"edges": len(a), "trans_rmse_m": float(np.sqrt(np.mean(a[:, 0] ** 2))),
-                           "rot_rmse_deg": float(np.sqrt(np.mean(a[:, 1] ** 2)))}
+    for g, errs in sorted(by_gap.items()):
+        a = np.array(errs)
+        out[str(g)] = {"edges": len(a), "trans_rmse_m": float(np.sqrt(np.mean(a[:, 0] ** 2))),
+                       "rot_rmse_deg": float(np.sqrt(np.mean(a[:, 1] ** 2)))}
     return out
 
 
@@ -245,7 +244,7 @@ def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
     if gt is not None and n >= 2:
         times = seq.times()
         rep.update(trajectory_report(Trajectory(times, gt), Trajectory(times, run.poses)))
-        rep["label_error_by_gap"] = _label_errors(run.edges, gt, seq.ids(), cfg.gaps)
+        rep["label_error_by_gap"] = _label_errors(run.edges, gt, seq.ids())
     return rep
 
 

@@ -245,16 +245,9 @@ def _residuals(T: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDAr
     if w3 > 0:
         J3 = np.empty((len(X), 3, 6))
         J3[:, :, :3] = R
-        J3[:, :, 3:] = -R @ _skew(Q)
+        J3[:, :, 3:] = -R @ geo.hat(Q)
         blocks.append((J3 * s3[:, :, None]).reshape(-1, 6))
     return r, np.concatenate(blocks, axis=0)
-
-
-def _skew(p: NDArray) -> NDArray:
-    S = np.zeros((len(p), 3, 3))
-    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
-    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = p[:, 2], -p[:, 1], p[:, 0]
-    return S
 
 
 def refine_two_way(T0: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDArray, K: NDArray,

@@ -14,6 +14,7 @@ import pytest
 
 from data import geometry as geo
 from data.formats import read_edges_csv, read_g2o, read_tum
+from data.metrics import relative_pose_error
 from data.scenes import open_scene
 from teacher import cli
 from teacher.config import TeacherConfig
@@ -26,8 +27,7 @@ def _pair_error(seq, a: int, b: int, cfg: TeacherConfig) -> tuple[EdgeEstimate, 
     fb = extract(seq.rgb(b), seq.depth(b), cfg)
     e = estimate_edge(int(seq.ids()[a]), int(seq.ids()[b]), fa, fb, seq.intrinsics, cfg, (b - a) / 30)
     gt = seq.groundtruth()
-    d = geo.inv_T(geo.relative_pose(gt[a], gt[b])) @ e.T_i_j
-    return e, float(np.linalg.norm(d[:3, 3])), geo.rotation_angle_deg(d)
+    return e, *relative_pose_error(geo.relative_pose(gt[a], gt[b]), e.T_i_j)
 
 
 @pytest.fixture(scope="module")
