@@ -206,3 +206,12 @@ def test_cli_unwritable_output(tiny_copy, tmp_path, capsys):
 def test_cli_bad_frame_range(tiny_copy, tmp_path, capsys):
     assert cli.main(["generate", "--scene", str(tiny_copy), "--out", str(tmp_path / "o"), "--frames", "a:b"]) == 1
     assert "frame range" in _err(capsys)
+
+
+def test_cli_tiny_preset(tmp_path):
+    """Every teacher preset runs through the CLI (the default one above, 'tiny' here)."""
+    out = tmp_path / "tiny"
+    assert cli.main(["generate", "--scene", "synthetic/tiny", "--out", str(out), "--preset", "tiny", "--frames", "0:6"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["frames"] == 6 and rep["edges"] + rep["failed_edges"] == 5 + 4  # TINY has gaps=2
+    assert json.loads((out / "config.json").read_text())["teacher"]["n_features"] == 800
