@@ -1,7 +1,7 @@
-"""``learner`` command line: ``learner fit`` and ``learner predict`` (thin wrappers).
+"""``learner`` command line: ``learner fit``, ``learner calibrate``, ``learner predict`` (thin wrappers).
 
 Parses arguments, configures logging, calls :func:`learner.train.fit` /
-:func:`learner.predict.predict`, and turns a :class:`~data.errors.VOError` into
+:func:`learner.calibrate.calibrate` / :func:`learner.predict.predict`, and turns a :class:`~data.errors.VOError` into
 ``error: <message>`` on stderr with exit code 1.
 """
 
@@ -38,6 +38,22 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--teacher", type=Path,
                    help="teacher output folder to read labels from (never generated); "
                         "default runs/<scene-slug>/teacher, generated when missing")
+    f.add_argument("--no-calibration", dest="calibrate", action="store_false",
+                   help="do not fit calibration.json on the --val-scene sequences after training")
+
+    c = sub.add_parser("calibrate", help="fit calibration.json (MC-dropout covariances vs teacher labels) "
+                                         "of a checkpoint on a validation scene")
+    c.add_argument("--checkpoint", type=Path, required=True)
+    c.add_argument("--scene", action="append", required=True,
+                   help="validation scene spec (repeatable); never a training or test scene")
+    c.add_argument("--frames", help="frame range START:STOP[:STEP] of every sequence")
+    c.add_argument("--split", default="all")
+    c.add_argument("--teacher", type=Path,
+                   help="teacher output folder to read labels from (never generated); "
+                        "default runs/<scene-slug>/teacher, generated when missing")
+    c.add_argument("--samples", type=int, default=PredictConfig.samples, help="MC-dropout passes K")
+    c.add_argument("--drop", type=float, default=PredictConfig.drop, help="MC-dropout drop ratio")
+    c.add_argument("--max-gap", type=int, default=PredictConfig.max_gap, help="longest direct edge gap")
 
     p = sub.add_parser("predict", help="MC-dropout edges, trajectory and report")
     p.add_argument("--checkpoint", type=Path, required=True)
@@ -49,6 +65,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--drop", type=float, default=PredictConfig.drop, help="MC-dropout drop ratio")
     p.add_argument("--max-gap", type=int, default=PredictConfig.max_gap, help="longest direct edge gap")
     p.add_argument("--preset", choices=list(PRESETS), help="fail unless the checkpoint has this preset")
+    p.add_argument("--no-calibration", dest="calibration", action="store_false",
+                   help="ignore the calibration.json beside the checkpoint")
     return ap
 
 
@@ -63,14 +81,21 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             res = fit(args.scene, variant=args.variant, preset=args.preset, val_scenes=args.val_scene,
                       frames=args.frames, split=args.split, out=args.out, resume=args.resume,
                       pretrained=args.pretrained, teacher_root=args.teacher, epochs=args.epochs,
-                      seed=args.seed, steps_per_epoch=args.steps_per_epoch)
+                      seed=args.seed, steps_per_epoch=args.steps_per_epoch, calibrate=args.calibrate)
             logging.getLogger("learner").info("checkpoint: %s", res.checkpoint)
+        elif args.cmd == "calibrate":
+            from learner.calibrate import calibrate
+
+            cfg = PredictConfig(samples=args.samples, drop=args.drop, max_gap=args.max_gap)
+            cres = calibrate(args.checkpoint, args.scene, frames=args.frames, split=args.split,
+                             teacher_root=args.teacher, config=cfg)
+            print(cres.path)
         else:
             from learner.predict import predict
 
             cfg = PredictConfig(samples=args.samples, drop=args.drop, max_gap=args.max_gap)
             res = predict(args.checkpoint, args.scene, frames=args.frames, split=args.split, out=args.out,
-                          config=cfg, preset=args.preset)
+                          config=cfg, preset=args.preset, use_calibration=args.calibration)
             for d in res.out_dirs:
                 print(d)
     except VOError as exc:

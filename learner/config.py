@@ -119,6 +119,38 @@ class PredictConfig:
 
 
 @dataclass(frozen=True)
+class CalibrationConfig:
+    """Post-hoc calibration of the MC-dropout covariances against teacher labels
+    (:mod:`learner.calibrate`). Per edge group and se(3) dimension d the model is
+    ``r_d ~ N(0, a_d * c_dd + b_d + t_dd)``: ``r = log(inv(exp(mean)) @ T_teacher)``, ``c_dd``
+    the MC-dropout variance, ``t_dd`` the teacher's variance, ``a_d, b_d >= 0`` fitted by
+    maximum likelihood; the covariance becomes ``D C D + diag(b)``, ``D = diag(sqrt(a))``."""
+
+    min_pairs: int = 30
+    """Fewest labelled pairs for a group of its own (one head and gap); smaller groups
+    fall back to the fit of all gaps of their head, then to the fit of every pair."""
+    trim_z: float = 4.0
+    """Pairs whose residual exceeds this many calibrated standard deviations in a
+    dimension are left out of that dimension's fit (re-estimated until stable): gross
+    label or prediction failures must not inflate every covariance. Under a Gaussian
+    this drops 6e-5 of the pairs, a negligible bias."""
+    max_iterations: int = 10
+    """Rounds of fitting and trimming."""
+    teacher_variance: bool = True
+    """Model the teacher's own variance (the diagonal of its edge covariance) in the
+    residual, so that ``a, b`` describe the learner's error only."""
+    min_variance: float = 1e-8
+    """Lower bound of ``b`` (m^2 / rad^2; the raw covariances' ``cov_floor``): the
+    calibrated covariance stays positive definite where ``a`` reaches 0, and no dimension
+    is claimed more precise than 0.1 mm / 0.1 mrad (1 sigma) when the teacher's variance
+    explains the whole residual."""
+
+    def __post_init__(self) -> None:
+        if self.min_pairs < 3 or self.trim_z <= 1.0 or self.max_iterations < 1 or self.min_variance <= 0:
+            raise ConfigError("calibration needs min_pairs >= 3, trim_z > 1, max_iterations >= 1, min_variance > 0")
+
+
+@dataclass(frozen=True)
 class Preset:
     """A named pair of model and training configurations."""
 

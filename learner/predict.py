@@ -5,6 +5,9 @@ and the layers after it are resampled K times (:meth:`CTCNet.direct_mc`,
 :meth:`CTCNet.sequential_mc`). Per edge the K twists give a mean ``xi`` (the edge is
 ``exp(mean)``) and a 6x6 sample covariance in the project tangent order (v, w), which is
 regularised (``cov_floor`` on the diagonal) and written as information ``inv(cov)``.
+When the checkpoint's folder holds a ``calibration.json`` (:mod:`learner.calibrate`, fitted
+on a validation scene against teacher labels) the covariances are calibrated with it
+before anything is written or flagged, unless ``use_calibration=False``.
 
 Gap-1 edges come from the LSTM head (run over chunks of ``window_max`` consecutive pairs,
 as in training) for the LSTM variants and from the direct head for ``cnn-*``; gaps
@@ -15,6 +18,7 @@ as in training) for the LSTM variants and from the direct head for ``cnn-*``; ga
 from __future__ import annotations
 
 import csv
+import dataclasses
 import logging
 import sys
 from dataclasses import dataclass, field
@@ -32,6 +36,7 @@ from data.formats import Edge, Trajectory, write_g2o, write_tum
 from data.io import atomic_write, ensure_dir, git_revision, write_json
 from data.metrics import se3_l2_errors, trajectory_report
 from data.scenes import open_scene, scene_slug
+from learner.calibrate import calibration_for, mahalanobis2, nees_stats
 from learner.config import PredictConfig, check_variant, model_from_dict
 from learner.dataset import load_frames
 from learner.model import CTCNet
@@ -161,21 +166,23 @@ def calibration(edges: EdgeSet, gt: NDArray[np.float64]) -> tuple[dict[str, floa
     * ``coverage_1sigma`` / ``coverage_2sigma``: fraction of edges whose error
       ``log(inv(T_est) T_gt)`` has squared Mahalanobis distance within the 6-dof chi-square
       quantile of 68.27% / 95.45% (a calibrated covariance gives those fractions);
+      ``nees_mean``: the mean squared Mahalanobis distance (6 when calibrated);
     * ``outlier_auroc``: AUROC of sigma for separating the worst 10% edges by error.
     """
-    from scipy.stats import chi2, spearmanr
+    from scipy.stats import spearmanr
 
     T_est = np.array([geo.se3_exp(m) for m in edges.mean])
     T_gt = np.array([geo.relative_pose(gt[i], gt[j]) for i, j in zip(edges.i, edges.j)])
     err = se3_l2_errors(T_gt, T_est)
-    d2 = np.array([float(e @ np.linalg.solve(c, e)) for e, c in
-                   zip((geo.se3_log(geo.inv_T(a) @ b) for a, b in zip(T_est, T_gt)), edges.cov)])
+    d2 = mahalanobis2(np.array([geo.se3_log(geo.inv_T(a) @ b) for a, b in zip(T_est, T_gt)]), edges.cov)
     worst = err >= np.quantile(err, 0.9)
     rho = spearmanr(edges.sigma, err).statistic if len(err) > 2 else float("nan")
+    stats = nees_stats(d2)
     out = {
         "spearman_sigma_error": float(rho),
-        "coverage_1sigma": float(np.mean(d2 <= chi2.ppf(0.6827, 6))),
-        "coverage_2sigma": float(np.mean(d2 <= chi2.ppf(0.9545, 6))),
+        "coverage_1sigma": stats["coverage_1sigma"],
+        "coverage_2sigma": stats["coverage_2sigma"],
+        "nees_mean": stats["nees_mean"],
         "outlier_auroc": auroc(edges.sigma, worst),
     }
     return out, err, d2
@@ -187,10 +194,20 @@ def _nan_to_none(d: dict) -> dict:
 
 def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split: str = "all",
             out: Optional[Path] = None, config: PredictConfig = PredictConfig(), preset: Optional[str] = None,
-            progress: Optional[bool] = None) -> PredictResult:
-    """Predict edges, trajectory and report for every sequence of ``scene``."""
+            progress: Optional[bool] = None, use_calibration: bool = True) -> PredictResult:
+    """Predict edges, trajectory and report for every sequence of ``scene``.
+
+    ``use_calibration``: apply the ``calibration.json`` beside the checkpoint when there is
+    one (an error when it was fitted for other weights or another drop ratio)."""
     checkpoint = Path(checkpoint)
     model, state = load_model(checkpoint, preset)
+    found = calibration_for(checkpoint, config) if use_calibration else None
+    if found is not None:
+        log.info("applying covariance calibration %s (fitted on %s)", found[0],
+                 ", ".join(map(str, found[1].info.get("scenes", []))))
+    elif use_calibration:
+        log.info("no %s beside %s: MC-dropout covariances are used as they are (under-estimated; "
+                 "see `learner calibrate`)", "calibration.json", checkpoint)
     uses_lstm, _, _ = check_variant(state["variant"])
     window = int(state["train_config"]["window_max"])
     mcfg = model.cfg
@@ -205,7 +222,10 @@ def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split
         out_dir = ensure_dir(base / seq.name if len(seqs) > 1 else base)
         frames_u8 = load_frames(seq, mcfg.width, mcfg.height, checkpoint.parent / "cache")
         edges = mc_edges(model, frames_u8, uses_lstm=uses_lstm, window=window, cfg=config, progress=progress)
-        flags = outlier_flags(edges, config.outlier_factor)
+        raw = edges
+        if found is not None:
+            edges = dataclasses.replace(edges, cov=found[1].apply(edges.cov, edges.head, edges.j - edges.i))
+        flags = outlier_flags(edges, config.outlier_factor)  # on the calibrated covariances
         ids, gt = seq.ids(), seq.groundtruth()
         poses = chain(edges, gt[0] if gt is not None else np.eye(4))
         write_g2o(out_dir / "edges.g2o",
@@ -218,6 +238,7 @@ def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split
             "variant": state["variant"], "samples": config.samples, "drop": config.drop,
             "max_gap": int((edges.j - edges.i).max()), "edges": len(edges.i), "outliers": int(flags.sum()),
             "median_sigma_gap1": float(np.median(edges.sigma[edges.j - edges.i == 1])),
+            "calibration_applied": found is not None, "calibration": str(found[0]) if found is not None else None,
             "git_revision": git_revision(),
         }
         err = d2 = None
@@ -226,10 +247,15 @@ def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split
             report.update(trajectory_report(Trajectory(seq.times(), gt), Trajectory(seq.times(), poses)))
             cal, err, d2 = calibration(edges, gt)
             report.update(cal)
+            if found is not None:  # the same figures under the uncalibrated MC-dropout covariances
+                raw_cal, _, _ = calibration(raw, gt)
+                report.update({f"raw_{k}": raw_cal[k] for k in
+                               ("coverage_1sigma", "coverage_2sigma", "nees_mean", "spearman_sigma_error")})
         _write_mc_csv(out_dir / "edges_mc.csv", edges, ids, flags, err, d2)
         report = _nan_to_none(report)
         write_json(out_dir / "report.json", report)
-        log.info("%s: %d edges, %d outliers -> %s", seq.name, len(edges.i), int(flags.sum()), out_dir)
+        log.info("%s: %d edges, %d outliers, %s covariances -> %s", seq.name, len(edges.i), int(flags.sum()),
+                 "calibrated" if found is not None else "uncalibrated", out_dir)
         result.out_dirs.append(out_dir)
         result.reports.append(report)
     return result

@@ -9,7 +9,13 @@ The run folder holds ``config.json`` (resolved configuration, variant, scenes, g
 revision), ``checkpoint.pt`` (written atomically after every epoch; ``resume=True``
 continues from it and reaches the same weights as an uninterrupted run, because every
 epoch re-seeds its own shuffling, dropout and label noise from ``(seed, epoch)``),
-``history.json`` (per-epoch losses) and ``cache/`` (resized frames).
+``history.json`` (per-epoch losses) and ``cache/`` (resized frames). With validation scenes
+(and ``calibrate``), the run ends with :func:`learner.calibrate.calibrate` on them, which
+writes ``calibration.json`` (covariance calibration against the validation scenes' teacher
+labels). Without validation scenes no calibration is fitted: held-out frames of the
+training sequences would be a choice fit cannot make safely (the user's test frames are
+unknown here); run ``learner calibrate`` on a separate scene instead. Training further
+(``resume``) deletes a stale ``calibration.json`` first.
 
 Runs under ``torchrun --nproc_per_node=N`` with DistributedDataParallel (gloo on CPU,
 nccl on GPU): every process draws the same batches and trains on its share of each;
@@ -38,8 +44,10 @@ from data.io import atomic_write, ensure_dir, git_revision, write_json
 from data.scenes import open_scene, scene_slug
 from learner import loss as L
 from learner import se3
+from learner.calibrate import CALIBRATION_FILE
+from learner.calibrate import calibrate as run_calibration
 from learner.config import Preset, TrainConfig, check_variant, get_preset, to_dict
-from learner.dataset import SequenceData, check_labels, load_sequences
+from learner.dataset import SequenceData, check_labels, find_teacher_edges, load_sequences
 from learner.model import CTCNet, load_pretrained_vgg
 
 log = logging.getLogger(__name__)
@@ -56,6 +64,8 @@ class FitResult:
     checkpoint: Path
     epochs_done: int
     history: list[dict] = field(default_factory=list)
+    calibration: Optional[Path] = None
+    """calibration.json, when validation scenes were given."""
 
 
 @dataclass
@@ -182,12 +192,13 @@ def _open_all(scenes: TypingSequence[str], split: str, frames: Optional[str]) ->
 def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Preset = "cpu",
         val_scenes: TypingSequence[str] = (), frames: Optional[str] = None, split: str = "all",
         out: Optional[Path] = None, resume: bool = False, pretrained: Optional[Path] = None,
-        teacher_root: Optional[Path] = None, progress: Optional[bool] = None,
+        teacher_root: Optional[Path] = None, progress: Optional[bool] = None, calibrate: bool = True,
         **train_overrides: Any) -> FitResult:
     """Train a learner on the sequences of ``scenes`` and return the run's outputs.
 
     ``train_overrides`` replace fields of the preset's :class:`TrainConfig`
-    (e.g. ``epochs=3, seed=1, steps_per_epoch=10``).
+    (e.g. ``epochs=3, seed=1, steps_per_epoch=10``). ``calibrate``: fit the covariance
+    calibration on ``val_scenes`` (their teacher labels, never ground truth) at the end.
     """
     if not scenes:
         raise ConfigError("give at least one --scene")
@@ -245,6 +256,9 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
 
     if dd.main:  # rank 0 decodes, runs the teacher if needed and fills the cache
         train_data, val_data = _load(opened), _load(val_opened)
+        if calibrate:  # the calibration's teacher labels must exist before training, not after it
+            for spec, seqs in val_opened:
+                find_teacher_edges(spec, seqs, split, frames, teacher_root)
     dd.barrier()
     if not dd.main:
         train_data, val_data = _load(opened), _load(val_opened)
@@ -283,6 +297,10 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
         })
     if progress is None:
         progress = sys.stderr.isatty()
+    stale = run_dir / CALIBRATION_FILE
+    if dd.main and start_epoch < cfg.epochs and stale.exists():
+        log.info("removing %s: it was fitted for the weights before this training", stale)
+        stale.unlink()
 
     # -------------------------------------------------------------- epochs
     for epoch in range(start_epoch, cfg.epochs):
@@ -333,7 +351,14 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
             save_checkpoint(ckpt_path, model, opt, epoch + 1, p, variant, history)
             write_json(run_dir / "history.json", history)
         dd.barrier()
-    return FitResult(run_dir, ckpt_path, cfg.epochs, history)
+    cal_path = None
+    if dd.main and calibrate and val_scenes:
+        cal_path = run_calibration(ckpt_path, val_scenes, frames=frames, split=split, teacher_root=teacher_root,
+                                   progress=progress).path
+    elif dd.main and calibrate:
+        log.info("no validation scene: no calibration.json (run `learner calibrate --checkpoint %s --scene VAL` "
+                 "on a scene that is neither trained nor tested on)", ckpt_path)
+    return FitResult(run_dir, ckpt_path, cfg.epochs, history, cal_path)
 
 
 def _fmt(d: dict) -> str:

@@ -1,0 +1,416 @@
+"""``learner calibrate``: post-hoc covariance calibration against teacher labels, no ground truth.
+
+MC-dropout spreads rank the learner's errors well but are far smaller than them (coverage 0
+in the ablation, bench/README.md). On a *validation* scene (never a training or test one)
+this module compares the MC-dropout edges with the teacher's good edges of the same pairs
+and fits, per edge group (head and gap, see :class:`~learner.config.CalibrationConfig`) and
+se(3) dimension d, the model
+
+    r_d ~ N(0, a_d c_dd + b_d + t_dd),   r = log(inv(exp(mean)) @ T_teacher)   (6,) in (v, w)
+
+where ``c`` is the MC-dropout covariance, ``t`` the teacher's edge covariance (optional) and
+``a_d, b_d >= 0``: variance scaling (Levi et al. 2019, "sigma scaling", here one factor per
+dimension) extended by a floor ``b`` for the error the dropout does not see. The fit is
+maximum Gaussian likelihood, with pairs beyond ``trim_z`` calibrated sigmas left out and
+re-estimated until stable (gross failures must not inflate every covariance). The
+calibrated covariance of an edge is
+
+    C' = D C D + diag(b),   D = diag(sqrt(a))
+
+which keeps the MC correlations, is PSD when ``C`` is and positive definite as ``b > 0``.
+The teacher's covariance only explains part of the residual during the fit; it is never
+added to the learner's edges.
+
+The result is written atomically as ``calibration.json`` beside the checkpoint
+(docs/formats.md, "Learner"); ``learner predict`` applies it when present.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import minimize
+from scipy.stats import chi2
+
+from data import geometry as geo
+from data.errors import ConfigError, DataError, FormatError
+from data.formats import read_g2o
+from data.io import git_revision, write_json
+from data.scenes import open_scene
+from learner.config import CalibrationConfig, PredictConfig, check_variant, to_dict
+
+log = logging.getLogger(__name__)
+
+CALIBRATION_FILE = "calibration.json"
+CALIBRATION_FORMAT = 1
+#: chi-square quantiles (6 dof) of the 1-sigma and 2-sigma probability masses
+CHI2_6_1SIGMA = float(chi2.ppf(0.6827, 6))
+CHI2_6_2SIGMA = float(chi2.ppf(0.9545, 6))
+#: median of chi-square with 1 dof (robust start of the scale)
+_CHI2_1_MEDIAN = float(chi2.ppf(0.5, 1))
+
+
+# ----------------------------------------------------------------------------------
+# uncertainty figures
+# ----------------------------------------------------------------------------------
+def mahalanobis2(r: NDArray[np.float64], cov: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Squared Mahalanobis distances (E,) of residuals (E, 6) under covariances (E, 6, 6)."""
+    r = np.asarray(r, dtype=np.float64)
+    if len(r) == 0:
+        return np.zeros(0)
+    return np.einsum("ei,ei->e", r, np.linalg.solve(cov, r[..., None])[..., 0])
+
+
+def nees_stats(d2: NDArray[np.float64]) -> dict[str, Optional[float]]:
+    """Mean NEES (6 when consistent), its ratio to 6 and the 1/2-sigma coverage of 6-dof
+    squared Mahalanobis distances ``d2`` (E,) (68.27 % / 95.45 % when calibrated)."""
+    if len(d2) == 0:
+        return {"nees_mean": None, "nees_over_dof": None, "coverage_1sigma": None, "coverage_2sigma": None}
+    return {"nees_mean": float(np.mean(d2)), "nees_over_dof": float(np.mean(d2) / 6.0),
+            "coverage_1sigma": float(np.mean(d2 <= CHI2_6_1SIGMA)),
+            "coverage_2sigma": float(np.mean(d2 <= CHI2_6_2SIGMA))}
+
+
+# ----------------------------------------------------------------------------------
+# the fit (pure numpy)
+# ----------------------------------------------------------------------------------
+def _ml_fit(c: NDArray, r2: NDArray, t: NDArray, a0: float, b0: float, min_var: float) -> tuple[float, float]:
+    """Maximum-likelihood ``(a, b)`` of ``r2 ~ (a c + b + t) chi2_1`` with ``a >= 0, b >= min_var``."""
+    sa = max(float(np.median(r2)) / max(float(np.median(c)), 1e-300), 1e-300)  # parameters of order 1
+    sb = max(float(np.median(r2)), min_var)
+
+    def nll(x: NDArray) -> tuple[float, NDArray]:
+        v = x[0] * sa * c + x[1] * sb + t
+        w = 1.0 / v - r2 / (v * v)  # d(log v + r2 / v) / dv
+        return 0.5 * float(np.mean(np.log(v) + r2 / v)), 0.5 * np.array([np.mean(w * c) * sa, np.mean(w) * sb])
+
+    x0 = np.array([a0 / sa, max(b0, min_var) / sb])
+    res = minimize(nll, x0, jac=True, method="L-BFGS-B", bounds=[(0.0, None), (min_var / sb, None)])
+    return float(res.x[0] * sa), float(res.x[1] * sb)
+
+
+def fit_variance_model(c: NDArray[np.float64], r2: NDArray[np.float64], t: Optional[NDArray[np.float64]] = None,
+                       config: CalibrationConfig = CalibrationConfig()) -> tuple[float, float, NDArray[np.bool_]]:
+    """Robust maximum-likelihood fit of ``r2_e ~ (a c_e + b + t_e) chi2_1`` for one dimension.
+
+    ``c`` (n,) MC-dropout variances, ``r2`` (n,) squared residuals, ``t`` (n,) known extra
+    variances (the teacher's) or ``None``. Returns ``(a, b, kept)``: ``a >= 0``,
+    ``b >= config.min_variance``, and the mask (n,) of pairs within ``trim_z`` calibrated
+    sigmas that the final fit used. Starts from the scale alone estimated from the median
+    (robust to gross outliers), then alternates fitting and trimming.
+    """
+    c = np.asarray(c, dtype=np.float64)
+    r2 = np.asarray(r2, dtype=np.float64)
+    t = np.zeros_like(c) if t is None else np.asarray(t, dtype=np.float64)
+    if len(c) < 3 or c.shape != r2.shape or c.shape != t.shape:
+        raise ValueError(f"need >= 3 matching (c, r2, t), got {c.shape}, {r2.shape}, {t.shape}")
+    if np.any(c <= 0) or np.any(t < 0) or not np.all(np.isfinite(r2)):
+        raise ValueError("variances must be positive (teacher: non-negative) and residuals finite")
+    a = float(np.median(r2 / c)) / _CHI2_1_MEDIAN
+    b = config.min_variance
+    lim = config.trim_z ** 2
+    keep = r2 <= lim * (a * c + b + t)
+    for _ in range(config.max_iterations):
+        if keep.sum() < 3:
+            keep = np.ones_like(keep)
+        a, b = _ml_fit(c[keep], r2[keep], t[keep], a, b, config.min_variance)
+        new = r2 <= lim * (a * c + b + t)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return a, b, keep
+
+
+@dataclass(frozen=True)
+class GroupFit:
+    """Calibration of one edge group: ``head`` (``lstm``/``direct``, ``None`` = every
+    head) and ``gap`` (``None`` = every gap), ``pairs`` used, per-dimension ``a`` and ``b``
+    (6,) in (v, w) order, and ``trimmed`` (6,) pairs left out per dimension."""
+
+    head: Optional[str]
+    gap: Optional[int]
+    pairs: int
+    a: tuple[float, ...]
+    b: tuple[float, ...]
+    trimmed: tuple[int, ...] = (0, 0, 0, 0, 0, 0)
+
+    def apply(self, cov: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``D C D + diag(b)`` of covariances (E, 6, 6)."""
+        s = np.sqrt(np.asarray(self.a))
+        return s[:, None] * np.asarray(cov) * s[None, :] + np.diag(self.b)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"head": self.head, "gap": self.gap, "pairs": self.pairs, "a": list(self.a), "b": list(self.b),
+                "trimmed": list(self.trimmed)}
+
+
+def fit_group(cov: NDArray[np.float64], r: NDArray[np.float64], teacher_cov: Optional[NDArray[np.float64]],
+              head: Optional[str], gap: Optional[int], config: CalibrationConfig = CalibrationConfig()) -> GroupFit:
+    """Per-dimension fit of one group: MC covariances (n, 6, 6), residuals (n, 6),
+    teacher covariances (n, 6, 6) or ``None``."""
+    c = np.diagonal(cov, axis1=1, axis2=2)
+    t = None if teacher_cov is None else np.clip(np.diagonal(teacher_cov, axis1=1, axis2=2), 0.0, None)
+    a, b, trimmed = [], [], []
+    for d in range(6):
+        ad, bd, kept = fit_variance_model(c[:, d], r[:, d] ** 2, None if t is None else t[:, d], config)
+        a.append(ad)
+        b.append(bd)
+        trimmed.append(int((~kept).sum()))
+    return GroupFit(head, gap, len(r), tuple(a), tuple(b), tuple(trimmed))
+
+
+def fit_groups(cov: NDArray[np.float64], r: NDArray[np.float64], heads: Sequence[str], gaps: NDArray[np.int64],
+               teacher_cov: Optional[NDArray[np.float64]] = None,
+               config: CalibrationConfig = CalibrationConfig()) -> list[GroupFit]:
+    """Fits of every (head, gap) group with ``config.min_pairs`` pairs, of every head
+    (all its gaps) with that many, and of all pairs (the last fallback, always present)."""
+    heads = np.asarray(heads)
+    gaps = np.asarray(gaps)
+    if len(r) < config.min_pairs:
+        raise DataError(f"only {len(r)} validation pairs with teacher labels; calibration needs at least "
+                        f"{config.min_pairs} (a longer --frames range or another validation scene)")
+
+    def one(m: NDArray[np.bool_], head: Optional[str], gap: Optional[int]) -> GroupFit:
+        return fit_group(cov[m], r[m], None if teacher_cov is None else teacher_cov[m], head, gap, config)
+
+    out = []
+    for h in sorted(set(heads.tolist())):
+        for g in sorted(set(gaps[heads == h].tolist())):
+            m = (heads == h) & (gaps == g)
+            if m.sum() >= config.min_pairs:
+                out.append(one(m, h, int(g)))
+        if (heads == h).sum() >= config.min_pairs:
+            out.append(one(heads == h, h, None))
+    out.append(one(np.ones(len(r), dtype=bool), None, None))
+    return out
+
+
+# ----------------------------------------------------------------------------------
+# calibration.json
+# ----------------------------------------------------------------------------------
+@dataclass
+class Calibration:
+    """Fitted groups plus what they were fitted for (``info``: the JSON's other keys)."""
+
+    groups: list[GroupFit]
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def lookup(self, head: str, gap: int) -> GroupFit:
+        """The group of an edge: its own (head, gap), else its head's, else every pair's."""
+        by = {(g.head, g.gap): g for g in self.groups}
+        for key in ((head, gap), (head, None), (None, None)):
+            if key in by:
+                return by[key]
+        raise FormatError("calibration has no fit for every pair (head null, gap null)")
+
+    def apply(self, cov: NDArray[np.float64], heads: Sequence[str], gaps: NDArray[np.int64]) -> NDArray[np.float64]:
+        """Calibrated covariances (E, 6, 6) of MC covariances (E, 6, 6) with their heads and gaps (E,)."""
+        heads = np.asarray(heads)
+        gaps = np.asarray(gaps)
+        out = np.array(cov, dtype=np.float64, copy=True)
+        for h, g in sorted(set(zip(heads.tolist(), gaps.tolist()))):
+            m = (heads == h) & (gaps == g)
+            fit = self.lookup(h, int(g))
+            if fit.gap != g or fit.head != h:
+                log.debug("edges %s gap %d: calibration of head %s gap %s", h, g, fit.head, fit.gap)
+            out[m] = fit.apply(cov[m])
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"format": CALIBRATION_FORMAT, **self.info, "groups": [g.to_dict() for g in self.groups]}
+
+
+def read_calibration(path: Path) -> Calibration:
+    """Read and validate a ``calibration.json``; :class:`FormatError` says what is wrong."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise FormatError(f"cannot read calibration {path}: {exc}") from None
+    if not isinstance(d, dict) or d.get("format") != CALIBRATION_FORMAT or not isinstance(d.get("groups"), list):
+        raise FormatError(f"{path} is not a learner calibration (format {CALIBRATION_FORMAT} with groups)")
+    groups = []
+    for k, g in enumerate(d["groups"]):
+        try:
+            a, b = [float(x) for x in g["a"]], [float(x) for x in g["b"]]
+            fit = GroupFit(g["head"], None if g["gap"] is None else int(g["gap"]), int(g["pairs"]), tuple(a), tuple(b),
+                           tuple(int(x) for x in g.get("trimmed", [0] * 6)))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise FormatError(f"{path}: group {k} is malformed ({exc})") from None
+        if len(a) != 6 or len(b) != 6 or not all(np.isfinite(a + b)) or min(a) < 0 or min(b) <= 0:
+            raise FormatError(f"{path}: group {k} needs 6 finite a >= 0 and 6 finite b > 0")
+        groups.append(fit)
+    if not any(g.head is None and g.gap is None for g in groups):
+        raise FormatError(f"{path}: no group for every pair (head null, gap null)")
+    info = {k: v for k, v in d.items() if k not in ("format", "groups")}
+    return Calibration(groups, info)
+
+
+def file_sha1(path: Path) -> str:
+    h = hashlib.sha1()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def calibration_for(checkpoint: Path, config: PredictConfig) -> Optional[tuple[Path, Calibration]]:
+    """The ``calibration.json`` beside ``checkpoint`` if there is one, checked against it.
+
+    A calibration fitted for other weights (the checkpoint trained on since) or another
+    MC-dropout ratio is an error (re-run ``learner calibrate`` or pass ``--no-calibration``);
+    another sample count only warns (the variance estimate is unbiased for any K)."""
+    path = Path(checkpoint).parent / CALIBRATION_FILE
+    if not path.is_file():
+        return None
+    cal = read_calibration(path)
+    fix = f"run `learner calibrate --checkpoint {checkpoint} --scene VAL` again or pass --no-calibration"
+    if cal.info.get("checkpoint_sha1") != file_sha1(Path(checkpoint)):
+        raise ConfigError(f"{path} was fitted for other weights than {checkpoint} (epoch "
+                          f"{cal.info.get('checkpoint_epoch')}); {fix}")
+    if cal.info.get("drop") != config.drop:
+        raise ConfigError(f"{path} was fitted with MC-dropout ratio {cal.info.get('drop')}, not {config.drop}; "
+                          f"pass --drop {cal.info.get('drop')} or {fix}")
+    if cal.info.get("samples") != config.samples:
+        log.warning("%s was fitted with %s MC samples, predicting with %d", path, cal.info.get("samples"),
+                    config.samples)
+    return path, cal
+
+
+# ----------------------------------------------------------------------------------
+# residuals against the teacher
+# ----------------------------------------------------------------------------------
+def teacher_matches(i: NDArray[np.int64], j: NDArray[np.int64], ids: NDArray[np.int64],
+                    g2o: Path) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+    """Edges (positions ``i < j`` (E,) into frames ``ids``) that the teacher's ``edges.g2o``
+    also has: indices (m,) into the edges, teacher ``T_i_j`` (m, 4, 4) and covariances (m, 6, 6)."""
+    teacher, _ = read_g2o(g2o)
+    pos = {int(f): k for k, f in enumerate(ids)}
+    where = {(int(a), int(b)): e for e, (a, b) in enumerate(zip(i, j))}
+    idx, T, C = [], [], []
+    for t in teacher:
+        e = where.get((pos.get(t.i, -1), pos.get(t.j, -1)))
+        if e is not None:
+            idx.append(e)
+            T.append(t.T_i_j)
+            C.append(t.cov)
+    return np.array(idx, dtype=np.int64), np.array(T).reshape(-1, 4, 4), np.array(C).reshape(-1, 6, 6)
+
+
+def residuals(mean: NDArray[np.float64], T_ref: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``log(inv(exp(mean)) @ T_ref)`` (E, 6): the reference in the tangent space at the
+    estimate, (v, w) order (the edge covariances' right perturbation)."""
+    return np.array([geo.se3_log(geo.inv_T(geo.se3_exp(m)) @ T) for m, T in zip(mean, T_ref)]).reshape(-1, 6)
+
+
+def _check_teacher_sequence(g2o: Path, name: str) -> None:
+    """Teacher folders record their sequence in report.json: refuse another sequence's labels."""
+    rep = g2o.parent / "report.json"
+    if rep.is_file():
+        try:
+            seq = json.loads(rep.read_text()).get("sequence")
+        except (OSError, ValueError, AttributeError):
+            return
+        if seq is not None and seq != name:
+            raise DataError(f"teacher labels {g2o} are of sequence {seq!r}, not {name!r} (wrong --teacher?)")
+
+
+# ----------------------------------------------------------------------------------
+# the stage
+# ----------------------------------------------------------------------------------
+@dataclass
+class CalibrationResult:
+    """Where calibration.json went, the calibration, and the JSON written."""
+
+    path: Path
+    calibration: Calibration
+    report: dict
+
+
+def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional[str] = None, split: str = "all",
+              teacher_root: Optional[Path] = None, config: PredictConfig = PredictConfig(),
+              cal_config: CalibrationConfig = CalibrationConfig(), progress: Optional[bool] = None) -> CalibrationResult:
+    """Fit the covariance calibration of ``checkpoint`` on validation ``scenes`` and write
+    ``calibration.json`` beside it.
+
+    The MC-dropout edges come from :func:`learner.predict.mc_edges` with ``config`` (the
+    same sample count, drop ratio and gaps ``learner predict`` uses); residuals are taken
+    against the teacher's good edges (``teacher_root`` as in ``learner fit``: without it,
+    missing labels are generated). Ground truth is never read.
+    """
+    from learner.dataset import find_teacher_edges, load_frames
+    from learner.predict import load_model, mc_edges
+
+    checkpoint = Path(checkpoint)
+    scenes = [scenes] if isinstance(scenes, str) else list(scenes)
+    if not scenes:
+        raise ConfigError("give at least one validation --scene to calibrate on")
+    model, state = load_model(checkpoint)
+    uses_lstm, _, _ = check_variant(state["variant"])
+    window = int(state["train_config"]["window_max"])
+    train_seqs = _training_sequences(checkpoint)
+    if progress is None:
+        progress = sys.stderr.isatty()
+    covs, res, tcovs, heads, gaps, used = [], [], [], [], [], []
+    for spec in scenes:
+        seqs = open_scene(spec, split=split, frames=frames)
+        g2os = find_teacher_edges(spec, seqs, split, frames, teacher_root)
+        for seq, g2o in zip(seqs, g2os):
+            _check_teacher_sequence(g2o, seq.name)
+            if seq.name in train_seqs:
+                log.warning("%s is a training sequence of %s: residuals on training frames under-estimate the "
+                            "error (use frames it was not trained on)", seq.name, checkpoint)
+            if len(seq) < 2:
+                raise DataError(f"sequence {seq.name} needs at least 2 frames to calibrate")
+            x = load_frames(seq, model.cfg.width, model.cfg.height, checkpoint.parent / "cache")
+            edges = mc_edges(model, x, uses_lstm=uses_lstm, window=window, cfg=config, progress=progress)
+            idx, T_t, C_t = teacher_matches(edges.i, edges.j, seq.ids(), g2o)
+            log.info("%s: %d of %d edges have teacher labels", seq.name, len(idx), len(edges.i))
+            covs.append(edges.cov[idx])
+            res.append(residuals(edges.mean[idx], T_t))
+            tcovs.append(C_t)
+            heads += [edges.head[e] for e in idx]
+            gaps.append(edges.j[idx] - edges.i[idx])
+            used.append({"scene": spec, "sequence": seq.name, "frames": len(seq), "edges": len(edges.i),
+                         "pairs": len(idx), "teacher": str(g2o)})
+    cov, r, tcov, gap = np.concatenate(covs), np.concatenate(res), np.concatenate(tcovs), np.concatenate(gaps)
+    t_model = tcov if cal_config.teacher_variance else None
+    groups = fit_groups(cov, r, heads, gap, t_model, cal_config)
+    info = {
+        "checkpoint": checkpoint.name, "checkpoint_sha1": file_sha1(checkpoint),
+        "checkpoint_epoch": int(state["epoch"]), "preset": state["preset"], "variant": state["variant"],
+        "scenes": scenes, "frames": frames, "split": split, "sequences": used,
+        "samples": config.samples, "drop": config.drop, "max_gap": config.max_gap, "cov_floor": config.cov_floor,
+        "config": to_dict(cal_config), "pairs": len(r), "order": "v_x v_y v_z w_x w_y w_z",
+        "git_revision": git_revision(),
+    }
+    cal = Calibration(groups, info)
+    extra = tcov if cal_config.teacher_variance else 0.0
+    after_cov = cal.apply(cov, heads, gap)
+    info["validation"] = {"before": nees_stats(mahalanobis2(r, cov + extra)),
+                          "after": nees_stats(mahalanobis2(r, after_cov + extra))}
+    path = checkpoint.parent / CALIBRATION_FILE
+    report = cal.to_dict()
+    write_json(path, report)
+    v = info["validation"]
+    log.info("calibration of %s on %d validation pairs: 1-sigma coverage %.3f -> %.3f, 2-sigma %.3f -> %.3f "
+             "(against teacher labels) -> %s", checkpoint, len(r), v["before"]["coverage_1sigma"],
+             v["after"]["coverage_1sigma"], v["before"]["coverage_2sigma"], v["after"]["coverage_2sigma"], path)
+    return CalibrationResult(path, cal, report)
+
+
+def _training_sequences(checkpoint: Path) -> set[str]:
+    """Training sequence names from the run's config.json (empty when absent)."""
+    cfg = Path(checkpoint).parent / "config.json"
+    try:
+        return set(json.loads(cfg.read_text()).get("train_sequences", []))
+    except (OSError, ValueError, AttributeError):
+        return set()
