@@ -1,35 +1,92 @@
-"""Ablation of the seven learner variants (cnn/lstm x gt/unsup/aug, ctc).
+"""Ablation of the seven learner variants (cnn/lstm x gt/unsup/aug, ctc): the paper's table.
 
 Each variant is trained with the same preset, schedule and seed on ``--frames`` of the
 ``--scene`` scenes (repeatable) and evaluated by ``learner predict`` on ``--test-frames`` of
-``--test-scene`` (default: the first ``--scene``); the table lists the report keys. Teacher
-labels come from ``--teacher`` (one training scene only) or from each scene's default
-teacher folder ``runs/<scene-slug>/teacher`` (made by the teacher when missing). Results go to ``--out``/ablation.json and are printed
-as a Markdown table.
+``--test-scene`` (default: the first ``--scene``). Teacher labels come from ``--teacher`` (one
+training scene only) or from each scene's default teacher folder ``runs/<scene-slug>/teacher``
+(made by the teacher when missing). ``--teacher-eval`` adds the teacher itself as a row: a
+teacher output folder whose ``trajectory.tum`` covers the test frames (its poses are matched
+to the test frames by timestamp, so a folder of a longer range works too).
+
+Columns (all against the ground truth, metrics from :mod:`data.metrics` / evo):
+``ate_rmse_m`` over the whole test range; ``ate_sub_mean_m`` +- ``ate_sub_std_m``, the
+paper's ATE: mean and standard deviation of the ATE RMSE of sub-trajectories of
+``--sub-length`` frames every ``--sub-stride`` frames, each aligned on its own (SE(3)
+Umeyama, no scale); gap-1 RPE; the paper's se(3) L2 error of the gap-1 relative poses; the
+MC-dropout covariance calibration keys of ``learner predict``. Results go to
+``--out``/ablation.json (with the load average after each variant) and are printed as
+Markdown tables.
 
     .venv/bin/python bench/ablation.py --scene ../shared/data/7scenes/redkitchen/seq-sample \\
-        --frames 0:400 --test-frames 400:600 --epochs 4 --steps-per-epoch 20 --out runs/ablation
-    .venv/bin/python bench/ablation.py --scene synthetic/office --scene synthetic/lab \
-        --test-scene synthetic/kitchen --epochs 4 --steps-per-epoch 20 --out runs/ablation-synth
+        --frames 0:450 --test-frames 450:600 --teacher /tmp/rk/teacher --teacher-eval /tmp/rk/teacher \\
+        --epochs 48 --lr-halve-every 16 --out /tmp/rk/runs
+    .venv/bin/python bench/ablation.py --scene synthetic/office --scene synthetic/lab \\
+        --test-scene synthetic/kitchen --epochs 4 --steps-per-epoch 25 --out runs/ablation-synth
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import time
 from pathlib import Path
+from typing import Optional
+
+import numpy as np
 
 sys.path = [q for q in sys.path if Path(q or ".").resolve() != Path(__file__).resolve().parent]
 
+from data.formats import Trajectory, read_tum  # noqa: E402
 from data.io import write_json  # noqa: E402
+from data.metrics import associate, ate_rmse, trajectory_report  # noqa: E402
+from data.scenes import open_scene  # noqa: E402
 from learner.config import VARIANTS, PredictConfig  # noqa: E402
 from learner.predict import predict  # noqa: E402
 from learner.train import fit  # noqa: E402
 
-KEYS = ["ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "se3_l2_mean", "spearman_sigma_error",
-        "coverage_1sigma", "coverage_2sigma", "outlier_auroc"]
+TRAJ_KEYS = ["ate_rmse_m", "ate_sub_mean_m", "ate_sub_std_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "se3_l2_mean"]
+CAL_KEYS = ["spearman_sigma_error", "coverage_1sigma", "coverage_2sigma", "outlier_auroc"]
+
+
+def sub_trajectory_ate(gt: Trajectory, est: Trajectory, length: int, stride: int) -> np.ndarray:
+    """ATE RMSE (m) of every sub-trajectory of ``length`` poses starting every ``stride``
+    poses, each aligned on its own by evo (SE(3) Umeyama). Inputs: same timestamps, (N, 4, 4)."""
+    if length < 2 or len(gt) < length:
+        return np.array([ate_rmse(gt, est)])
+    starts = range(0, len(gt) - length + 1, stride)
+    return np.array([ate_rmse(Trajectory(gt.timestamps[a:a + length], gt.poses[a:a + length]),
+                              Trajectory(est.timestamps[a:a + length], est.poses[a:a + length])) for a in starts])
+
+
+def trajectory_row(gt: Trajectory, est: Trajectory, length: int, stride: int) -> dict[str, float]:
+    """The trajectory columns of the table for one estimate."""
+    sub = sub_trajectory_ate(gt, est, length, stride)
+    rep = trajectory_report(gt, est)
+    rep.update(ate_sub_mean_m=float(sub.mean()), ate_sub_std_m=float(sub.std()), ate_sub_count=len(sub))
+    return rep
+
+
+def test_groundtruth(scene: str, frames: Optional[str]) -> Trajectory:
+    """Ground truth of the (single) test sequence."""
+    seqs = open_scene(scene, frames=frames)
+    if len(seqs) != 1 or seqs[0].groundtruth() is None:
+        raise SystemExit(f"the table needs one test sequence with ground truth, {scene} has {len(seqs)}")
+    return Trajectory(seqs[0].times(), seqs[0].groundtruth())
+
+
+def teacher_row(folder: Path, gt: Trajectory, length: int, stride: int) -> dict[str, float]:
+    """The teacher's chained gap-1 trajectory on the test frames, matched by timestamp."""
+    est = read_tum(folder / "trajectory.tum")
+    ref, est = associate(gt, est)
+    if len(ref) != len(gt):
+        raise SystemExit(f"{folder}/trajectory.tum covers {len(ref)} of the {len(gt)} test frames")
+    return trajectory_row(ref, est, length, stride)
+
+
+def fmt(x: object) -> str:
+    return "-" if x is None else (f"{x:.4g}" if isinstance(x, float) else str(x))
 
 
 def main() -> None:
@@ -39,34 +96,65 @@ def main() -> None:
     ap.add_argument("--test-scene", help="evaluation scene (default --scene)")
     ap.add_argument("--test-frames", help="evaluation frame range")
     ap.add_argument("--teacher", type=Path, help="teacher output folder of --scene (one training scene only)")
+    ap.add_argument("--teacher-eval", type=Path, help="teacher output folder covering the test frames (teacher row)")
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--preset", default="cpu")
     ap.add_argument("--epochs", type=int, default=4)
     ap.add_argument("--steps-per-epoch", type=int, default=20)
+    ap.add_argument("--lr-halve-every", type=int, help="epochs per learning-rate halving (default: the preset's)")
     ap.add_argument("--samples", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--sub-length", type=int, default=30, help="frames per sub-trajectory of the ATE mean +- std")
+    ap.add_argument("--sub-stride", type=int, default=15, help="frames between sub-trajectory starts")
     ap.add_argument("--out", type=Path, default=Path("runs/ablation"))
     args = ap.parse_args()
     if args.teacher is not None and len(args.scene) > 1:
         ap.error("--teacher needs a single --scene (several scenes read runs/<scene-slug>/teacher)")
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    rows = {}
+    if args.steps_per_epoch is not None and args.steps_per_epoch <= 0:
+        args.steps_per_epoch = None  # 0: every batch of the epoch
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    test_scene = args.test_scene or args.scene[0]
+    gt = test_groundtruth(test_scene, args.test_frames)
+    rows: dict[str, dict] = {}
+    if args.teacher_eval is not None:
+        rows["teacher"] = teacher_row(args.teacher_eval, gt, args.sub_length, args.sub_stride)
+    meta = {"args": {k: str(x) for k, x in vars(args).items()}, "started": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+            "torch_threads": None}
+    import torch
+
+    meta["torch_threads"] = torch.get_num_threads()
     for v in args.variants:
         run = args.out / v
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         res = fit(args.scene, variant=v, preset=args.preset, frames=args.frames, out=run,
                   resume=(run / "checkpoint.pt").is_file(), teacher_root=args.teacher, epochs=args.epochs,
-                  steps_per_epoch=args.steps_per_epoch, seed=args.seed)
-        t_fit = time.perf_counter() - t0
-        rep = predict(res.checkpoint, args.test_scene or args.scene[0], frames=args.test_frames, out=run / "predict",
+                  steps_per_epoch=args.steps_per_epoch, seed=args.seed, lr_halve_every=args.lr_halve_every)
+        t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
+        rep = predict(res.checkpoint, test_scene, frames=args.test_frames, out=run / "predict",
                       config=PredictConfig(samples=args.samples)).reports[0]
-        rows[v] = {"fit_s": round(t_fit, 1), "final_loss": res.history[-1]["loss"], **{k: rep.get(k) for k in KEYS}}
-        write_json(args.out / "ablation.json", {"args": {k: str(x) for k, x in vars(args).items()}, "results": rows})
-    print("| variant | " + " | ".join(KEYS) + " | fit s |")
-    print("|---" * (len(KEYS) + 2) + "|")
+        est = read_tum(run / "predict" / "trajectory.tum")
+        row = trajectory_row(gt, est, args.sub_length, args.sub_stride)
+        for k in ("ate_rmse_m", "rpe_trans_rmse_m", "se3_l2_mean"):  # same metrics as learner predict's report
+            if rep.get(k) is not None and not np.isclose(rep[k], row[k], rtol=1e-6, atol=1e-9):
+                logging.warning("%s: %s %.6g here vs %.6g in report.json", v, k, row[k], rep[k])
+        rows[v] = {**row, **{k: rep.get(k) for k in CAL_KEYS}, "fit_s": round(t_fit, 1), "fit_cpu_s": round(c_fit, 1),
+                   "epochs": res.epochs_done, "steps": sum(h["steps"] for h in res.history),
+                   "final_loss": res.history[-1]["loss"], "loadavg_1_5_15": [round(x, 2) for x in os.getloadavg()],
+                   "finished": time.strftime("%H:%M:%S", time.gmtime())}
+        write_json(args.out / "ablation.json", {**meta, "results": rows})
+    write_json(args.out / "ablation.json", {**meta, "results": rows})
+    print("| variant | ATE m (whole) | ATE m (sub-traj. mean +- std) | RPE trans m | RPE rot deg | se(3) L2 |")
+    print("|---|---|---|---|---|---|")
     for v, r in rows.items():
-        cells = [("-" if r[k] is None else f"{r[k]:.4g}") for k in KEYS]
-        print(f"| {v} | " + " | ".join(cells) + f" | {r['fit_s']} |")
+        print(f"| {v} | {fmt(r['ate_rmse_m'])} | {fmt(r['ate_sub_mean_m'])} +- {fmt(r['ate_sub_std_m'])} | "
+              f"{fmt(r['rpe_trans_rmse_m'])} | {fmt(r['rpe_rot_rmse_deg'])} | {fmt(r['se3_l2_mean'])} |")
+    print()
+    print("| variant | " + " | ".join(CAL_KEYS) + " | fit s (wall / CPU) | steps |")
+    print("|---" * (len(CAL_KEYS) + 3) + "|")
+    for v, r in rows.items():
+        if v == "teacher":
+            continue
+        print(f"| {v} | " + " | ".join(fmt(r[k]) for k in CAL_KEYS) + f" | {r['fit_s']} / {r['fit_cpu_s']} | {r['steps']} |")
 
 
 if __name__ == "__main__":
