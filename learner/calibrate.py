@@ -82,8 +82,10 @@ def nees_stats(d2: NDArray[np.float64]) -> dict[str, Optional[float]]:
 # ----------------------------------------------------------------------------------
 # the fit (pure numpy)
 # ----------------------------------------------------------------------------------
-def _ml_fit(c: NDArray, r2: NDArray, t: NDArray, a0: float, b0: float, min_var: float) -> tuple[float, float]:
-    """Maximum-likelihood ``(a, b)`` of ``r2 ~ (a c + b + t) chi2_1`` with ``a >= 0, b >= min_var``."""
+def _ml_fit(c: NDArray, r2: NDArray, t: NDArray, a0: float, b0: float, min_var: float,
+            fit_floor: bool = True) -> tuple[float, float]:
+    """Maximum-likelihood ``(a, b)`` of ``r2 ~ (a c + b + t) chi2_1`` with ``a >= 0, b >= min_var``
+    (``b = min_var`` when not ``fit_floor``)."""
     sa = max(float(np.median(r2)) / max(float(np.median(c)), 1e-300), 1e-300)  # parameters of order 1
     sb = max(float(np.median(r2)), min_var)
 
@@ -93,7 +95,10 @@ def _ml_fit(c: NDArray, r2: NDArray, t: NDArray, a0: float, b0: float, min_var: 
         return 0.5 * float(np.mean(np.log(v) + r2 / v)), 0.5 * np.array([np.mean(w * c) * sa, np.mean(w) * sb])
 
     x0 = np.array([a0 / sa, max(b0, min_var) / sb])
-    res = minimize(nll, x0, jac=True, method="L-BFGS-B", bounds=[(0.0, None), (min_var / sb, None)])
+    if not fit_floor:
+        x0[1] = min_var / sb
+    res = minimize(nll, x0, jac=True, method="L-BFGS-B",
+                   bounds=[(0.0, None), (min_var / sb, None if fit_floor else min_var / sb)])
     return float(res.x[0] * sa), float(res.x[1] * sb)
 
 
@@ -121,7 +126,7 @@ def fit_variance_model(c: NDArray[np.float64], r2: NDArray[np.float64], t: Optio
     for _ in range(config.max_iterations):
         if keep.sum() < 3:
             keep = np.ones_like(keep)
-        a, b = _ml_fit(c[keep], r2[keep], t[keep], a, b, config.min_variance)
+        a, b = _ml_fit(c[keep], r2[keep], t[keep], a, b, config.min_variance, config.fit_floor)
         new = r2 <= lim * (a * c + b + t)
         if np.array_equal(new, keep):
             break

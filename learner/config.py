@@ -136,6 +136,9 @@ class CalibrationConfig:
     this drops 6e-5 of the pairs, a negligible bias."""
     max_iterations: int = 10
     """Rounds of fitting and trimming."""
+    fit_floor: bool = True
+    """Fit the floor ``b`` (error the dropout does not see); ``False`` fits the scale
+    ``a`` alone (``b`` stays at ``min_variance``), plain variance scaling."""
     teacher_variance: bool = True
     """Model the teacher's own variance (the diagonal of its edge covariance) in the
     residual, so that ``a, b`` describe the learner's error only."""

@@ -69,6 +69,17 @@ def test_teacher_variance_is_not_taken_as_learner_error() -> None:
     assert b_without == pytest.approx(2e-5, rel=0.2)  # floor absorbs the teacher's variance
 
 
+def test_scale_only_fit() -> None:
+    rng = np.random.default_rng(4)
+    c, r, t = _draw(rng, 4000, 9.0, 0.0, 0.0)
+    a, b, _ = fit_variance_model(c, r**2, None, CalibrationConfig(fit_floor=False))
+    assert a == pytest.approx(9.0, rel=0.1) and b == pytest.approx(CalibrationConfig().min_variance)
+    c, r, t = _draw(rng, 4000, 9.0, 1e-5, 0.0)  # with a floor in the data the scale alone must grow
+    a_only, _, _ = fit_variance_model(c, r**2, None, CalibrationConfig(fit_floor=False))
+    a_both, b_both, _ = fit_variance_model(c, r**2, None)
+    assert a_only > 1.5 * 9.0 and a_both == pytest.approx(9.0, rel=0.1) and b_both == pytest.approx(1e-5, rel=0.2)
+
+
 def test_fit_bounds_and_bad_input() -> None:
     rng = np.random.default_rng(7)
     c = 10.0 ** rng.uniform(-7, -4, 500)
