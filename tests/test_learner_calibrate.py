@@ -16,8 +16,8 @@ import pytest
 from data.errors import ConfigError, DataError, FormatError
 from data.formats import read_g2o
 from learner import cli
-from learner.calibrate import (CALIBRATION_FILE, Calibration, GroupFit, calibrate, fit_groups, fit_variance_model,
-                               mahalanobis2, nees_stats, read_calibration)
+from learner.calibrate import (CALIBRATION_FILE, Calibration, GroupFit, calibrate, file_sha1, fit_groups,
+                               fit_variance_model, mahalanobis2, nees_stats, read_calibration)
 from learner.config import CalibrationConfig, PredictConfig
 from learner.predict import predict
 from learner.train import fit
@@ -225,7 +225,7 @@ def test_predict_applies_the_calibration(run, data_dirs, tmp_path) -> None:
     raw = predict(ckpt, seq, out=tmp_path / "raw", config=cfg).reports[0]
     assert raw["calibration_applied"] is False and raw["calibration"] is None and "raw_coverage_1sigma" not in raw
     # a hand-made calibration with known numbers: per-head scale and floor
-    cal = {"format": 1, "checkpoint_sha1": __import__("learner.calibrate", fromlist=["x"]).file_sha1(ckpt),
+    cal = {"format": 1, "checkpoint_sha1": file_sha1(ckpt),
            "drop": cfg.drop, "samples": cfg.samples,
            "groups": [{"head": "lstm", "gap": 1, "pairs": 30, "a": [100.0] * 3 + [50.0] * 3, "b": [1e-6] * 6},
                       {"head": None, "gap": None, "pairs": 60, "a": [400.0] * 6, "b": [4e-6] * 6}]}
@@ -309,3 +309,16 @@ def test_cli_calibrate_bad_inputs_exit_1(args, message, run, data_dirs, tmp_path
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and message in err and "\n" not in err and "Traceback" not in err
     assert not (run.parent / CALIBRATION_FILE).exists()
+
+
+def test_teacher_labels_of_another_sequence_are_refused(run, data_dirs, tmp_path) -> None:
+    """``--teacher DIR`` of a single-sequence scene is the folder itself; a teacher folder
+    records its sequence in report.json, so another sequence's labels are caught."""
+    other = tmp_path / "teacher"
+    shutil.copytree(data_dirs["teacher"], other)
+    (other / "report.json").write_text(json.dumps({"sequence": "scene-seq-01"}))
+    with pytest.raises(DataError, match="of sequence 'scene-seq-01', not 'val-seq-01'"):
+        calibrate(run, str(data_dirs["val"]), teacher_root=other, config=PredictConfig(samples=2))
+    (other / "report.json").write_text(json.dumps({"sequence": "val-seq-01"}))
+    ckpt = _copy_run(run, tmp_path / "run")
+    assert calibrate(ckpt, str(data_dirs["val"]), teacher_root=other, config=PredictConfig(samples=2)).path.is_file()
