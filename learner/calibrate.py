@@ -358,6 +358,9 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
     scenes = [scenes] if isinstance(scenes, str) else list(scenes)
     if not scenes:
         raise ConfigError("give at least one validation --scene to calibrate on")
+    if config.drop <= 0 or config.samples < 2:
+        raise ConfigError(f"calibration scales MC-dropout variances: needs --drop > 0 and --samples >= 2, "
+                          f"got {config.drop} and {config.samples}")
     model, state = load_model(checkpoint)
     uses_lstm, _, _ = check_variant(state["variant"])
     window = int(state["train_config"]["window_max"])

@@ -302,6 +302,7 @@ def test_cli_calibrate_then_predict(run, data_dirs, tmp_path, capsys) -> None:
     (["calibrate", "--checkpoint", "{ckpt}", "--scene", "{val}", "--teacher", "{teacher}", "--frames", "0:6"],
      "calibration needs at least 30"),
     (["calibrate", "--checkpoint", "{ckpt}", "--scene", "{tmp}/nowhere"], "not found"),
+    (["calibrate", "--checkpoint", "{ckpt}", "--scene", "{val}", "--drop", "0"], "needs --drop > 0"),
 ])
 def test_cli_calibrate_bad_inputs_exit_1(args, message, run, data_dirs, tmp_path, capsys) -> None:
     argv = [a.format(tmp=tmp_path, val=data_dirs["val"], teacher=data_dirs["teacher"], ckpt=run) for a in args]
