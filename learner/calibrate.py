@@ -374,8 +374,9 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
         for seq, g2o in zip(seqs, g2os):
             _check_teacher_sequence(g2o, seq.name)
             if seq.name in train_seqs:
-                log.warning("%s is a training sequence of %s: residuals on training frames under-estimate the "
-                            "error (use frames it was not trained on)", seq.name, checkpoint)
+                log.warning("%s is also a training sequence of %s (trained on frames %s, calibrating on %s): "
+                            "residuals on trained frames under-estimate the error", seq.name, checkpoint,
+                            train_seqs[seq.name] or "all", frames or "all")
             if len(seq) < 2:
                 raise DataError(f"sequence {seq.name} needs at least 2 frames to calibrate")
             x = load_frames(seq, model.cfg.width, model.cfg.height, checkpoint.parent / "cache")
@@ -415,10 +416,11 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
     return CalibrationResult(path, cal, report)
 
 
-def _training_sequences(checkpoint: Path) -> set[str]:
-    """Training sequence names from the run's config.json (empty when absent)."""
+def _training_sequences(checkpoint: Path) -> dict[str, Optional[str]]:
+    """Training sequence name -> trained frame range, from the run's config.json (empty when absent)."""
     cfg = Path(checkpoint).parent / "config.json"
     try:
-        return set(json.loads(cfg.read_text()).get("train_sequences", []))
-    except (OSError, ValueError, AttributeError):
-        return set()
+        d = json.loads(cfg.read_text())
+        return {str(n): d.get("frames") for n in d.get("train_sequences", [])}
+    except (OSError, ValueError, AttributeError, TypeError):
+        return {}
