@@ -223,6 +223,10 @@ def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split
         frames_u8 = load_frames(seq, mcfg.width, mcfg.height, checkpoint.parent / "cache")
         edges = mc_edges(model, frames_u8, uses_lstm=uses_lstm, window=window, cfg=config, progress=progress)
         raw = edges
+        if found is not None and seq.name in {str(s.get("sequence")) for s in found[1].info.get("sequences", [])}:
+            log.warning("%s is also a calibration sequence of %s (calibrated on frames %s, predicting %s): "
+                        "uncertainty figures on calibration frames are optimistic", seq.name, found[0],
+                        found[1].info.get("frames") or "all", frames or "all")
         if found is not None:
             edges = dataclasses.replace(edges, cov=found[1].apply(edges.cov, edges.head, edges.j - edges.i))
         flags = outlier_flags(edges, config.outlier_factor)  # on the calibrated covariances

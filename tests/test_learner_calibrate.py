@@ -254,7 +254,7 @@ def test_predict_applies_the_calibration(run, data_dirs, tmp_path) -> None:
         predict(ckpt, seq, out=tmp_path / "y", config=cfg)
 
 
-def test_fit_with_validation_scene_calibrates(data_dirs, tmp_path) -> None:
+def test_fit_with_validation_scene_calibrates(data_dirs, tmp_path, caplog) -> None:
     kw = dict(variant="cnn-unsup", preset="tiny", teacher_root=data_dirs["teacher"], epochs=1)
     res = fit([str(data_dirs["train"])], val_scenes=[str(data_dirs["val"])], out=tmp_path / "run", **kw)
     assert res.calibration == tmp_path / "run" / CALIBRATION_FILE and res.calibration.is_file()
@@ -264,6 +264,9 @@ def test_fit_with_validation_scene_calibrates(data_dirs, tmp_path) -> None:
     rep = predict(res.checkpoint, str(data_dirs["train"]), out=tmp_path / "pred",
                   config=PredictConfig(samples=4, max_gap=3)).reports[0]
     assert rep["calibration_applied"] is True
+    assert "also a calibration sequence" not in caplog.text
+    predict(res.checkpoint, str(data_dirs["val"]), out=tmp_path / "pred-val", config=PredictConfig(samples=4, max_gap=3))
+    assert "val-seq-01 is also a calibration sequence" in caplog.text
     # training on deletes the calibration of the old weights (and this run refits it)
     res2 = fit([str(data_dirs["train"])], out=tmp_path / "run", resume=True, **{**kw, "epochs": 2})
     assert res2.calibration is None and not (tmp_path / "run" / CALIBRATION_FILE).exists()
