@@ -238,7 +238,7 @@ def _pose_from_vals(vals: NDArray[np.float64], where: str) -> NDArray[np.float64
 # ----------------------------------------------------------------------------------
 EDGE_CSV_COLUMNS = [
     "i", "j", "t_i", "t_j", "status", "matches", "inliers", "inlier_ratio", "rmse_px",
-    "trans_m", "rot_deg",
+    "trans_m", "rot_deg", "dense_fitness", "dense_shift_m",
 ]
 
 

@@ -12,7 +12,7 @@ class TeacherConfig:
 
     gaps: int = 5
     """Edges are estimated for every frame pair (i, i+g), g = 1..gaps."""
-    n_features: int = 2000
+    n_features: int = 1000
     """ORB features per frame (cv2.ORB nfeatures)."""
     fast_threshold: int = 12
     """FAST threshold of the ORB detector; lower finds corners in weak texture."""
@@ -25,7 +25,7 @@ class TeacherConfig:
     within this radius of its position predicted by the motion prior."""
     max_hamming: int = 64
     """Reject matches whose Hamming distance exceeds this (of 256 bits)."""
-    subpixel: bool = True
+    subpixel: bool = False
     """Refine each match in frame j to sub-pixel precision with pyramidal Lucas-Kanade
     started at the matched keypoint (ORB keypoints are integer pixels of pyramid levels)."""
     lk_window: int = 11
@@ -67,6 +67,33 @@ class TeacherConfig:
     """Rounds of (select inliers with the current pose, refine)."""
     refine_iters: int = 6
     """Levenberg-Marquardt iterations per refinement round (two rounds)."""
+    dense_iters: int = 4
+    """Iterations of the dense point-to-plane depth alignment that refines each good edge
+    (see :func:`teacher.odometry.dense_refine`); 0 disables it."""
+    dense_stop_m: float = 2e-5
+    """Dense step: stop iterating once an update moves the pose by less than this (m) ..."""
+    dense_stop_deg: float = 1e-3
+    """... and rotates it by less than this (degrees)."""
+    dense_scale: int = 4
+    """Dense step: the points moved are every ``dense_scale``-th depth pixel in both axes
+    (160x120 of a 640x480 frame; an iteration costs ~0.7 ms instead of ~10 ms at full
+    resolution)."""
+    dense_target_scale: int = 2
+    """Dense step: the surface they are aligned to is sampled every ``dense_target_scale``-th
+    pixel (coarser biases the alignment of noise-free frames by ~1.5 mm)."""
+    dense_normal_kernel: int = 7
+    """Dense step: size of the Gaussian kernel that smooths the depth before normals."""
+    dense_trunc_m: float = 0.07
+    """Dense step: pixel pairs farther apart than this (m) are not used (Open3D's default)."""
+    dense_huber_m: float = 0.05
+    """Dense step: Huber threshold on the point-to-plane distance, m (Open3D's default)."""
+    dense_min_fitness: float = 0.2
+    """Dense step: fewer paired pixels than this fraction of the subsampled image rejects
+    its result (the sparse estimate stays)."""
+    dense_max_shift_m: float = 0.03
+    """Dense step: a result farther than this from the sparse estimate (m) is rejected."""
+    dense_max_shift_deg: float = 1.5
+    """Dense step: a result rotated more than this from the sparse estimate is rejected."""
     min_matches: int = 30
     """Fewer matches with valid depth than this: edge failed (``few_matches``)."""
     min_inliers: int = 25

@@ -71,7 +71,9 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> Te
     With ``cfg.workers > 1`` and enough frames, the sequence is cut into chunks of about
     ``cfg.chunk_frames`` frames that worker processes estimate independently (each chunk
     also reads the ``gaps`` frames after it, so no edge is lost at a boundary); processes,
-    not threads, because the refinement is NumPy code that holds the GIL.
+    not threads, because the refinement is NumPy code that holds the GIL. They are started
+    by a fork server, so a script that calls this with ``workers > 1`` must guard its entry
+    point with ``if __name__ == "__main__":`` (as multiprocessing requires).
     """
     n = len(seq)
     t0 = time.perf_counter()
@@ -81,9 +83,10 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> Te
     if len(bounds) == 1:
         edges = _run_chunk(seq, cfg, 0, n, bar.update)
     else:
-        # fork: children inherit the opened sequence and need no importable __main__ (spawn
-        # would re-run a user's script); they use no OpenMP/torch state of the parent
-        ctx = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
+        # forkserver, not fork: Open3D (the dense step) starts thread pools at import, and
+        # children forked from a process holding them deadlock in their first parallel call
+        ctx = multiprocessing.get_context("forkserver" if "forkserver" in multiprocessing.get_all_start_methods()
+                                          else "spawn")
         with ProcessPoolExecutor(cfg.workers, mp_context=ctx) as pool:
             futs = {pool.submit(_run_chunk, seq, cfg, a, b): (a, b) for a, b in bounds}
             for f in as_completed(futs):
@@ -122,7 +125,7 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     orb = make_orb(cfg)
 
     def _extract(k: int) -> FrameFeatures:
-        return extract(seq.rgb(k), seq.depth(k), cfg, orb)  # one thread uses this ORB
+        return extract(seq.rgb(k), seq.depth(k), cfg, orb, intr.K)  # one thread uses this ORB
 
     with ThreadPoolExecutor(1) as pool:
         ahead = 3
@@ -205,7 +208,17 @@ def _edge_rows(edges: list[EdgeEstimate], ts: dict[int, float]) -> list[dict]:
         "matches": e.matches, "inliers": e.inliers, "inlier_ratio": float(e.inlier_ratio),
         "rmse_px": float(e.rmse_px), "trans_m": float(e.info.get("trans_m", float("nan"))),
         "rot_deg": float(e.info.get("rot_deg", float("nan"))),
+        **_dense_cells(e),
     } for e in edges]
+
+
+def _dense_cells(e: EdgeEstimate) -> dict:
+    """``dense_fitness`` and ``dense_shift_m`` (0 when the dense result was rejected); no
+    cells when the dense step did not run (failed edge or step disabled)."""
+    d = e.info.get("dense")
+    if d is None:
+        return {}
+    return {"dense_fitness": float(d["fitness"]), "dense_shift_m": float(d["shift_m"]) if d["accepted"] else 0.0}
 
 
 def _label_errors(edges: list[EdgeEstimate], gt: NDArray, ids: NDArray) -> dict:
@@ -236,6 +249,7 @@ def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
         "failed_edges": int(sum(v for s, v in status.items() if s != "ok")),
         "failed_gap1_edges": len(gap1_failed),
         "failures_by_reason": {s: int(v) for s, v in status.items() if s != "ok"},
+        "dense_rejected_edges": sum(1 for e in run.edges if "dense" in e.info and not e.info["dense"]["accepted"]),
         "bridges": run.bridges,
         "fps": n / run.seconds if run.seconds > 0 else float("nan"),
         "seconds": run.seconds,
