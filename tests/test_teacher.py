@@ -96,6 +96,20 @@ def test_dense_step_rejects_a_frame_without_depth(office_clean):
     np.testing.assert_array_equal(res.T_i_j, T0)
 
 
+def test_worker_processes_give_the_same_edges(office_clean):
+    """Chunks estimated in 2 worker processes (fork server) give the edges of one process:
+    same pairs and statuses (chunks overlap by ``gaps`` frames), poses within 0.1 mm (not
+    bit-identical: a chunk's first edge has no motion prior, and RANSAC's random state
+    differs per process)."""
+    cfg = dataclasses.replace(TeacherConfig(), gaps=2)
+    one = run_sequence(office_clean, dataclasses.replace(cfg, workers=1), progress=False)
+    two = run_sequence(office_clean, dataclasses.replace(cfg, workers=2, chunk_frames=4), progress=False)
+    assert [(e.i, e.j, e.status) for e in one.edges] == [(e.i, e.j, e.status) for e in two.edges]
+    assert len(one.edges) == 11 + 10
+    for a, b in zip(one.edges, two.edges):
+        np.testing.assert_allclose(a.T_i_j, b.T_i_j, atol=1e-4)
+
+
 def test_covariance_matches_numeric_jacobian():
     """The refinement's covariance is sigma^2 (J^T J)^-1 with J w.r.t. T @ exp(delta),
     delta in (v, w): checked against finite differences of the residuals."""
