@@ -60,11 +60,11 @@ def test_known_answer_noise_free_pairs(office_clean):
 @pytest.mark.parametrize("sparse_only", [False, True])
 def test_dense_step_recovers_a_perturbed_pose(office_clean, sparse_only):
     """The dense depth alignment started 1 cm / 0.5 deg off the true pose of a noise-free
-    pair ends within 1 mm / 0.05 deg of it; with a shift bound smaller than the perturbation
-    it is rejected and the starting pose is kept unchanged."""
+    pair ends within 1 mm / 0.05 deg of it (taken whole, ``dense_blend = 1``); with a shift
+    bound smaller than the perturbation it is rejected and the starting pose is kept."""
     from teacher.odometry import dense_maps, dense_refine
 
-    seq, cfg = office_clean, TeacherConfig()
+    seq, cfg = office_clean, dataclasses.replace(TeacherConfig(), dense_blend=1.0)
     if sparse_only:
         cfg = dataclasses.replace(cfg, dense_max_shift_m=1e-3)
     gt = seq.groundtruth()
@@ -83,6 +83,25 @@ def test_dense_step_recovers_a_perturbed_pose(office_clean, sparse_only):
         assert dt < 1e-3 and dr < 0.05, (dt, dr)
 
 
+def test_dense_blend_moves_part_of_the_way(office_clean):
+    """``dense_blend = b`` puts the pose at the fraction b of the geodesic from the sparse
+    to the dense estimate: its offset from the start is b times the full step's."""
+    from teacher.odometry import dense_maps, dense_refine
+
+    seq = office_clean
+    gt = seq.groundtruth()
+    T0 = geo.relative_pose(gt[2], gt[4]) @ geo.se3_exp([0.004, 0.0, -0.003, 0.0, 0.003, 0.0])
+    out = {}
+    for b in (1.0, 0.25):
+        cfg = dataclasses.replace(TeacherConfig(), dense_blend=b)
+        res = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy())
+        dense_refine(res, dense_maps(seq.depth(2), seq.intrinsics.K, cfg), dense_maps(seq.depth(4), seq.intrinsics.K, cfg), cfg)
+        assert res.info["dense"]["accepted"]
+        out[b] = geo.se3_log(geo.inv_T(T0) @ res.T_i_j)
+    assert np.linalg.norm(out[1.0]) > 4e-3
+    np.testing.assert_allclose(out[0.25], 0.25 * out[1.0], atol=1e-9)
+
+
 def test_dense_step_rejects_a_frame_without_depth(office_clean):
     """No valid depth in frame i: nothing pairs up, the sparse estimate stays."""
     from teacher.odometry import dense_maps, dense_refine
@@ -98,16 +117,16 @@ def test_dense_step_rejects_a_frame_without_depth(office_clean):
 
 def test_worker_processes_give_the_same_edges(office_clean):
     """Chunks estimated in 2 worker processes (fork server) give the edges of one process:
-    same pairs and statuses (chunks overlap by ``gaps`` frames), poses within 0.1 mm (not
-    bit-identical: a chunk's first edge has no motion prior, and RANSAC's random state
-    differs per process)."""
+    same pairs and statuses (chunks overlap by ``gaps`` frames), poses within 1 mm, the
+    teacher's accuracy on these frames (not identical: a chunk's first edge has no motion
+    prior to guide its matching, and RANSAC's random state differs per process)."""
     cfg = dataclasses.replace(TeacherConfig(), gaps=2)
     one = run_sequence(office_clean, dataclasses.replace(cfg, workers=1), progress=False)
     two = run_sequence(office_clean, dataclasses.replace(cfg, workers=2, chunk_frames=4), progress=False)
     assert [(e.i, e.j, e.status) for e in one.edges] == [(e.i, e.j, e.status) for e in two.edges]
     assert len(one.edges) == 11 + 10
     for a, b in zip(one.edges, two.edges):
-        np.testing.assert_allclose(a.T_i_j, b.T_i_j, atol=1e-4)
+        assert relative_pose_error(a.T_i_j, b.T_i_j)[0] < 1e-3
 
 
 def test_covariance_matches_numeric_jacobian():
