@@ -67,7 +67,7 @@ class TeacherConfig:
     """Rounds of (select inliers with the current pose, refine)."""
     refine_iters: int = 6
     """Levenberg-Marquardt iterations per refinement round (two rounds)."""
-    dense_iters: int = 4
+    dense_iters: int = 3
     """Iterations of the dense point-to-plane depth alignment that refines each good edge
     (see :func:`teacher.odometry.dense_refine`); 0 disables it."""
     dense_stop_m: float = 2e-5

@@ -69,8 +69,9 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> Te
     """Estimate every edge (i, i+g), g = 1..cfg.gaps, and the chained gap-1 trajectory.
 
     With ``cfg.workers > 1`` and enough frames, the sequence is cut into chunks of about
-    ``cfg.chunk_frames`` frames that worker processes estimate independently (each chunk
-    also reads the ``gaps`` frames after it, so no edge is lost at a boundary); processes,
+    ``cfg.chunk_frames`` frames that this process and ``workers - 1`` worker processes
+    estimate independently (each chunk also reads the ``gaps`` frames after it, so no edge
+    is lost at a boundary); processes,
     not threads, because the refinement is NumPy code that holds the GIL. They are started
     by a fork server, so a script that calls this with ``workers > 1`` must guard its entry
     point with ``if __name__ == "__main__":`` (as multiprocessing requires).
@@ -84,15 +85,21 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> Te
         edges = _run_chunk(seq, cfg, 0, n, bar.update)
     else:
         # forkserver, not fork: Open3D (the dense step) starts thread pools at import, and
-        # children forked from a process holding them deadlock in their first parallel call
+        # children forked from a process holding them deadlock in their first parallel call.
+        # A fresh worker spends ~2 s importing (Open3D alone 1.5 s), so this process works
+        # too: workers - 1 children take chunks from the front, this process takes the ones
+        # they have not started from the back.
         ctx = multiprocessing.get_context("forkserver" if "forkserver" in multiprocessing.get_all_start_methods()
                                           else "spawn")
-        with ProcessPoolExecutor(cfg.workers, mp_context=ctx) as pool:
-            futs = {pool.submit(_run_chunk, seq, cfg, a, b): (a, b) for a, b in bounds}
-            for f in as_completed(futs):
-                edges += f.result()
-                a, b = futs[f]
-                bar.update(b - a)
+        with ProcessPoolExecutor(cfg.workers - 1, mp_context=ctx) as pool:
+            futs = [(pool.submit(_run_chunk, seq, cfg, a, b), (a, b)) for a, b in bounds]
+            for f, (a, b) in reversed(futs):
+                if f.cancel():
+                    edges += _run_chunk(seq, cfg, a, b, bar.update)
+            for f, (a, b) in futs:
+                if not f.cancelled():
+                    edges += f.result()
+                    bar.update(b - a)
     bar.close()
     edges.sort(key=lambda e: (e.i, e.j))
     poses, bridges = chain_trajectory(seq.ids(), edges, cfg.gaps)
