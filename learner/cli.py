@@ -32,6 +32,8 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--out", type=Path, help="run folder (default runs/<scene-slug>/learner)")
     f.add_argument("--epochs", type=int, help="total epochs (overrides the preset)")
     f.add_argument("--steps-per-epoch", type=int, help="cap on optimiser steps per epoch")
+    f.add_argument("--lr-halve-every", type=int,
+                   help="halve the learning rate every N epochs (default: the preset's, scaled with --epochs)")
     f.add_argument("--seed", type=int, help="random seed (overrides the preset)")
     f.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     f.add_argument("--pretrained", type=Path, help="local torchvision vgg11_bn state-dict file")
@@ -81,7 +83,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             res = fit(args.scene, variant=args.variant, preset=args.preset, val_scenes=args.val_scene,
                       frames=args.frames, split=args.split, out=args.out, resume=args.resume,
                       pretrained=args.pretrained, teacher_root=args.teacher, epochs=args.epochs,
-                      seed=args.seed, steps_per_epoch=args.steps_per_epoch, calibrate=args.calibrate)
+                      seed=args.seed, steps_per_epoch=args.steps_per_epoch, lr_halve_every=args.lr_halve_every,
+                      calibrate=args.calibrate)
             logging.getLogger("learner").info("checkpoint: %s", res.checkpoint)
         elif args.cmd == "calibrate":
             from learner.calibrate import calibrate

@@ -208,6 +208,8 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
     if "epochs" in overrides and "pretrain_epochs" not in overrides:  # keep the phase proportion
         overrides["pretrain_epochs"] = min(overrides["epochs"], int(round(
             overrides["epochs"] * p.train.pretrain_epochs / p.train.epochs)))
+    if "epochs" in overrides and "lr_halve_every" not in overrides:  # and the lr schedule's
+        overrides["lr_halve_every"] = max(1, int(round(overrides["epochs"] * p.train.lr_halve_every / p.train.epochs)))
     try:
         p = dataclasses.replace(p, train=dataclasses.replace(p.train, **overrides))
     except TypeError as exc:

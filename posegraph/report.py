@@ -149,7 +149,8 @@ def _cell(v, fmt: str) -> str:
 def report_markdown(report: dict) -> str:
     """``report.md``: the table, calibration, outliers and settings."""
     rows = report["rows"]
-    lines = [f"# Pose graph: {report.get('scene') or report.get('name', '')}", "",
+    title = report.get("scene") or report.get("name") or " + ".join(report.get("inputs", {}).values()) or "edges"
+    lines = [f"# Pose graph: {title}", "",
              f"{report['frames']} frames, {report['edges_total']} edges "
              f"({', '.join(f'{k}: {v}' for k, v in report['edges_per_source'].items())}), "
              f"solver {report['solver']['name']}, kernel {report['config']['kernel']}; "

@@ -192,6 +192,22 @@ def _train_one_epoch_then_stop(seq: Path, out: Path, kw: dict) -> None:
         T.save_checkpoint = orig
 
 
+def test_epochs_override_scales_the_lr_schedule(fixture_seq, tmp_path) -> None:
+    """``--epochs`` keeps the preset's schedule in proportion (the cpu preset halves the lr
+    every 4 of 12 epochs, so 3 epochs halve it every epoch); an explicit value wins."""
+    from learner.config import get_preset
+
+    seq, teacher = fixture_seq
+    cpu = get_preset("cpu").train
+    assert (cpu.epochs, cpu.lr_halve_every) == (12, 4)
+    fit([str(seq)], variant="cnn-unsup", preset="cpu", out=tmp_path / "a", teacher_root=teacher, epochs=3,
+        steps_per_epoch=1, batch_pairs=2)
+    assert json.loads((tmp_path / "a" / "config.json").read_text())["train"]["lr_halve_every"] == 1
+    fit([str(seq)], variant="cnn-unsup", preset="cpu", out=tmp_path / "b", teacher_root=teacher, epochs=3,
+        steps_per_epoch=1, batch_pairs=2, lr_halve_every=2)
+    assert json.loads((tmp_path / "b" / "config.json").read_text())["train"]["lr_halve_every"] == 2
+
+
 def test_resume_with_another_preset_or_variant_fails(fixture_seq, tmp_path) -> None:
     seq, teacher = fixture_seq
     fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher, epochs=1)
