@@ -1,7 +1,8 @@
-"""End to end on synthetic scenes: teacher -> learner fit -> learner predict -> pose graph.
+"""End to end on synthetic scenes: teacher -> learner fit (calibrated on a validation
+scene) -> learner predict -> pose graph.
 
-    python -m posegraph.pipeline [--train synthetic/office] [--test synthetic/kitchen]
-                                 [--frames 0:120] [--epochs 2] [--steps-per-epoch 20]
+    python -m posegraph.pipeline [--train synthetic/office] [--val synthetic/lab]
+                                 [--test synthetic/kitchen] [--frames 0:120] [--epochs 2]
 
 Each stage is called through its library function and writes its usual files under
 ``runs/<scene-slug>/`` (teacher/, learner/, posegraph/); work already on disk is reused by
@@ -22,22 +23,21 @@ log = logging.getLogger(__name__)
 
 
 def run(train: str, test: str, frames: Optional[str], epochs: Optional[int], steps_per_epoch: Optional[int],
-        preset: str = "cpu", variant: str = "ctc") -> Path:
-    """Run every stage; return the pose-graph output folder of ``test``."""
-    try:
-        from learner.predict import predict
-        from learner.train import fit
-        from teacher.generate import generate
-    except ImportError as exc:  # stages are developed in parallel
-        raise VOError(f"a stage is not available yet ({exc}); run the stages by hand") from None
+        preset: str = "cpu", variant: str = "ctc", val: Optional[str] = "synthetic/lab") -> Path:
+    """Run every stage; return the pose-graph output folder of ``test``. With ``val``, the
+    learner's MC-dropout covariances are calibrated on that scene's teacher labels (never
+    on the test scene, never on ground truth)."""
+    from learner.predict import predict
+    from learner.train import fit
     from posegraph.optimize import optimize
+    from teacher.generate import generate
 
-    for scene in dict.fromkeys([train, test]):
+    for scene in dict.fromkeys([s for s in (train, val, test) if s]):
         log.info("teacher generate %s", scene)
         generate(scene, None, "all", frames)
-    log.info("learner fit %s (%s, %s)", train, preset, variant)
-    res = fit([train], variant=variant, preset=preset, frames=frames, epochs=epochs,
-              steps_per_epoch=steps_per_epoch)
+    log.info("learner fit %s (%s, %s)%s", train, preset, variant, f", calibrated on {val}" if val else "")
+    res = fit([train], variant=variant, preset=preset, val_scenes=[val] if val else (), frames=frames,
+              epochs=epochs, steps_per_epoch=steps_per_epoch)
     log.info("learner predict %s", test)
     predict(res.checkpoint, test, frames=frames)
     log.info("posegraph optimize %s", test)
@@ -49,6 +49,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p = argparse.ArgumentParser(prog="python -m posegraph.pipeline", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--train", default="synthetic/office", help="training scene")
+    p.add_argument("--val", default="synthetic/lab",
+                   help="validation scene for the covariance calibration ('' for none)")
     p.add_argument("--test", default="synthetic/kitchen", help="test scene")
     p.add_argument("--frames", default=None, help="frame range START:STOP[:STEP] of every scene")
     p.add_argument("--epochs", type=int, default=None, help="learner epochs (default: the preset's)")
@@ -58,7 +60,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
-        out = run(args.train, args.test, args.frames, args.epochs, args.steps_per_epoch, args.preset, args.variant)
+        out = run(args.train, args.test, args.frames, args.epochs, args.steps_per_epoch, args.preset, args.variant,
+                  args.val or None)
     except VOError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

@@ -170,3 +170,21 @@ def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
     # as given, nearly every learner edge is an outlier; calibrated, nearly none is
     assert sum(o["source"] == "learner" for o in raw["outliers"]) >= 0.9 * (4 * N - 10)
     assert sum(o["source"] == "learner" for o in rep["outliers"]) <= 4
+
+
+def test_pipeline_end_to_end_on_tiny_scenes(tmp_path, monkeypatch, capsys):
+    """`python -m posegraph.pipeline` with tiny presets: every stage runs, the learner is
+    calibrated on the validation scene, and the printed table has the three rows."""
+    from posegraph import pipeline
+
+    monkeypatch.chdir(tmp_path)
+    rc = pipeline.main(["--train", "synthetic/tiny", "--val", "synthetic/tiny-clean", "--test", "synthetic/tiny",
+                        "--frames", "0:12", "--epochs", "1", "--steps-per-epoch", "1", "--preset", "tiny"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    for row in ("| teacher (chained)", "| learner (chained)", "| fused (graph)"):
+        assert row in out, out
+    runs = tmp_path / "runs"
+    assert (runs / "synthetic-tiny" / "learner" / "calibration.json").is_file()
+    rep = json.loads((runs / "synthetic-tiny" / "posegraph" / "report.json").read_text())
+    assert rep["frames"] == 12
