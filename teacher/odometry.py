@@ -107,7 +107,8 @@ class DenseMaps:
     K: o3d.core.Tensor
 
 
-def _subsampled(depth: NDArray[np.float32], K: NDArray, s: int, cfg: TeacherConfig) -> tuple[o3d.t.geometry.Image, o3d.core.Tensor]:
+def _subsampled(depth: NDArray[np.float32], K: NDArray, s: int,
+                cfg: TeacherConfig) -> tuple[o3d.t.geometry.Image, o3d.core.Tensor]:
     """Every ``s``-th pixel of ``depth`` (NaN outside ``[depth_min, depth_max]``) as an Open3D
     image, with its camera matrix ``K / s`` (pixel centres stay on the grid)."""
     d = np.array(depth[::s, ::s], dtype=np.float32)
@@ -392,14 +393,17 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     point-to-plane Gauss-Newton step. Why: the sparse estimate rests on colour keypoints, and
     7-Scenes-like sensors expose colour and depth at slightly different times, while depth
     is what the ground truth (KinectFusion) follows; on redkitchen the depth alignment alone
-    lowers the gap-1 error from 5.6 to about 3.8 mm. It is rejected (the sparse estimate stays) when
-    too few pixels pair up (``dense_min_fitness``) or when it moves the pose farther from
-    the sparse estimate than ``dense_max_shift_m`` / ``dense_max_shift_deg`` (a sliding or
-    diverging alignment, e.g. on one plane). ``res.info["dense"]`` records the outcome.
+    lowers the gap-1 error from 5.6 to about 3.8 mm. It is rejected (the sparse estimate
+    stays) when too few pixels pair up (``dense_min_fitness``) or when it moves the pose
+    farther from the sparse estimate than ``dense_max_shift_m`` / ``dense_max_shift_deg``
+    (a sliding or diverging alignment, e.g. on one plane). ``res.info["dense"]`` records
+    the outcome.
     The edge's pose then moves ``cfg.dense_blend`` of the way from the sparse to the dense
     estimate: the depth alignment is locally better on real data but drifts (see the
     config field). The covariance stays the sparse refinement's.
     """
+    if cfg.dense_iters <= 0:
+        return
     T = o3d.core.Tensor(res.T_i_j)
     fitness, rmse = 0.0, float("nan")
     try:
@@ -515,4 +519,5 @@ def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray
     return out
 
 
-__all__ = ["FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "dense_refine", "match", "estimate_edge", "refine_two_way", "make_orb"]
+__all__ = ["FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "dense_refine", "match",
+           "estimate_edge", "refine_two_way", "make_orb"]
