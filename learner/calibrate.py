@@ -316,18 +316,6 @@ def residuals(mean: NDArray[np.float64], T_ref: NDArray[np.float64]) -> NDArray[
     return np.array([geo.se3_log(geo.inv_T(geo.se3_exp(m)) @ T) for m, T in zip(mean, T_ref)]).reshape(-1, 6)
 
 
-def _check_teacher_sequence(g2o: Path, name: str) -> None:
-    """Teacher folders record their sequence in report.json: refuse another sequence's labels."""
-    rep = g2o.parent / "report.json"
-    if rep.is_file():
-        try:
-            seq = json.loads(rep.read_text()).get("sequence")
-        except (OSError, ValueError, AttributeError):
-            return
-        if seq is not None and seq != name:
-            raise DataError(f"teacher labels {g2o} are of sequence {seq!r}, not {name!r} (wrong --teacher?)")
-
-
 # ----------------------------------------------------------------------------------
 # the stage
 # ----------------------------------------------------------------------------------
@@ -372,7 +360,6 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
         seqs = open_scene(spec, split=split, frames=frames)
         g2os = find_teacher_edges(spec, seqs, split, frames, teacher_root)
         for seq, g2o in zip(seqs, g2os):
-            _check_teacher_sequence(g2o, seq.name)
             if seq.name in train_seqs:
                 log.warning("%s is also a training sequence of %s (trained on frames %s, calibrating on %s): "
                             "residuals on trained frames under-estimate the error", seq.name, checkpoint,

@@ -14,6 +14,7 @@ variants; ground-truth labels come from the sequence's poses (``*-gt`` variants 
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -139,6 +140,20 @@ def default_teacher_dir(spec: str, seq: Sequence, n_sequences: int, root: Option
     return base / seq.name if n_sequences > 1 else base
 
 
+def check_teacher_sequence(g2o: Path, name: str) -> None:
+    """Teacher folders record their sequence in report.json: refuse another sequence's
+    labels (``--teacher DIR`` of a single-sequence scene is the folder itself, so one
+    folder given for several scenes would otherwise label them all)."""
+    rep = g2o.parent / "report.json"
+    if rep.is_file():
+        try:
+            seq = json.loads(rep.read_text()).get("sequence")
+        except (OSError, ValueError, AttributeError):
+            return
+        if seq is not None and seq != name:
+            raise DataError(f"teacher labels {g2o} are of sequence {seq!r}, not {name!r} (wrong --teacher?)")
+
+
 def find_teacher_edges(spec: str, seqs: list[Sequence], split: str, frames: Optional[str],
                        teacher_root: Optional[Path]) -> list[Path]:
     """The teacher ``edges.g2o`` of every sequence; runs the teacher if they are missing.
@@ -148,6 +163,8 @@ def find_teacher_edges(spec: str, seqs: list[Sequence], split: str, frames: Opti
     paths = [default_teacher_dir(spec, s, len(seqs), teacher_root) / "edges.g2o" for s in seqs]
     missing = [p for p in paths if not p.is_file()]
     if not missing:
+        for seq, g2o in zip(seqs, paths):
+            check_teacher_sequence(g2o, seq.name)
         return paths
     if teacher_root is not None:
         raise DataError(f"scene {spec} has no teacher labels: {missing[0]} is missing (run `teacher generate` first)")

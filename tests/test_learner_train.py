@@ -208,6 +208,19 @@ def test_epochs_override_scales_the_lr_schedule(fixture_seq, tmp_path) -> None:
     assert json.loads((tmp_path / "b" / "config.json").read_text())["train"]["lr_halve_every"] == 2
 
 
+def test_fit_refuses_teacher_labels_of_another_sequence(fixture_seq, tmp_path) -> None:
+    """One ``--teacher`` folder given for a scene it was not made for (its report.json names
+    another sequence) is an error, not silently used as that scene's labels."""
+    import shutil
+
+    seq, teacher = fixture_seq
+    other = tmp_path / "teacher"
+    shutil.copytree(teacher, other)
+    (other / "report.json").write_text(json.dumps({"sequence": "some-other-sequence"}))
+    with pytest.raises(DataError, match="of sequence 'some-other-sequence'"):
+        fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=other, epochs=1)
+
+
 def test_resume_with_another_preset_or_variant_fails(fixture_seq, tmp_path) -> None:
     seq, teacher = fixture_seq
     fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher, epochs=1)
