@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+import torch
 
 sys.path = [q for q in sys.path if Path(q or ".").resolve() != Path(__file__).resolve().parent]
 
@@ -119,10 +120,7 @@ def main() -> None:
     if args.teacher_eval is not None:
         rows["teacher"] = teacher_row(args.teacher_eval, gt, args.sub_length, args.sub_stride)
     meta = {"args": {k: str(x) for k, x in vars(args).items()}, "started": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
-            "torch_threads": None}
-    import torch
-
-    meta["torch_threads"] = torch.get_num_threads()
+            "torch_threads": torch.get_num_threads()}
     for v in args.variants:
         run = args.out / v
         t0, c0 = time.perf_counter(), time.process_time()

@@ -36,7 +36,7 @@ from data.formats import Edge, Trajectory, write_g2o, write_tum
 from data.io import atomic_write, ensure_dir, git_revision, write_json
 from data.metrics import se3_l2_errors, trajectory_report
 from data.scenes import open_scene, scene_slug
-from learner.calibrate import calibration_for, mahalanobis2, nees_stats
+from learner.calibrate import CALIBRATION_FILE, calibration_for, mahalanobis2, nees_stats
 from learner.config import PredictConfig, check_variant, model_from_dict
 from learner.dataset import load_frames
 from learner.model import CTCNet
@@ -207,7 +207,7 @@ def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split
                  ", ".join(map(str, found[1].info.get("scenes", []))))
     elif use_calibration:
         log.info("no %s beside %s: MC-dropout covariances are used as they are (under-estimated; "
-                 "see `learner calibrate`)", "calibration.json", checkpoint)
+                 "see `learner calibrate`)", CALIBRATION_FILE, checkpoint)
     uses_lstm, _, _ = check_variant(state["variant"])
     window = int(state["train_config"]["window_max"])
     mcfg = model.cfg
