@@ -80,9 +80,10 @@ class TeacherConfig:
     Why not 1: on redkitchen the depth-only alignment is locally closer to the ground truth
     (gap-1 error 3.8 mm against 5.6 mm sparse) but biased: its rotation drifts by ~0.015
     deg per frame about the camera's vertical axis, and the chained trajectory's ATE rises
-    from 45 to 102 mm (Open3D's own depth-only odometry drifts the same way, 185 mm). A
-    quarter of the way gave gap-1 4.7 mm with ATE 42 mm; 0.5: 4.1 / 55 mm; 0.75: 3.7 / 77 mm.
-    Picked on that same redkitchen sample, so its figures there are optimistic."""
+    from 45 to 120 mm (Open3D's own depth-only odometry drifts the same way). A quarter of
+    the way gives gap-1 4.8 mm with ATE 43 mm; 0.5: 4.2 / 65 mm; 0.75: 3.8 / 91 mm
+    (bench/teacher_blend.py). Picked on that same redkitchen sample, so its figures there
+    are optimistic."""
     dense_scale: int = 4
     """Dense step: the points moved are every ``dense_scale``-th depth pixel in both axes
     (160x120 of a 640x480 frame; an iteration costs ~0.7 ms instead of ~10 ms at full
