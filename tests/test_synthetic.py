@@ -170,11 +170,14 @@ def test_open_scene_round_trip_and_cache(tmp_path: Path):
     folder = syn.scene_dir("tiny", cfg, tmp_path)
     assert folder.name.endswith(cfg.digest()) and (folder / "seq-01" / "frame-000000.color.png").is_file()
     scene, poses = syn.build(cfg)
-    np.testing.assert_allclose(seq.groundtruth(), poses, atol=1e-8)
+    plan = syn.repeat_plan(cfg.sensor, len(poses), cfg.seed)
+    new = np.flatnonzero(plan == syn.NEW)
+    np.testing.assert_allclose(seq.groundtruth()[new], poses[new], atol=1e-8)
     fr = syn.FrameRenderer(cfg, scene, poses)
-    rgb, depth, exact = fr.frame(5)
-    np.testing.assert_array_equal(seq.rgb(5), rgb)
-    np.testing.assert_allclose(seq.depth(5), np.rint(depth * 1000) / 1000, atol=1e-6)
+    k = int(new[new >= 2][0])
+    rgb, depth, exact = fr.frame(k)
+    np.testing.assert_array_equal(seq.rgb(k), rgb)
+    np.testing.assert_allclose(seq.depth(k), np.rint(depth * 1000) / 1000, atol=1e-6)
     # the camera looks at the room contents from typical 7-Scenes distances
     assert 0.7 < np.median(exact.depth[exact.depth > 0]) < 3.0
     # second open: cached, nothing re-rendered
@@ -272,3 +275,32 @@ def test_colour_camera_is_unregistered_like_kinect(z):
     found = np.array([(w * xx).sum(), (w * yy).sum()]) / w.sum()
     expected = [CX + s * (u - CX) + sx - s * FX * cfg.rgb_baseline_m / z, CY + s * (v - CY) + sy]
     np.testing.assert_allclose(found, expected, atol=0.15)
+
+
+def test_dropped_frames_repeat_the_previous_files(tmp_path: Path):
+    """The sensor model's dropped frames: a repeated frame has the previous frame's colour,
+    depth and pose; a colour repeat only its colour; a depth repeat its depth and pose. The
+    rates follow the config, and the noise-free mode has none."""
+    plan = syn.repeat_plan(PRESETS["office"].sensor, 20000, 0)
+    rates = np.bincount(plan, minlength=4) / len(plan)
+    s = PRESETS["office"].sensor
+    np.testing.assert_allclose(rates[1:], [s.frame_repeat_prob, s.rgb_repeat_prob, s.depth_repeat_prob], atol=0.005)
+    assert not syn.repeat_plan(dataclasses.replace(s, noise_free=True), 100, 0).any()
+    assert plan[0] == syn.NEW
+
+    cfg = dataclasses.replace(PRESETS["tiny"], frames=40, sensor=dataclasses.replace(
+        PRESETS["tiny"].sensor, frame_repeat_prob=0.2, rgb_repeat_prob=0.2, depth_repeat_prob=0.2))
+    plan = syn.repeat_plan(cfg.sensor, cfg.frames, cfg.seed)
+    assert {1, 2, 3} <= set(plan.tolist())
+    seq_dir = syn.render_scene(cfg, tmp_path / "scene", workers=2) / "seq-01"
+    read = lambda k, suffix: (seq_dir / f"frame-{k:06d}{suffix}").read_bytes()  # noqa: E731
+    for k in range(1, cfg.frames):
+        same = {suffix: read(k, suffix) == read(k - 1, suffix) for suffix in (".color.png", ".depth.png", ".pose.txt")}
+        if plan[k] == syn.REPEAT_FRAME:
+            assert all(same.values()), k
+        elif plan[k] == syn.REPEAT_RGB:
+            assert same[".color.png"] and not same[".depth.png"] and not same[".pose.txt"], k
+        elif plan[k] == syn.REPEAT_DEPTH:
+            assert same[".depth.png"] and same[".pose.txt"] and not same[".color.png"], k
+        else:
+            assert not any(same.values()), k

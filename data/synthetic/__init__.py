@@ -204,12 +204,50 @@ def intrinsics_text(config: SceneConfig) -> str:
     return f"{c.fx:.6f} {c.fy:.6f} {c.cx:.6f} {c.cy:.6f} {c.width} {c.height}\n"
 
 
-def _render_frames(fr: FrameRenderer, seq_dir: Path, workers: int, desc: str) -> None:
+#: :func:`repeat_plan` codes: new frame, whole frame repeated, colour only, depth (and pose) only
+NEW, REPEAT_FRAME, REPEAT_RGB, REPEAT_DEPTH = 0, 1, 2, 3
+
+
+def repeat_plan(sensor: SensorConfig, n: int, seed: int) -> NDArray[np.int8]:
+    """Dropped frames of the sensor model, (n,) codes: :data:`NEW`, :data:`REPEAT_FRAME`
+    (colour, depth and pose of the previous frame), :data:`REPEAT_RGB` (its colour image),
+    :data:`REPEAT_DEPTH` (its depth image and pose). Frame 0 is new; none repeat in the
+    noise-free mode. Deterministic for a seed."""
+    plan = np.zeros(n, np.int8)
+    if sensor.noise_free or n < 2:
+        return plan
+    p = np.array([sensor.frame_repeat_prob, sensor.rgb_repeat_prob, sensor.depth_repeat_prob])
+    if p.sum() <= 0:
+        return plan
+    if np.any(p < 0) or p.sum() >= 1:
+        raise ConfigError(f"repeat probabilities {p.tolist()} must be >= 0 and sum to < 1")
+    u = np.random.default_rng([seed, 5]).random(n - 1)
+    plan[1:] = np.searchsorted(np.cumsum(p), u, side="right") + 1
+    plan[1:][u >= p.sum()] = NEW
+    return plan
+
+
+def _apply_repeats(seq_dir: Path, plan: NDArray[np.int8]) -> None:
+    """Overwrite the repeated parts of each frame with the previous frame's files, in frame
+    order (so a chain of repeats copies the first frame of the chain)."""
+    suffixes = {REPEAT_FRAME: (".color.png", ".depth.png", ".pose.txt"), REPEAT_RGB: (".color.png",),
+                REPEAT_DEPTH: (".depth.png", ".pose.txt")}
+    for k in np.flatnonzero(plan):
+        for suffix in suffixes[int(plan[k])]:
+            shutil.copyfile(seq_dir / f"frame-{k - 1:06d}{suffix}", seq_dir / f"frame-{k:06d}{suffix}")
+
+
+def _render_frames(fr: FrameRenderer, seq_dir: Path, workers: int, desc: str,
+                   plan: Optional[NDArray[np.int8]] = None) -> None:
     """Render and write every frame, ``workers`` frames at a time in threads (the heavy
-    parts - ray casting, OpenCV, PNG encoding, large numpy operations - release the GIL)."""
+    parts - ray casting, OpenCV, PNG encoding, large numpy operations - release the GIL),
+    then the repeats of ``plan`` (whole repeated frames are not rendered)."""
     n = len(fr.poses)
+    plan = np.zeros(n, np.int8) if plan is None else plan
 
     def job(k: int) -> None:
+        if plan[k] == REPEAT_FRAME:
+            return
         rgb, depth, _ = fr.frame(k)
         _write_frame(seq_dir, k, rgb, depth, fr.poses[k])
 
@@ -224,6 +262,7 @@ def _render_frames(fr: FrameRenderer, seq_dir: Path, workers: int, desc: str) ->
         for f in pending:
             f.result()
             bar.update()
+    _apply_repeats(seq_dir, plan)
 
 
 def render_scene(config: SceneConfig, out_dir: Path, workers: Optional[int] = None) -> Path:
@@ -246,12 +285,15 @@ def render_scene(config: SceneConfig, out_dir: Path, workers: Optional[int] = No
         write_text(tmp / "camera-intrinsics.txt", intrinsics_text(config))
         log.info("rendering synthetic scene %s (%d frames, %d triangles) into %s",
                  out_dir.name, config.frames, len(scene.triangles), out_dir)
-        _render_frames(fr, seq_dir, workers, desc=f"render {out_dir.name}")
+        plan = repeat_plan(config.sensor, len(poses), config.seed)
+        _render_frames(fr, seq_dir, workers, desc=f"render {out_dir.name}", plan=plan)
         seconds = time.perf_counter() - t0
         write_json(tmp / "config.json", {
             "render_version": RENDER_VERSION, "config": config.to_dict(), "git_revision": git_revision(),
             "triangles": int(len(scene.triangles)), "materials": [m.name for m in scene.materials],
             "motion": motion_stats(poses, config.fps), "render_seconds": round(seconds, 2),
+            "repeated_frames": {name: int(np.sum(plan == code)) for name, code in
+                                (("frame", REPEAT_FRAME), ("rgb", REPEAT_RGB), ("depth", REPEAT_DEPTH))},
         })
         try:
             os.rename(tmp, out_dir)
