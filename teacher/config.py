@@ -84,6 +84,13 @@ class TeacherConfig:
     the way gives gap-1 4.8 mm with ATE 43 mm; 0.5: 4.2 / 65 mm; 0.75: 3.8 / 91 mm
     (bench/teacher_blend.py). Picked on that same redkitchen sample, so its figures there
     are optimistic."""
+    dense_on_stale: bool = True
+    """Dense step: take the dense estimate whole (``dense_blend`` 1) for an edge with a frame
+    whose colour and depth were taken at different times - exactly one of its two images
+    repeats the previous frame's (a dropped frame of one stream; see
+    :func:`teacher.odometry.stale_stream`). The colour keypoints then show another moment
+    than the depth, and the ground truth (7-Scenes' KinectFusion; the synthetic depth
+    camera) follows the depth. The redkitchen sample has 33 such frames in 600."""
     dense_scale: int = 4
     """Dense step: the points moved are every ``dense_scale``-th depth pixel in both axes
     (160x120 of a 640x480 frame; an iteration costs ~0.7 ms instead of ~10 ms at full

@@ -40,7 +40,7 @@ from data.metrics import relative_pose_error, trajectory_report
 from data.scenes import open_scene, scene_slug
 from data.sequence import Sequence
 from teacher.config import TeacherConfig
-from teacher.odometry import EdgeEstimate, FrameFeatures, estimate_edge, extract, make_orb
+from teacher.odometry import EdgeEstimate, FrameFeatures, estimate_edge, extract, image_keys, make_orb, stale_stream
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +134,8 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     def _extract(k: int) -> FrameFeatures:
         return extract(seq.rgb(k), seq.depth(k), cfg, orb, intr.K)  # one thread uses this ORB
 
+    # fingerprints of the frame before the chunk, to tell whether frame k0 repeats it
+    prev_keys = image_keys(seq.rgb(k0 - 1), seq.depth(k0 - 1)) if k0 > 0 else None
     with ThreadPoolExecutor(1) as pool:
         ahead = 3
         feat_futs: dict[int, Future] = {k: pool.submit(_extract, k) for k in range(k0, min(k_end, k0 + ahead))}
@@ -143,6 +145,9 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
             fk = feat_futs.pop(k).result()
             if k + ahead < k_end:
                 feat_futs[k + ahead] = pool.submit(_extract, k + ahead)
+            if prev_keys is not None:
+                fk.stale = stale_stream(prev_keys, fk.keys)
+            prev_keys = fk.keys
             if k > k0:
                 prev = window[-1]
                 dt = float(times[k] - times[k - 1])

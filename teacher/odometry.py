@@ -8,6 +8,7 @@ the covariance is in the project tangent order (v, w), right perturbation at ``T
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -31,7 +32,9 @@ class FrameFeatures:
     keypoint (0 where invalid or on a depth edge, see :func:`depth_at`), ``gray`` (H, W)
     uint8 for sub-pixel tracking, ``depth`` (H, W) float32 metres. ``dense`` holds the Open3D
     vertex and normal maps of the depth subsampled by ``cfg.dense_scale`` (None when the
-    dense step is off).
+    dense step is off). ``keys`` fingerprints the colour and the depth image (to find
+    repeated images); ``stale`` is set by the caller when exactly one of the two streams
+    repeats the previous frame's image (see :func:`stale_stream`).
     """
 
     uv: NDArray[np.float32]
@@ -40,6 +43,8 @@ class FrameFeatures:
     gray: NDArray[np.uint8]
     depth: NDArray[np.float32]
     dense: Optional["DenseMaps"] = None
+    keys: tuple[bytes, bytes] = (b"", b"")
+    stale: bool = False
     _tree: Optional[cKDTree] = None
 
     @property
@@ -138,6 +143,21 @@ def dense_maps(depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig) -> De
     return DenseMaps(points, vertex, normal, Kt)
 
 
+def image_keys(rgb: NDArray[np.uint8], depth: NDArray[np.float32]) -> tuple[bytes, bytes]:
+    """Fingerprints (colour, depth) of a frame: BLAKE2b of every 4th pixel in both axes. Two
+    frames share a key only when that image was written twice (a dropped frame): sensor
+    noise makes two real exposures differ in thousands of the sampled pixels."""
+    return (hashlib.blake2b(np.ascontiguousarray(rgb[::4, ::4]).tobytes(), digest_size=8).digest(),
+            hashlib.blake2b(np.ascontiguousarray(depth[::4, ::4]).tobytes(), digest_size=8).digest())
+
+
+def stale_stream(prev: tuple[bytes, bytes], cur: tuple[bytes, bytes]) -> bool:
+    """True when exactly one of the colour and depth images of a frame repeats the previous
+    frame's (keys from :func:`image_keys`): the two images were then taken at different
+    times. (Both repeated is a whole dropped frame: consistent.)"""
+    return (prev[0] == cur[0]) != (prev[1] == cur[1])
+
+
 def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConfig,
             orb: Optional[cv2.ORB] = None, K: Optional[NDArray] = None) -> FrameFeatures:
     """ORB keypoints and descriptors of one frame, with the depth at each keypoint; with the
@@ -146,11 +166,12 @@ def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConf
     dense = dense_maps(depth, K, cfg) if K is not None and cfg.dense_iters > 0 else None
     orb = orb or make_orb(cfg)
     kps, desc = orb.detectAndCompute(gray, None)
+    keys = image_keys(rgb, depth)
     if not kps or desc is None:
         return FrameFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8),
-                             np.zeros(0, np.float32), gray, depth, dense)
+                             np.zeros(0, np.float32), gray, depth, dense, keys)
     uv = np.array([k.pt for k in kps], dtype=np.float32)
-    return FrameFeatures(uv, desc, depth_at(depth, uv, cfg), gray, depth, dense)
+    return FrameFeatures(uv, desc, depth_at(depth, uv, cfg), gray, depth, dense, keys)
 
 
 def match(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
@@ -378,11 +399,15 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
         if res.ok:
             break
     if best.ok and fi.dense is not None and fj.dense is not None:
-        dense_refine(best, fi.dense, fj.dense, cfg)
+        stale = cfg.dense_on_stale and (fi.stale or fj.stale)
+        dense_refine(best, fi.dense, fj.dense, cfg, blend=1.0 if stale else None)
+        if "dense" in best.info:
+            best.info["dense"]["stale_stream"] = bool(fi.stale or fj.stale)
     return best
 
 
-def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig) -> None:
+def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
+                 blend: Optional[float] = None) -> None:
     """Align the depth of frame j to that of frame i, point to plane, started at the sparse
     estimate ``res.T_i_j``, and keep the result if it is plausible (in place).
 
@@ -399,7 +424,9 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     the outcome.
     The edge's pose then moves ``cfg.dense_blend`` of the way from the sparse to the dense
     estimate: the depth alignment is locally better on real data but drifts (see the
-    config field). The covariance stays the sparse refinement's.
+    config field); ``blend`` overrides it (1 for a frame whose colour and depth were taken
+    at different times, see ``cfg.dense_on_stale``). The covariance stays the sparse
+    refinement's.
     """
     if cfg.dense_iters <= 0:
         return
@@ -426,7 +453,7 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     res.info["dense"] = {"accepted": bool(ok), "iterations": it + 1, "fitness": fitness, "rmse_m": rmse,
                          "shift_m": shift_m, "shift_deg": shift_deg}
     if ok:
-        res.T_i_j = res.T_i_j @ geo.se3_exp(cfg.dense_blend * geo.se3_log(d))
+        res.T_i_j = res.T_i_j @ geo.se3_exp((cfg.dense_blend if blend is None else blend) * geo.se3_log(d))
 
 
 def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
@@ -519,4 +546,5 @@ def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray
 
 
 __all__ = ["FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "dense_refine", "match",
+           "image_keys", "stale_stream",
            "estimate_edge", "refine_two_way", "make_orb"]
