@@ -262,6 +262,7 @@ def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
         "failed_gap1_edges": len(gap1_failed),
         "failures_by_reason": {s: int(v) for s, v in status.items() if s != "ok"},
         "dense_rejected_edges": sum(1 for e in run.edges if "dense" in e.info and not e.info["dense"]["accepted"]),
+        "stale_stream_edges": sum(1 for e in run.edges if e.info.get("dense", {}).get("stale_stream")),
         "bridges": run.bridges,
         "fps": n / run.seconds if run.seconds > 0 else float("nan"),
         "seconds": run.seconds,
