@@ -81,9 +81,9 @@ class TeacherConfig:
     (gap-1 error 3.8 mm against 5.6 mm sparse) but biased: its rotation drifts by ~0.015
     deg per frame about the camera's vertical axis, and the chained trajectory's ATE rises
     from 45 to 120 mm (Open3D's own depth-only odometry drifts the same way). A quarter of
-    the way gives gap-1 4.8 mm with ATE 43 mm; 0.5: 4.2 / 65 mm; 0.75: 3.8 / 91 mm
-    (bench/teacher_blend.py). Picked on that same redkitchen sample, so its figures there
-    are optimistic."""
+    the way gives gap-1 4.2 mm with ATE 43 mm; 0.5: 3.9 / 66 mm; 0.75: 3.7 / 92 mm
+    (bench/teacher_blend.py, with ``dense_on_stale``). Picked on that same redkitchen
+    sample, so its figures there are optimistic."""
     dense_on_stale: bool = True
     """Dense step: take the dense estimate whole (``dense_blend`` 1) for an edge with a frame
     whose colour and depth were taken at different times - exactly one of its two images
