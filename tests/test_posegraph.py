@@ -220,9 +220,10 @@ def test_overconfident_source_is_rescaled_before_outlier_rejection():
         return sum(o.source == source for o in res.outliers)
 
     ids = np.arange(n)
-    alone = solve(ids, teacher, None, DEFAULT)
-    naive = solve(ids, teacher + learner, None, dataclasses.replace(DEFAULT, calibrate=False))
-    fused = solve(ids, teacher + learner, None, DEFAULT)
+    cfg = dataclasses.replace(DEFAULT, residual_threshold=5.0)  # a strict cut shows the failure best
+    alone = solve(ids, teacher, None, cfg)
+    naive = solve(ids, teacher + learner, None, dataclasses.replace(cfg, calibrate=False))
+    fused = solve(ids, teacher + learner, None, cfg)
     assert rejected(naive, "teacher") > 0.1 * len(teacher)  # the failure being fixed
     assert naive.source_scales == {"teacher": 1.0, "learner": 1.0} and naive.calibration is None
     assert rejected(fused, "teacher") <= 0.02 * len(teacher)
