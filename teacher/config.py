@@ -90,7 +90,9 @@ class TeacherConfig:
     repeats the previous frame's (a dropped frame of one stream; see
     :func:`teacher.odometry.stale_stream`). The colour keypoints then show another moment
     than the depth, and the ground truth (7-Scenes' KinectFusion; the synthetic depth
-    camera) follows the depth. The redkitchen sample has 33 such frames in 600."""
+    camera) follows the depth. The redkitchen sample has 33 such frames in 600. TUM RGB-D
+    sequences are read with a one-to-one colour-depth association, so no file repeats
+    there; a dataset whose ground truth follows the colour camera should turn this off."""
     dense_scale: int = 4
     """Dense step: the points moved are every ``dense_scale``-th depth pixel in both axes
     (160x120 of a 640x480 frame; an iteration costs ~0.7 ms instead of ~10 ms at full
