@@ -175,6 +175,19 @@ class Sequence(abc.ABC):
         return f"{type(self).__name__}({self.name!r}, {len(self)} frames, gt={self.has_groundtruth})"
 
 
+def frame_ranges_overlap(a: Optional[str], b: Optional[str]) -> bool:
+    """Whether two frame ranges (``START:STOP[:STEP]`` specs of one sequence; ``None`` = all
+    frames) can share a frame position. Steps are ignored (a shared interval counts), and
+    negative bounds (counted from the end) are assumed to overlap."""
+    a0, a1, _ = parse_frame_range(a)
+    b0, b1, _ = parse_frame_range(b)
+    if any(v is not None and v < 0 for v in (a0, a1, b0, b1)):
+        return True
+    lo = max(a0 or 0, b0 or 0)
+    hi = min(float("inf") if a1 is None else a1, float("inf") if b1 is None else b1)
+    return lo < hi
+
+
 def parse_frame_range(spec: Optional[str]) -> tuple[Optional[int], Optional[int], Optional[int]]:
     """Parse ``A:B`` / ``A:B:S`` / ``A:`` (Python slice syntax over frame positions)."""
     from data.errors import ConfigError

@@ -45,6 +45,7 @@ from data.errors import ConfigError, DataError, FormatError
 from data.formats import read_g2o
 from data.io import git_revision, write_json
 from data.scenes import open_scene
+from data.sequence import frame_ranges_overlap
 from learner.config import CalibrationConfig, PredictConfig, check_variant, to_dict
 
 log = logging.getLogger(__name__)
@@ -360,7 +361,7 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
         seqs = open_scene(spec, split=split, frames=frames)
         g2os = find_teacher_edges(spec, seqs, split, frames, teacher_root)
         for seq, g2o in zip(seqs, g2os):
-            if seq.name in train_seqs:
+            if seq.name in train_seqs and frame_ranges_overlap(train_seqs[seq.name], frames):
                 log.warning("%s is also a training sequence of %s (trained on frames %s, calibrating on %s): "
                             "residuals on trained frames under-estimate the error", seq.name, checkpoint,
                             train_seqs[seq.name] or "all", frames or "all")

@@ -36,6 +36,7 @@ from data.formats import Edge, Trajectory, write_g2o, write_tum
 from data.io import atomic_write, ensure_dir, git_revision, write_json
 from data.metrics import se3_l2_errors, trajectory_report
 from data.scenes import open_scene, scene_slug
+from data.sequence import frame_ranges_overlap
 from learner.calibrate import CALIBRATION_FILE, calibration_for, mahalanobis2, nees_stats
 from learner.config import PredictConfig, check_variant, model_from_dict
 from learner.dataset import load_frames
@@ -223,7 +224,8 @@ def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split
         frames_u8 = load_frames(seq, mcfg.width, mcfg.height, checkpoint.parent / "cache")
         edges = mc_edges(model, frames_u8, uses_lstm=uses_lstm, window=window, cfg=config, progress=progress)
         raw = edges
-        if found is not None and seq.name in {str(s.get("sequence")) for s in found[1].info.get("sequences", [])}:
+        if (found is not None and seq.name in {str(s.get("sequence")) for s in found[1].info.get("sequences", [])}
+                and frame_ranges_overlap(found[1].info.get("frames"), frames)):
             log.warning("%s is also a calibration sequence of %s (calibrated on frames %s, predicting %s): "
                         "uncertainty figures on calibration frames are optimistic", seq.name, found[0],
                         found[1].info.get("frames") or "all", frames or "all")

@@ -520,3 +520,14 @@ def test_tum_missing_or_empty_lists(tmp_path: Path) -> None:
     (folder2 / "groundtruth.txt").write_text("# nothing\n")
     with pytest.raises(DataError, match="contains no poses"):
         read_groundtruth(folder2 / "groundtruth.txt")
+
+
+def test_frame_ranges_overlap():
+    from data.sequence import frame_ranges_overlap
+
+    assert frame_ranges_overlap(None, "450:600") and frame_ranges_overlap("0:450", None)
+    assert frame_ranges_overlap("375:450", "400:")
+    assert not frame_ranges_overlap("375:450", "450:600")  # stop is exclusive
+    assert not frame_ranges_overlap("0:375", "450:600") and not frame_ranges_overlap(":100", "100:")
+    assert frame_ranges_overlap("0:10:2", "5:6")  # steps ignored: the intervals share frames
+    assert frame_ranges_overlap("-50:", "0:10")  # from the end: assumed to overlap
