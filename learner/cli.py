@@ -26,6 +26,8 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--scene", action="append", required=True, help="scene spec (repeatable)")
     f.add_argument("--val-scene", action="append", default=[], help="validation scene spec (repeatable)")
     f.add_argument("--frames", help="frame range START:STOP[:STEP] of every sequence")
+    f.add_argument("--val-frames", help="frame range of the validation sequences (default: --frames); "
+                   "a training sequence may validate on a disjoint range")
     f.add_argument("--split", default="all", help="7-Scenes split for scene folders (train/test/all)")
     f.add_argument("--variant", default="ctc", choices=list(VARIANTS))
     f.add_argument("--preset", default="cpu", choices=list(PRESETS))
@@ -81,7 +83,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             from learner.train import fit
 
             res = fit(args.scene, variant=args.variant, preset=args.preset, val_scenes=args.val_scene,
-                      frames=args.frames, split=args.split, out=args.out, resume=args.resume,
+                      frames=args.frames, val_frames=args.val_frames, split=args.split, out=args.out,
+                      resume=args.resume,
                       pretrained=args.pretrained, teacher_root=args.teacher, epochs=args.epochs,
                       seed=args.seed, steps_per_epoch=args.steps_per_epoch, lr_halve_every=args.lr_halve_every,
                       calibrate=args.calibrate)

@@ -14,7 +14,8 @@ epoch re-seeds its own shuffling, dropout and label noise from ``(seed, epoch)``
 writes ``calibration.json`` (covariance calibration against the validation scenes' teacher
 labels). Without validation scenes no calibration is fitted: held-out frames of the
 training sequences would be a choice fit cannot make safely (the user's test frames are
-unknown here); run ``learner calibrate`` on a separate scene instead. Training further
+unknown here); name them (``--val-scene`` the same sequence with a disjoint
+``--val-frames``) or run ``learner calibrate`` on a separate scene instead. Training further
 (``resume``) deletes a stale ``calibration.json`` first.
 
 Runs under ``torchrun --nproc_per_node=N`` with DistributedDataParallel (gloo on CPU,
@@ -42,6 +43,7 @@ from tqdm import tqdm
 from data.errors import ConfigError, DataError, VOError
 from data.io import atomic_write, ensure_dir, git_revision, write_json
 from data.scenes import open_scene, scene_slug
+from data.sequence import frame_ranges_overlap
 from learner import loss as L
 from learner import se3
 from learner.calibrate import CALIBRATION_FILE
@@ -191,7 +193,7 @@ def _open_all(scenes: TypingSequence[str], split: str, frames: Optional[str]) ->
 
 def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Preset = "cpu",
         val_scenes: TypingSequence[str] = (), frames: Optional[str] = None, split: str = "all",
-        out: Optional[Path] = None, resume: bool = False, pretrained: Optional[Path] = None,
+        val_frames: Optional[str] = None, out: Optional[Path] = None, resume: bool = False, pretrained: Optional[Path] = None,
         teacher_root: Optional[Path] = None, progress: Optional[bool] = None, calibrate: bool = True,
         **train_overrides: Any) -> FitResult:
     """Train a learner on the sequences of ``scenes`` and return the run's outputs.
@@ -199,6 +201,9 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
     ``train_overrides`` replace fields of the preset's :class:`TrainConfig`
     (e.g. ``epochs=3, seed=1, steps_per_epoch=10``). ``calibrate``: fit the covariance
     calibration on ``val_scenes`` (their teacher labels, never ground truth) at the end.
+    ``val_frames`` is the frame range of the validation sequences (default: ``frames``); a
+    validation sequence may be a training sequence only with a disjoint range (e.g. train
+    on 0:375, validate on 375:450, test on 450:).
     """
     if not scenes:
         raise ConfigError("give at least one --scene")
@@ -240,30 +245,32 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
     # -------------------------------------------------------------- data
     if dd.main:
         ensure_dir(run_dir)
+    vframes = frames if val_frames is None else val_frames
     opened = _open_all(scenes, split, frames)
-    val_opened = _open_all(val_scenes, split, frames)
+    val_opened = _open_all(val_scenes, split, vframes)
     train_names = {s.name for _, seqs in opened for s in seqs}
     clash = train_names & {s.name for _, seqs in val_opened for s in seqs}
-    if clash:
-        raise ConfigError(f"validation sequence(s) {', '.join(sorted(clash))} are also training sequences")
+    if clash and frame_ranges_overlap(frames, vframes):
+        raise ConfigError(f"validation sequence(s) {', '.join(sorted(clash))} are also training sequences "
+                          f"(frames {frames or 'all'} and {vframes or 'all'}): give disjoint --frames / --val-frames")
     cache = run_dir / "cache"
 
-    def _load(items: list[tuple[str, list]]) -> list[SequenceData]:
+    def _load(items: list[tuple[str, list]], rng: Optional[str]) -> list[SequenceData]:
         out_: list[SequenceData] = []
         for spec, seqs in items:
             out_ += load_sequences(spec, seqs, width=mcfg.width, height=mcfg.height, max_gap=cfg.max_gap,
                                    label_source=label_source if label_source != "aug" else "aug",
-                                   cache_dir=cache, split=split, frames=frames, teacher_root=teacher_root)
+                                   cache_dir=cache, split=split, frames=rng, teacher_root=teacher_root)
         return out_
 
     if dd.main:  # rank 0 decodes, runs the teacher if needed and fills the cache
-        train_data, val_data = _load(opened), _load(val_opened)
+        train_data, val_data = _load(opened, frames), _load(val_opened, vframes)
         if calibrate:  # the calibration's teacher labels must exist before training, not after it
             for spec, seqs in val_opened:
-                find_teacher_edges(spec, seqs, split, frames, teacher_root)
+                find_teacher_edges(spec, seqs, split, vframes, teacher_root)
     dd.barrier()
     if not dd.main:
-        train_data, val_data = _load(opened), _load(val_opened)
+        train_data, val_data = _load(opened, frames), _load(val_opened, vframes)
     check_labels(train_data)
 
     # -------------------------------------------------------------- model
@@ -292,7 +299,8 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
     if dd.main:
         write_json(run_dir / "config.json", {
             "preset": p.name, "variant": variant, "model": to_dict(mcfg), "train": to_dict(cfg),
-            "scenes": list(scenes), "val_scenes": list(val_scenes), "frames": frames, "split": split,
+            "scenes": list(scenes), "val_scenes": list(val_scenes), "frames": frames, "val_frames": vframes,
+            "split": split,
             "train_sequences": sorted(train_names), "val_sequences": [d.name for d in val_data],
             "pretrained": str(pretrained) if pretrained else None, "world_size": dd.world,
             "git_revision": git_revision(),
@@ -355,7 +363,7 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
         dd.barrier()
     cal_path = None
     if dd.main and calibrate and val_scenes:
-        cal_path = run_calibration(ckpt_path, val_scenes, frames=frames, split=split, teacher_root=teacher_root,
+        cal_path = run_calibration(ckpt_path, val_scenes, frames=vframes, split=split, teacher_root=teacher_root,
                                    progress=progress).path
     elif dd.main and calibrate:
         log.info("no validation scene: no calibration.json (run `learner calibrate --checkpoint %s --scene VAL` "

@@ -265,6 +265,21 @@ def test_val_scene_must_differ_from_training(fixture_seq, tmp_path) -> None:
     seq, teacher = fixture_seq
     with pytest.raises(ConfigError, match="also training sequences"):
         fit([str(seq)], val_scenes=[str(seq)], variant="ctc", preset="tiny", out=tmp_path / "r", teacher_root=teacher)
+    with pytest.raises(ConfigError, match="also training sequences"):  # overlapping ranges
+        fit([str(seq)], val_scenes=[str(seq)], frames="0:12", val_frames="8:20", variant="ctc", preset="tiny",
+            out=tmp_path / "r2", teacher_root=teacher)
+
+
+def test_val_frames_of_a_training_sequence(fixture_seq, tmp_path) -> None:
+    """Train on frames 0:6 of a sequence and validate (calibrate) on its frames 6:20."""
+    seq, teacher = fixture_seq
+    res = fit([str(seq)], val_scenes=[str(seq)], frames="0:6", val_frames="6:20", variant="cnn-unsup",
+              preset="tiny", out=tmp_path / "r", teacher_root=teacher, epochs=1)
+    cfg = json.loads((res.run_dir / "config.json").read_text())
+    assert cfg["frames"] == "0:6" and cfg["val_frames"] == "6:20"
+    assert res.calibration is not None and res.calibration.is_file()
+    cal = json.loads(res.calibration.read_text())
+    assert cal["frames"] == "6:20" and [s["frames"] for s in cal["sequences"]] == [14]
 
 
 # ----------------------------------------------------------------------------------
