@@ -193,8 +193,9 @@ def _open_all(scenes: TypingSequence[str], split: str, frames: Optional[str]) ->
 
 def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Preset = "cpu",
         val_scenes: TypingSequence[str] = (), frames: Optional[str] = None, split: str = "all",
-        val_frames: Optional[str] = None, out: Optional[Path] = None, resume: bool = False, pretrained: Optional[Path] = None,
-        teacher_root: Optional[Path] = None, progress: Optional[bool] = None, calibrate: bool = True,
+        val_frames: Optional[str] = None, out: Optional[Path] = None, resume: bool = False,
+        pretrained: Optional[Path] = None, teacher_root: Optional[Path] = None,
+        progress: Optional[bool] = None, calibrate: bool = True,
         **train_overrides: Any) -> FitResult:
     """Train a learner on the sequences of ``scenes`` and return the run's outputs.
 
