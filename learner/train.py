@@ -256,12 +256,12 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
                           f"(frames {frames or 'all'} and {vframes or 'all'}): give disjoint --frames / --val-frames")
     cache = run_dir / "cache"
 
-    def _load(items: list[tuple[str, list]], rng: Optional[str]) -> list[SequenceData]:
+    def _load(items: list[tuple[str, list]], frame_range: Optional[str]) -> list[SequenceData]:
         out_: list[SequenceData] = []
         for spec, seqs in items:
             out_ += load_sequences(spec, seqs, width=mcfg.width, height=mcfg.height, max_gap=cfg.max_gap,
                                    label_source=label_source if label_source != "aug" else "aug",
-                                   cache_dir=cache, split=split, frames=rng, teacher_root=teacher_root)
+                                   cache_dir=cache, split=split, frames=frame_range, teacher_root=teacher_root)
         return out_
 
     if dd.main:  # rank 0 decodes, runs the teacher if needed and fills the cache

@@ -399,10 +399,10 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
         if res.ok:
             break
     if best.ok and fi.dense is not None and fj.dense is not None:
-        stale = cfg.dense_on_stale and (fi.stale or fj.stale)
-        dense_refine(best, fi.dense, fj.dense, cfg, blend=1.0 if stale else None)
+        stale = fi.stale or fj.stale
+        dense_refine(best, fi.dense, fj.dense, cfg, blend=1.0 if stale and cfg.dense_on_stale else None)
         if "dense" in best.info:
-            best.info["dense"]["stale_stream"] = bool(fi.stale or fj.stale)
+            best.info["dense"]["stale_stream"] = stale
     return best
 
 

@@ -217,10 +217,10 @@ def repeat_plan(sensor: SensorConfig, n: int, seed: int) -> NDArray[np.int8]:
     if sensor.noise_free or n < 2:
         return plan
     p = np.array([sensor.frame_repeat_prob, sensor.rgb_repeat_prob, sensor.depth_repeat_prob])
-    if p.sum() <= 0:
-        return plan
     if np.any(p < 0) or p.sum() >= 1:
         raise ConfigError(f"repeat probabilities {p.tolist()} must be >= 0 and sum to < 1")
+    if p.sum() == 0:
+        return plan
     u = np.random.default_rng([seed, 5]).random(n - 1)
     plan[1:] = np.searchsorted(np.cumsum(p), u, side="right") + 1
     plan[1:][u >= p.sum()] = NEW
@@ -237,13 +237,11 @@ def _apply_repeats(seq_dir: Path, plan: NDArray[np.int8]) -> None:
             shutil.copyfile(seq_dir / f"frame-{k - 1:06d}{suffix}", seq_dir / f"frame-{k:06d}{suffix}")
 
 
-def _render_frames(fr: FrameRenderer, seq_dir: Path, workers: int, desc: str,
-                   plan: Optional[NDArray[np.int8]] = None) -> None:
+def _render_frames(fr: FrameRenderer, seq_dir: Path, workers: int, desc: str, plan: NDArray[np.int8]) -> None:
     """Render and write every frame, ``workers`` frames at a time in threads (the heavy
     parts - ray casting, OpenCV, PNG encoding, large numpy operations - release the GIL),
     then the repeats of ``plan`` (whole repeated frames are not rendered)."""
     n = len(fr.poses)
-    plan = np.zeros(n, np.int8) if plan is None else plan
 
     def job(k: int) -> None:
         if plan[k] == REPEAT_FRAME:
