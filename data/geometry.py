@@ -28,6 +28,7 @@ Mat4 = NDArray[np.float64]
 _PERM_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])
 #: Below this angle (rad) series expansions replace the closed forms.
 _SMALL_ANGLE = 1e-4
+_COS_LOG_FAST = float(np.cos(np.radians(150.0)))  # se3_log: closed form below 150 degrees
 
 
 # ----------------------------------------------------------------------------------
@@ -175,10 +176,20 @@ def se3_exp(xi: ArrayLike) -> Mat4:
 def se3_log(T: ArrayLike) -> NDArray[np.float64]:
     """Logarithm ``xi = (v, w)`` of a rigid transform (``v = V^-1 t``, not raw ``t``).
 
-    The rotation vector comes from scipy, which is accurate near 0 and near pi.
+    The rotation vector is ``theta / (2 sin theta) * vee(R - R^T)``, ``theta =
+    atan2(sin, cos)`` from the skew part and the trace (accurate near 0); from 150 degrees
+    on, where the skew part vanishes, it comes from scipy, which is accurate near pi.
     """
     T = np.asarray(T, dtype=np.float64)
-    w = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    R = T[:3, :3]
+    s = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])  # sin(theta) * axis
+    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)  # cos(theta)
+    if c > _COS_LOG_FAST:
+        sin_t = float(np.sqrt(s @ s))
+        theta = np.arctan2(sin_t, c)
+        w = s * (theta / sin_t if sin_t > 1e-12 else 1.0)
+    else:
+        w = Rotation.from_matrix(R).as_rotvec()
     v = _V_inv(w) @ T[:3, 3]
     return np.concatenate([v, w])
 

@@ -266,96 +266,124 @@ def _project(X: NDArray, K: NDArray) -> NDArray[np.float64]:
     return np.stack([K[0, 0] * X[:, 0] / z + K[0, 2], K[1, 1] * X[:, 1] / z + K[1, 2]], axis=1)
 
 
-def _proj_jac(X: NDArray, K: NDArray) -> NDArray[np.float64]:
-    """Derivative of the pinhole projection (u, v) w.r.t. the point, at each point X (N, 3):
-    (N, 2, 3)."""
-    iz = 1.0 / X[:, 2]
-    A = np.zeros((len(X), 2, 3))
-    A[:, 0, 0] = K[0, 0] * iz
-    A[:, 0, 2] = -K[0, 0] * X[:, 0] * iz * iz
-    A[:, 1, 1] = K[1, 1] * iz
-    A[:, 1, 2] = -K[1, 1] * X[:, 1] * iz * iz
-    return A
-
-
-def _cross(a: NDArray, b: NDArray) -> NDArray:
-    """Cross product over the last axis of two broadcastable (..., 3) arrays (np.cross is
-    slow for small arrays)."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
 def _residuals(T: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDArray, K: NDArray,
                with_jac: bool, P_b: Optional[NDArray] = None, w3: float = 0.0) -> tuple[NDArray, Optional[NDArray]]:
     """Two-way reprojection residuals of ``T = T_i_j`` and their Jacobians w.r.t. a right
     perturbation ``T @ exp(delta)``, delta = (v, w).
 
     Forward: points ``P_i`` (frame i) projected into j vs ``uv_j``. Backward: points ``Q_j``
-    (frame j) projected into i vs ``uv_i``. Returns r (2F+2B,) ordered (u, v) per point and
-    J (2F+2B, 6); points behind a camera are dropped.
+    (frame j) projected into i vs ``uv_i``. With ``w3 > 0`` also the 3-D term of
+    :func:`refine_two_way` (``Q_j`` moved into i vs ``P_b``). Returns r (2F+2B[+3B],) ordered
+    (u, v) per point, then (x, y, z) per point, and J (len(r), 6); points behind a camera
+    are dropped. The Jacobian rows are written out in closed form (this function is most of
+    the teacher's refinement time: a few whole-array operations, no (N, 2, 3) products).
     """
     R, t = T[:3, :3], T[:3, 3]
-    Y = (P_i - t) @ R  # P_i in frame j: R^T (P - t)
-    X = Q_j @ R.T + t  # Q_j in frame i
-    fy, bx = Y[:, 2] > 1e-6, X[:, 2] > 1e-6
-    if not (fy.all() and bx.all()):
-        Y, uv_j, X, Q_j, uv_i = Y[fy], uv_j[fy], X[bx], Q_j[bx], uv_i[bx]
-    parts = [(_project(Y, K) - uv_j).ravel(), (_project(X, K) - uv_i).ravel()]
+    Y = (P_i - t) @ R
+    X = Q_j @ R.T + t
+    fy_, bx = Y[:, 2] > 1e-6, X[:, 2] > 1e-6
+    if not (fy_.all() and bx.all()):
+        Y, uv_j, X, Q_j, uv_i = Y[fy_], uv_j[fy_], X[bx], Q_j[bx], uv_i[bx]
+        if w3 > 0:
+            P_b = P_b[bx]
+    F, B = len(Y), len(X)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    n3 = 3 * B if w3 > 0 else 0
+    r = np.empty(2 * F + 2 * B + n3)
+    # forward: Y projected into j; backward: X projected into i (rows (u, v) per point)
+    izf = 1.0 / Y[:, 2]
+    xf, yf = Y[:, 0] * izf, Y[:, 1] * izf  # normalised coordinates
+    rf = r[:2 * F].reshape(F, 2)
+    rf[:, 0] = fx * xf + cx - uv_j[:, 0]
+    rf[:, 1] = fy * yf + cy - uv_j[:, 1]
+    izb = 1.0 / X[:, 2]
+    xb, yb = X[:, 0] * izb, X[:, 1] * izb
+    rb = r[2 * F:2 * F + 2 * B].reshape(B, 2)
+    rb[:, 0] = fx * xb + cx - uv_i[:, 0]
+    rb[:, 1] = fy * yb + cy - uv_i[:, 1]
     if w3 > 0:
-        Pb = P_b[bx]
-        s3 = w3 / (Pb[:, 2:3] ** 2)  # Kinect depth noise grows with z^2
-        parts.append(((X - Pb) * s3).ravel())
-    r = np.concatenate(parts)
+        s3 = w3 / (P_b[:, 2] ** 2)  # Kinect depth noise grows with z^2
+        r[2 * F + 2 * B:] = ((X - P_b) * s3[:, None]).ravel()
     if not with_jac:
         return r, None
-    # forward: Y(delta) = exp(-delta) Y -> dY = [-I | hat(Y)];  a^T hat(Y) = (a x Y)^T
-    # backward: X(delta) = R exp(delta) Q + t -> dX = R [I | -hat(Q)];  b = R^T a
-    Af = _proj_jac(Y, K)
-    Jf = np.concatenate([-Af, _cross(Af, Y[:, None, :])], axis=2)
-    Bb = _proj_jac(X, K) @ R
-    Jb = np.concatenate([Bb, _cross(Q_j[:, None, :], Bb)], axis=2)
-    blocks = [Jf.reshape(-1, 6), Jb.reshape(-1, 6)]
+    J = np.empty((len(r), 6))
+    # forward, right perturbation: Y(delta) = exp(-delta) Y -> dY = [-I | hat(Y)]
+    Jf = J[:2 * F].reshape(F, 2, 6)
+    a, b = fx * izf, fy * izf
+    Jf[:, 0, 0] = -a
+    Jf[:, 0, 1] = 0.0
+    Jf[:, 0, 2] = a * xf
+    Jf[:, 0, 3] = fx * xf * yf
+    Jf[:, 0, 4] = -fx * (1.0 + xf * xf)
+    Jf[:, 0, 5] = fx * yf
+    Jf[:, 1, 0] = 0.0
+    Jf[:, 1, 1] = -b
+    Jf[:, 1, 2] = b * yf
+    Jf[:, 1, 3] = fy * (1.0 + yf * yf)
+    Jf[:, 1, 4] = -fy * xf * yf
+    Jf[:, 1, 5] = -fy * xf
+    # backward: X(delta) = R exp(delta) Q + t -> dX = R [I | -hat(Q)]; rows b = A R,
+    # [b | -b hat(Q)] = [b | Q x b]
+    Jb = J[2 * F:2 * F + 2 * B].reshape(B, 2, 6)
+    Bu = (fx * izb)[:, None] * (R[0] - xb[:, None] * R[2])
+    Bv = (fy * izb)[:, None] * (R[1] - yb[:, None] * R[2])
+    Bb = np.stack([Bu, Bv], axis=1)  # (B, 2, 3)
+    Jb[:, :, :3] = Bb
+    Q = Q_j[:, None, :]
+    Jb[:, :, 3] = Q[..., 1] * Bb[..., 2] - Q[..., 2] * Bb[..., 1]
+    Jb[:, :, 4] = Q[..., 2] * Bb[..., 0] - Q[..., 0] * Bb[..., 2]
+    Jb[:, :, 5] = Q[..., 0] * Bb[..., 1] - Q[..., 1] * Bb[..., 0]
     if w3 > 0:
-        J3 = np.empty((len(X), 3, 6))
+        # X(delta) - P_b, dX = R [I | -hat(Q)] = [R | -hat(R Q) R]
+        J3 = J[2 * F + 2 * B:].reshape(B, 3, 6)
         J3[:, :, :3] = R
-        J3[:, :, 3:] = -R @ geo.hat(Q_j)
-        blocks.append((J3 * s3[:, :, None]).reshape(-1, 6))
-    return r, np.concatenate(blocks, axis=0)
+        q = Q_j @ R.T
+        J3[:, 0, 3:] = q[:, 2:3] * R[1] - q[:, 1:2] * R[2]
+        J3[:, 1, 3:] = q[:, 0:1] * R[2] - q[:, 2:3] * R[0]
+        J3[:, 2, 3:] = q[:, 1:2] * R[0] - q[:, 0:1] * R[1]
+        J3 *= s3[:, None, None]
+    return r, J
 
 
 def refine_two_way(T0: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDArray, K: NDArray,
                    huber: float, iters: int = 10, min_sigma_px: float = 0.0, P_b: Optional[NDArray] = None,
                    w3: float = 0.0) -> tuple[NDArray, NDArray, NDArray]:
-    """Robust (Huber IRLS) Gauss-Newton with Levenberg damping on the two-way reprojection
-    error, plus (``w3 > 0``) the z^2-weighted 3-D distance between the backward points
-    ``Q_j`` moved into frame i and their frame-i counterparts ``P_b``.
-    Returns (T_i_j, covariance (6, 6) in (v, w) order, final residual vector).
+    """Minimise the Huber cost of the two-way reprojection error, plus (``w3 > 0``) the
+    z^2-weighted 3-D distance between the backward points ``Q_j`` moved into frame i and
+    their frame-i counterparts ``P_b``. Returns (T_i_j, covariance (6, 6) in (v, w) order,
+    final residual vector).
 
-    The covariance is ``sigma^2 (J^T W J)^-1`` with ``sigma^2`` the weighted residual
-    variance, floored at ``min_sigma_px^2``."""
+    Newton steps on the Huber cost with Levenberg damping: gradient ``J^T psi(r)``,
+    curvature ``J^T diag(rho''(r)) J`` (residuals in the quadratic zone only). Unlike
+    iteratively reweighted least squares (curvature ``J^T diag(psi(r)/r) J``), which converges
+    linearly when many residuals lie in the linear zone (on redkitchen it still moved the
+    pose by ~0.1 mm after 5 steps), this converges in 3-4 steps; it stops when a step moves
+    the pose by less than 0.3 mm / 0.3 mrad. With too few residuals in the quadratic zone to
+    fix all six directions the reweighted curvature is used.
+
+    The covariance is ``sigma^2 (J^T W J)^-1``, W the Huber weights ``psi(r)/r`` at the
+    solution and ``sigma^2`` the weighted residual variance, floored at ``min_sigma_px^2``."""
     T = T0.copy()
     lam = 1e-4
     r, J = _residuals(T, P_i, uv_j, Q_j, uv_i, K, True, P_b, w3)
-    cost = _huber_cost(r, huber)
+    cost, w, quad = _huber(r, huber)
     for _ in range(iters):
-        w = _huber_weights(r, huber)
-        H = J.T @ (J * w[:, None])
-        g = J.T @ (w * r)
+        Jq = J[quad] if quad.sum() >= 12 else J * np.sqrt(w)[:, None]
+        H = Jq.T @ Jq
+        g = J.T @ (w * r)  # psi(r) = w r
         step = -np.linalg.solve(H + lam * np.diag(np.diag(H)) + 1e-12 * np.eye(6), g)
         T_new = T @ geo.se3_exp(step)
         r_new, J_new = _residuals(T_new, P_i, uv_j, Q_j, uv_i, K, True, P_b, w3)
-        c_new = _huber_cost(r_new, huber)
+        c_new, w_new, quad_new = _huber(r_new, huber)
         if c_new <= cost and len(r_new) == len(r):
-            T, r, J, cost = T_new, r_new, J_new, c_new
+            T, r, J, cost, w, quad = T_new, r_new, J_new, c_new, w_new, quad_new
             lam = max(lam / 10, 1e-7)
-            if np.linalg.norm(step) < 1e-4:  # 0.1 mm / 0.1 mrad, far below the label noise: converged
+            if np.linalg.norm(step) < 3e-4:  # 0.3 mm / 0.3 mrad, far below the label noise
                 break
         else:
             lam *= 10
             if lam > 1e4:
                 break
-    w = _huber_weights(r, huber)
     H = J.T @ (J * w[:, None])
     dof = max(len(r) - 6, 1)
     sigma2 = max(float(np.sum(w * r * r) / dof), min_sigma_px ** 2)
@@ -363,14 +391,13 @@ def refine_two_way(T0: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i:
     return geo.orthonormalize(T), 0.5 * (cov + cov.T), r
 
 
-def _huber_weights(r: NDArray, k: float) -> NDArray:
+def _huber(r: NDArray, k: float) -> tuple[float, NDArray, NDArray]:
+    """Huber cost of the residuals ``r`` (threshold ``k``), the IRLS weights ``psi(r)/r`` and
+    the mask of residuals in the quadratic zone."""
     a = np.abs(r)
-    return np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
-
-
-def _huber_cost(r: NDArray, k: float) -> float:
-    a = np.abs(r)
-    return float(np.sum(np.where(a <= k, 0.5 * a * a, k * (a - 0.5 * k))))
+    quad = a <= k
+    cost = float(np.sum(np.where(quad, 0.5 * a * a, k * (a - 0.5 * k))))
+    return cost, np.where(quad, 1.0, k / np.maximum(a, 1e-12)), quad
 
 
 def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
@@ -478,7 +505,7 @@ def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     T0 = geo.inv_T(geo.make_T(R_j_i, tvec.ravel()))
 
     # points of frame j with valid depth give the backward term
-    z_j = depth_at(fj.depth, uv_j, cfg).astype(np.float64)
+    z_j = (depth_at(fj.depth, uv_j, cfg) if cfg.subpixel else fj.z[pairs[:, 1]]).astype(np.float64)
     Q_all = _backproject(uv_j, z_j, K)
     has_b = (z_j > 0) if cfg.two_way else np.zeros(len(z_j), bool)
     T, r, cov = T0, None, None
@@ -494,7 +521,9 @@ def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     n_in = int(in_f.sum())
     res = EdgeEstimate(i, j, "ok", matches=n_match, inliers=n_in, inlier_ratio=n_in / n_match,
                        inlier_pairs=pairs[in_f])
-    r_px = _residuals(T, P_i[sf], uv_j[sf], Q_all[sb], uv_i[sb], K, False)[0]  # pixels only
+    n_px = 2 * (len(sf) + len(sb))  # the pixel residuals lead r (unless a point fell behind a camera)
+    r_px = r[:n_px] if len(r) == n_px + (3 * len(sb) if cfg.depth_weight > 0 else 0) else \
+        _residuals(T, P_i[sf], uv_j[sf], Q_all[sb], uv_i[sb], K, False)[0]
     res.rmse_px = float(np.sqrt(np.mean(r_px * r_px)))
     res.T_i_j, res.cov = T, cov
     trans = float(np.linalg.norm(T[:3, 3]))
