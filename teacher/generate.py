@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import sys
 import time
 from collections import Counter, deque
@@ -31,6 +32,7 @@ from typing import Callable, Optional
 
 import numpy as np
 from numpy.typing import NDArray
+from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from data import geometry as geo
@@ -89,13 +91,17 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> Te
         # A fresh worker spends ~2 s importing (Open3D alone 1.5 s), so this process works
         # too: workers - 1 children take chunks from the front, this process takes the ones
         # they have not started from the back.
+        # Each process gets its share of the cores for OpenMP / BLAS (Open3D's kernels): with
+        # every process using every core they oversubscribe them (redkitchen: 46 fps with
+        # 2 OpenMP threads per process, 49 with 1).
+        threads = max(1, (os.cpu_count() or 1) // cfg.workers)
         ctx = multiprocessing.get_context("forkserver" if "forkserver" in multiprocessing.get_all_start_methods()
                                           else "spawn")
         with ProcessPoolExecutor(cfg.workers - 1, mp_context=ctx) as pool:
-            futs = [(pool.submit(_run_chunk, seq, cfg, a, b), (a, b)) for a, b in bounds]
+            futs = [(pool.submit(_run_chunk, seq, cfg, a, b, None, threads), (a, b)) for a, b in bounds]
             for f, (a, b) in reversed(futs):
                 if f.cancel():
-                    edges += _run_chunk(seq, cfg, a, b, bar.update)
+                    edges += _run_chunk(seq, cfg, a, b, bar.update, threads)
             for f, (a, b) in futs:
                 if not f.cancelled():
                     edges += f.result()
@@ -116,14 +122,24 @@ def _chunks(n: int, cfg: TeacherConfig) -> list[tuple[int, int]]:
 
 
 def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
-               on_frame: Optional[Callable[[int], object]] = None) -> list[EdgeEstimate]:
+               on_frame: Optional[Callable[[int], object]] = None,
+               threads: Optional[int] = None) -> list[EdgeEstimate]:
     """Edges (i, j) whose first frame position lies in [k0, k1), with j - i <= gaps.
 
     Frames k0 .. k1 + gaps - 1 are streamed once: one helper thread decodes and extracts
     features ahead; the main thread estimates the gap-1 edge of each new frame (matching
     guided by constant velocity), extends the feature tracks with its inliers, and then the
     longer edges ending at that frame (from the tracks, predicted by the chained motion).
+    ``threads`` limits the OpenMP / BLAS threads of both threads (None: no limit).
     """
+    if threads is None:
+        return _stream_chunk(seq, cfg, k0, k1, on_frame, None)
+    with threadpool_limits(threads):  # OpenMP's thread count is per calling thread
+        return _stream_chunk(seq, cfg, k0, k1, on_frame, threads)
+
+
+def _stream_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
+                  on_frame: Optional[Callable[[int], object]], threads: Optional[int]) -> list[EdgeEstimate]:
     n = len(seq)
     ids, times = seq.ids(), seq.times()
     intr = seq.intrinsics
@@ -136,7 +152,8 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
 
     # fingerprints of the frame before the chunk, to tell whether frame k0 repeats it
     prev_keys = image_keys(seq.rgb(k0 - 1), seq.depth(k0 - 1)) if k0 > 0 else None
-    with ThreadPoolExecutor(1) as pool:
+    with ThreadPoolExecutor(1, initializer=None if threads is None else threadpool_limits,
+                            initargs=() if threads is None else (threads,)) as pool:
         ahead = 3
         feat_futs: dict[int, Future] = {k: pool.submit(_extract, k) for k in range(k0, min(k_end, k0 + ahead))}
         window: deque[_WindowEntry] = deque()
