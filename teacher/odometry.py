@@ -367,8 +367,9 @@ def refine_two_way(T0: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i:
     lam = 1e-4
     r, J = _residuals(T, P_i, uv_j, Q_j, uv_i, K, True, P_b, w3)
     cost, w, quad = _huber(r, huber)
+    newton = True
     for _ in range(iters):
-        Jq = J[quad] if quad.sum() >= 12 else J * np.sqrt(w)[:, None]
+        Jq = J[quad] if newton and quad.sum() >= 12 else J * np.sqrt(w)[:, None]
         H = Jq.T @ Jq
         g = J.T @ (w * r)  # psi(r) = w r
         step = -np.linalg.solve(H + lam * np.diag(np.diag(H)) + 1e-12 * np.eye(6), g)
@@ -378,8 +379,11 @@ def refine_two_way(T0: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i:
         if c_new <= cost and len(r_new) == len(r):
             T, r, J, cost, w, quad = T_new, r_new, J_new, c_new, w_new, quad_new
             lam = max(lam / 10, 1e-7)
+            newton = True
             if np.linalg.norm(step) < 3e-4:  # 0.3 mm / 0.3 mrad, far below the label noise
                 break
+        elif newton:  # far from the optimum the quadratic-zone curvature is too small:
+            newton = False  # retry with the reweighted one (a majoriser of the Huber cost)
         else:
             lam *= 10
             if lam > 1e4:
