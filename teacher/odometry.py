@@ -358,8 +358,10 @@ def refine_two_way(T0: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i:
     iteratively reweighted least squares (curvature ``J^T diag(psi(r)/r) J``), which converges
     linearly when many residuals lie in the linear zone (on redkitchen it still moved the
     pose by ~0.1 mm after 5 steps), this converges in 3-4 steps; it stops when a step moves
-    the pose by less than 0.3 mm / 0.3 mrad. With too few residuals in the quadratic zone to
-    fix all six directions the reweighted curvature is used.
+    the pose by less than 0.3 mm / 0.3 mrad. The reweighted curvature (larger: a majoriser
+    of the Huber cost) is used when too few residuals lie in the quadratic zone to fix all
+    six directions, and for the retry after a rejected Newton step: far from the optimum
+    the quadratic-zone curvature is too small and its steps overshoot.
 
     The covariance is ``sigma^2 (J^T W J)^-1``, W the Huber weights ``psi(r)/r`` at the
     solution and ``sigma^2`` the weighted residual variance, floored at ``min_sigma_px^2``."""
