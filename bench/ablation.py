@@ -105,6 +105,7 @@ def main() -> None:
     ap.add_argument("--lr-halve-every", type=int, help="epochs per learning-rate halving (default: the preset's)")
     ap.add_argument("--samples", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--flip-prob", type=float, help="left-right mirroring augmentation (default: the preset's)")
     ap.add_argument("--sub-length", type=int, default=30, help="frames per sub-trajectory of the ATE mean +- std")
     ap.add_argument("--sub-stride", type=int, default=15, help="frames between sub-trajectory starts")
     ap.add_argument("--out", type=Path, default=Path("runs/ablation"))
@@ -126,7 +127,8 @@ def main() -> None:
         t0, c0 = time.perf_counter(), time.process_time()
         res = fit(args.scene, variant=v, preset=args.preset, frames=args.frames, out=run,
                   resume=(run / "checkpoint.pt").is_file(), teacher_root=args.teacher, epochs=args.epochs,
-                  steps_per_epoch=args.steps_per_epoch, seed=args.seed, lr_halve_every=args.lr_halve_every)
+                  steps_per_epoch=args.steps_per_epoch, seed=args.seed, lr_halve_every=args.lr_halve_every,
+                  flip_prob=args.flip_prob)
         t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
         rep = predict(res.checkpoint, test_scene, frames=args.test_frames, out=run / "predict",
                       config=PredictConfig(samples=args.samples)).reports[0]

@@ -83,6 +83,12 @@ class TrainConfig:
     """Cap on optimiser steps per epoch (``None``: one full pass over the data)."""
     seed: int = 0
     """Seed of shuffling, dropout, label sampling and initialisation."""
+    flip_prob: float = 0.0
+    """Mirror each training pair (phase 1) or window (phase 2) left-right with this
+    probability, its labels with it: mirroring x maps ``T`` to ``S T S``, S = diag(-1, 1, 1),
+    i.e. ``(v, w) -> (-vx, vy, vz, wx, -wy, -wz)``; compositions stay consistent, so the
+    CTC holds. Exact for a principal point at the image centre (7-Scenes, the synthetic
+    scenes; TUM's is 1-2 px off at 640 px)."""
 
     def __post_init__(self) -> None:
         if self.epochs < 1 or not 0 <= self.pretrain_epochs <= self.epochs:
@@ -91,6 +97,8 @@ class TrainConfig:
             raise ConfigError("need max_gap >= 1 and 1 <= window_min <= window_max")
         if self.batch_pairs < 1 or self.batch_windows < 1:
             raise ConfigError("batch sizes must be positive")
+        if not 0.0 <= self.flip_prob <= 1.0:
+            raise ConfigError(f"flip_prob must be in [0, 1], got {self.flip_prob}")
 
 
 @dataclass(frozen=True)

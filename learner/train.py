@@ -384,6 +384,21 @@ def _label_scale(data: list[SequenceData]) -> Tensor:
     return labs.std(0).clamp(min=1e-4)
 
 
+_MIRROR = torch.tensor([-1.0, 1.0, 1.0, 1.0, -1.0, -1.0])
+"""Twist of a left-right mirrored motion, per component (see ``TrainConfig.flip_prob``)."""
+
+
+def _mirror(x: Tensor, lab: Tensor, flip: Tensor) -> tuple[Tensor, Tensor]:
+    """Mirror the samples ``flip`` (B,) bool of images ``x`` (B, ..., W) and labels
+    ``lab`` (B, ..., 6)."""
+    if not bool(flip.any()):
+        return x, lab
+    x, lab = x.clone(), lab.clone()
+    x[flip] = x[flip].flip(-1)
+    lab[flip] = lab[flip] * _MIRROR
+    return x, lab
+
+
 def _pairs_step(net, data, rows: np.ndarray, cfg: TrainConfig, aug: bool, gen, device) -> L.LossTerms:
     x, labs, masks = [], [], []
     for s in np.unique(rows[:, 0]):
@@ -394,8 +409,11 @@ def _pairs_step(net, data, rows: np.ndarray, cfg: TrainConfig, aug: bool, gen, d
         lab, m = _labels(d, k, g, aug, gen)
         labs.append(lab)
         masks.append(m)
-    xi_d, _ = net(torch.cat(x).to(device))
-    return L.pair_loss(xi_d, torch.cat(labs).to(device), torch.cat(masks).to(device), cfg.beta)
+    x, lab = torch.cat(x), torch.cat(labs)
+    if cfg.flip_prob > 0:
+        x, lab = _mirror(x, lab, torch.rand(len(x), generator=gen) < cfg.flip_prob)
+    xi_d, _ = net(x.to(device))
+    return L.pair_loss(xi_d, lab.to(device), torch.cat(masks).to(device), cfg.beta)
 
 
 def _windows_step(net, data, rows: np.ndarray, W: int, cfg: TrainConfig, aug: bool, gen, device) -> L.LossTerms:
@@ -412,9 +430,12 @@ def _windows_step(net, data, rows: np.ndarray, W: int, cfg: TrainConfig, aug: bo
         labs.append(lab)
         masks.append(m)
     B = len(rows)
+    x, lab = torch.stack(x), torch.stack(labs)  # (B, P, 6, H, W), (B, P, 6)
+    if cfg.flip_prob > 0:  # a whole window at a time
+        x, lab = _mirror(x, lab, torch.rand(B, generator=gen) < cfg.flip_prob)
     seq_index = (torch.arange(B)[:, None] * P + torch.arange(W)[None, :]).to(device)  # gap-1 block first
-    xi_d, xi_s = net(torch.cat(x).to(device), seq_index)
-    lab = torch.stack(labs).to(device)  # (B, P, 6)
+    xi_d, xi_s = net(x.flatten(0, 1).to(device), seq_index)
+    lab = lab.to(device)
     mask = torch.stack(masks).to(device)
     xi_d = xi_d.view(B, P, 6)
     # the LSTM's consecutive pairs share the labels of the direct gap-1 pairs

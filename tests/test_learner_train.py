@@ -119,6 +119,56 @@ def test_cpu_preset_two_steps(fixture_seq, tmp_path) -> None:
     assert all(np.isfinite(h["loss"]) for h in res.history)
 
 
+def test_mirrored_labels_are_the_mirrored_motion() -> None:
+    """Flip augmentation: a point seen in frame j, moved by T_i_j and projected into i,
+    lands at the mirrored pixel when the mirrored point is moved by the mirrored label
+    (principal point at the image centre); compositions of mirrored labels are the
+    mirrored composition, so the CTC still holds."""
+    from learner.train import _MIRROR
+
+    rng = np.random.default_rng(0)
+    W = 128
+    K = np.array([[100.0, 0, (W - 1) / 2], [0, 100.0, 47.5], [0, 0, 1]])
+    S = np.diag([-1.0, 1.0, 1.0])
+    mirror = _MIRROR.numpy().astype(np.float64)
+    X = rng.uniform([-1, -1, 1], [1, 1, 3], (20, 3))
+    for _ in range(5):
+        xi = rng.normal(0, [0.05, 0.05, 0.05, 0.1, 0.1, 0.1])
+        T, Tm = geo.se3_exp(xi), geo.se3_exp(xi * mirror)
+        uv = (X @ T[:3, :3].T + T[:3, 3]) @ K.T
+        uv = uv[:, :2] / uv[:, 2:]
+        Xm = X @ S
+        uvm = (Xm @ Tm[:3, :3].T + Tm[:3, 3]) @ K.T
+        uvm = uvm[:, :2] / uvm[:, 2:]
+        np.testing.assert_allclose(uvm[:, 0], (W - 1) - uv[:, 0], atol=1e-9)
+        np.testing.assert_allclose(uvm[:, 1], uv[:, 1], atol=1e-9)
+        xi2 = rng.normal(0, 0.05, 6)
+        both = geo.se3_log(geo.se3_exp(xi) @ geo.se3_exp(xi2))
+        both_m = geo.se3_log(geo.se3_exp(xi * mirror) @ geo.se3_exp(xi2 * mirror))
+        np.testing.assert_allclose(both_m, both * mirror, atol=1e-12)
+
+
+def test_mirror_flips_only_the_chosen_samples() -> None:
+    from learner.train import _MIRROR, _mirror
+
+    x = torch.arange(2 * 6 * 2 * 3, dtype=torch.float32).view(2, 6, 2, 3)
+    lab = torch.ones(2, 6)
+    xm, lm = _mirror(x, lab, torch.tensor([True, False]))
+    assert torch.equal(xm[0], x[0].flip(-1)) and torch.equal(xm[1], x[1])
+    assert torch.equal(lm[0], _MIRROR) and torch.equal(lm[1], lab[1])
+    assert torch.equal(x[0, 0, 0], torch.tensor([0.0, 1.0, 2.0]))  # inputs untouched
+
+
+def test_flip_augmentation_trains(fixture_seq, tmp_path) -> None:
+    seq, teacher = fixture_seq
+    res = fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=teacher, flip_prob=1.0)
+    assert [h["phase"] for h in res.history] == ["pairs", "windows"]
+    assert all(np.isfinite(h["loss"]) and h["reg"] > 0 for h in res.history)
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["flip_prob"] == 1.0
+    with pytest.raises(ConfigError, match="flip_prob"):
+        fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "bad", teacher_root=teacher, flip_prob=1.5)
+
+
 def test_paper_preset_single_forward_backward() -> None:
     """The full-size network: its latent at the preset's 320x240 input, and one
     forward/backward of the CTC + regression loss. The backward runs on 64x48 inputs: the
