@@ -1,7 +1,7 @@
 """Benchmark: rendering speed of the synthetic scenes (decode/encode included).
 
 Renders presets into a temporary folder exactly as ``--scene synthetic/NAME`` does (scene
-build, trajectory, ray casting, shading, sensor model, PNG encoding and writing), then reads
+build, trajectory, ray casting, shading, sensor model, JPEG / PNG encoding and writing), then reads
 every frame back through the 7-Scenes reader, and prints frames/s (wall clock), CPU seconds
 per frame, and a per-stage CPU breakdown of single-threaded frames.
 

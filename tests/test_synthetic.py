@@ -168,7 +168,7 @@ def test_open_scene_round_trip_and_cache(tmp_path: Path):
     assert len(seq) == cfg.frames and seq.name == "synthetic-tiny"
     assert seq.intrinsics.K.tolist() == [[585.0, 0, 320.0], [0, 585.0, 240.0], [0, 0, 1]]
     folder = syn.scene_dir("tiny", cfg, tmp_path)
-    assert folder.name.endswith(cfg.digest()) and (folder / "seq-01" / "frame-000000.color.png").is_file()
+    assert folder.name.endswith(cfg.digest()) and (folder / "seq-01" / "frame-000000.color.jpg").is_file()
     scene, poses = syn.build(cfg)
     plan = syn.repeat_plan(cfg.sensor, len(poses), cfg.seed)
     new = np.flatnonzero(plan == syn.NEW)
@@ -295,12 +295,31 @@ def test_dropped_frames_repeat_the_previous_files(tmp_path: Path):
     seq_dir = syn.render_scene(cfg, tmp_path / "scene", workers=2) / "seq-01"
     read = lambda k, suffix: (seq_dir / f"frame-{k:06d}{suffix}").read_bytes()  # noqa: E731
     for k in range(1, cfg.frames):
-        same = {suffix: read(k, suffix) == read(k - 1, suffix) for suffix in (".color.png", ".depth.png", ".pose.txt")}
+        same = {suffix: read(k, suffix) == read(k - 1, suffix) for suffix in (".color.jpg", ".depth.png", ".pose.txt")}
         if plan[k] == syn.REPEAT_FRAME:
             assert all(same.values()), k
         elif plan[k] == syn.REPEAT_RGB:
-            assert same[".color.png"] and not same[".depth.png"] and not same[".pose.txt"], k
+            assert same[".color.jpg"] and not same[".depth.png"] and not same[".pose.txt"], k
         elif plan[k] == syn.REPEAT_DEPTH:
-            assert same[".depth.png"] and same[".pose.txt"] and not same[".color.png"], k
+            assert same[".depth.png"] and same[".pose.txt"] and not same[".color.jpg"], k
         else:
             assert not any(same.values()), k
+
+
+def test_colour_files_are_the_sensor_jpeg(tmp_path) -> None:
+    """The colour files are the sensor model's JPEG itself (as the 7-Scenes sample's): read
+    back, they equal the rendered image exactly; the noise-free variant stays lossless PNG."""
+    from data.sequence import read_rgb
+
+    cfg = dataclasses.replace(PRESETS["tiny"], frames=3, sensor=dataclasses.replace(
+        PRESETS["tiny"].sensor, frame_repeat_prob=0, rgb_repeat_prob=0, depth_repeat_prob=0))
+    seq_dir = syn.render_scene(cfg, tmp_path / "noisy", workers=1) / "seq-01"
+    fr = syn.FrameRenderer(cfg, *syn.build(cfg))
+    for k in range(cfg.frames):
+        assert not (seq_dir / f"frame-{k:06d}.color.png").exists()
+        np.testing.assert_array_equal(read_rgb(seq_dir / f"frame-{k:06d}.color.jpg"), fr.frame(k)[0])
+    clean = dataclasses.replace(cfg, sensor=dataclasses.replace(cfg.sensor, noise_free=True))
+    seq_dir = syn.render_scene(clean, tmp_path / "clean", workers=1) / "seq-01"
+    fc = syn.FrameRenderer(clean, *syn.build(clean))
+    np.testing.assert_array_equal(read_rgb(seq_dir / "frame-000001.color.png"), fc.frame(1)[0])
+    assert syn.colour_suffix(cfg.sensor) == ".color.jpg" and syn.colour_suffix(clean.sensor) == ".color.png"

@@ -294,8 +294,8 @@ def test_cli_empty_sequence(tmp_path, capsys):
 def _copy_frames(src, dst, n):
     dst.mkdir(parents=True)
     for k in range(n):
-        for suffix in (".color.png", ".depth.png", ".pose.txt"):
-            shutil.copy(src / f"frame-{k:06d}{suffix}", dst / f"frame-{k:06d}{suffix}")
+        for f in src.glob(f"frame-{k:06d}.*"):
+            shutil.copy(f, dst / f.name)
     shutil.copy(src.parent / "camera-intrinsics.txt", dst.parent / "camera-intrinsics.txt")
 
 
@@ -308,10 +308,11 @@ def tiny_copy(tmp_path):
 
 
 def test_cli_corrupt_image_no_partial_output(tiny_copy, tmp_path, capsys):
-    (tiny_copy / "frame-000002.color.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    jpg = tiny_copy / "frame-000002.color.jpg"  # the synthetic scenes' colour images are JPEG
+    jpg.write_bytes(jpg.read_bytes()[:20])
     out = tmp_path / "o"
     assert cli.main(["generate", "--scene", str(tiny_copy), "--out", str(out)]) == 1
-    assert "frame-000002.color.png" in _err(capsys)
+    assert "frame-000002.color.jpg" in _err(capsys)
     assert not (out / "report.json").exists() and not (out / "edges.g2o").exists()
 
 

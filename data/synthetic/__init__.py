@@ -7,8 +7,9 @@
 
 * ``camera-intrinsics.txt`` (3x3 matrix; ``fx fy cx cy w h`` when not 640x480),
   ``config.json`` (resolved config, git revision, motion statistics);
-* ``seq-01/frame-NNNNNN.color.png`` (8-bit RGB), ``.depth.png`` (uint16 mm, 0 = hole),
-  ``.pose.txt`` (exact 4x4 ``T_world_cam``).
+* ``seq-01/frame-NNNNNN.color.jpg`` (8-bit RGB, the sensor model's JPEG itself;
+  ``.color.png`` without JPEG compression, e.g. the noise-free variants), ``.depth.png``
+  (uint16 mm, 0 = hole), ``.pose.txt`` (exact 4x4 ``T_world_cam``).
 
 The scene is rendered into a temporary sibling folder that is renamed at the end, so a
 killed render never leaves a half scene; the hash in the folder name changes with the
@@ -163,6 +164,11 @@ class FrameRenderer:
     def frame(self, k: int) -> tuple[NDArray[np.uint8], NDArray[np.float32], ExactFrame]:
         """Frame ``k``: RGB (H, W, 3) uint8, measured depth (H, W) float32 m, exact rendering
         of the depth camera (H, W)."""
+        rgb, _, depth, exact = self.frame_encoded(k)
+        return rgb, depth, exact
+
+    def frame_encoded(self, k: int) -> tuple[NDArray[np.uint8], Optional[bytes], NDArray[np.float32], ExactFrame]:
+        """As :meth:`frame`, with the colour image's JPEG file (None without JPEG compression)."""
         c = self.config
         rolling = c.sensor.rolling_shutter_s > 0 and not c.sensor.noise_free and len(self.poses) > 1
         padded = self.renderer.render(self.row_poses(k) if rolling else self.poses[k])
@@ -170,8 +176,8 @@ class FrameRenderer:
         rng = np.random.default_rng([c.seed, 3, k])
         depth = depth_sensor(exact.depth, exact.cos_incidence, c.fx, c.sensor, rng, self.bank, self.depth_bias)
         flow = self.image_flow(k, exact) if (c.sensor.motion_blur_exposure > 0 and not c.sensor.noise_free) else np.zeros(2)
-        rgb = self.colour_sensor(padded.colour, float(self.gains[k]), flow, rng, padded.depth)
-        return rgb, depth, exact
+        rgb, jpeg = self.colour_sensor.encoded(padded.colour, float(self.gains[k]), flow, rng, padded.depth)
+        return rgb, jpeg, depth, exact
 
 
 def depth_to_png_mm(depth: NDArray[np.float32]) -> NDArray[np.uint16]:
@@ -186,13 +192,24 @@ _PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMW
                cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP]
 
 
-def _write_frame(seq_dir: Path, k: int, rgb: NDArray[np.uint8], depth: NDArray[np.float32], T: NDArray) -> None:
+def colour_suffix(sensor: SensorConfig) -> str:
+    """File suffix of the colour images: ``.color.jpg`` when the sensor compresses them
+    (the file is the compressed image itself), else ``.color.png``."""
+    return ".color.jpg" if sensor.jpeg_quality > 0 and not sensor.noise_free else ".color.png"
+
+
+def _write_frame(seq_dir: Path, k: int, rgb: NDArray[np.uint8], jpeg: Optional[bytes], depth: NDArray[np.float32],
+                 T: NDArray) -> None:
     stem = seq_dir / f"frame-{k:06d}"
-    ok1, col = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), _PNG_PARAMS)
+    if jpeg is None:
+        ok1, col = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), _PNG_PARAMS)
+        colour, suffix = col.tobytes(), ".color.png"
+    else:
+        ok1, colour, suffix = True, jpeg, ".color.jpg"
     ok2, dep = cv2.imencode(".png", depth_to_png_mm(depth), _PNG_PARAMS)
     if not (ok1 and ok2):
         raise DataError(f"could not encode frame {k}")
-    Path(f"{stem}.color.png").write_bytes(col.tobytes())
+    Path(f"{stem}{suffix}").write_bytes(colour)
     Path(f"{stem}.depth.png").write_bytes(dep.tobytes())
     Path(f"{stem}.pose.txt").write_text("\n".join(" ".join(f"{v:.9e}" for v in row) for row in T) + "\n")
 
@@ -227,10 +244,11 @@ def repeat_plan(sensor: SensorConfig, n: int, seed: int) -> NDArray[np.int8]:
     return plan
 
 
-def _apply_repeats(seq_dir: Path, plan: NDArray[np.int8]) -> None:
+def _apply_repeats(seq_dir: Path, plan: NDArray[np.int8], colour: str) -> None:
     """Overwrite the repeated parts of each frame with the previous frame's files, in frame
-    order (so a chain of repeats copies the first frame of the chain)."""
-    suffixes = {REPEAT_FRAME: (".color.png", ".depth.png", ".pose.txt"), REPEAT_RGB: (".color.png",),
+    order (so a chain of repeats copies the first frame of the chain); ``colour`` is the
+    colour images' suffix."""
+    suffixes = {REPEAT_FRAME: (colour, ".depth.png", ".pose.txt"), REPEAT_RGB: (colour,),
                 REPEAT_DEPTH: (".depth.png", ".pose.txt")}
     for k in np.flatnonzero(plan):
         for suffix in suffixes[int(plan[k])]:
@@ -239,15 +257,15 @@ def _apply_repeats(seq_dir: Path, plan: NDArray[np.int8]) -> None:
 
 def _render_frames(fr: FrameRenderer, seq_dir: Path, workers: int, desc: str, plan: NDArray[np.int8]) -> None:
     """Render and write every frame, ``workers`` frames at a time in threads (the heavy
-    parts - ray casting, OpenCV, PNG encoding, large numpy operations - release the GIL),
+    parts - ray casting, OpenCV, image encoding, large numpy operations - release the GIL),
     then the repeats of ``plan`` (whole repeated frames are not rendered)."""
     n = len(fr.poses)
 
     def job(k: int) -> None:
         if plan[k] == REPEAT_FRAME:
             return
-        rgb, depth, _ = fr.frame(k)
-        _write_frame(seq_dir, k, rgb, depth, fr.poses[k])
+        rgb, jpeg, depth, _ = fr.frame_encoded(k)
+        _write_frame(seq_dir, k, rgb, jpeg, depth, fr.poses[k])
 
     with cf.ThreadPoolExecutor(max_workers=max(1, workers)) as pool, \
             tqdm(total=n, desc=desc, unit="frame", disable=not sys.stderr.isatty()) as bar:
@@ -260,7 +278,7 @@ def _render_frames(fr: FrameRenderer, seq_dir: Path, workers: int, desc: str, pl
         for f in pending:
             f.result()
             bar.update()
-    _apply_repeats(seq_dir, plan)
+    _apply_repeats(seq_dir, plan, colour_suffix(fr.config.sensor))
 
 
 def render_scene(config: SceneConfig, out_dir: Path, workers: Optional[int] = None) -> Path:

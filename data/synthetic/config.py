@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 #: Bump when the renderer's output changes for the same config (invalidates caches).
-RENDER_VERSION = 9
+RENDER_VERSION = 10
 
 
 @dataclass(frozen=True)
@@ -95,8 +95,8 @@ class SensorConfig:
     moves by another ``-rgb_focal_scale * fx * rgb_baseline_m / z`` pixels along x in the
     colour image (redkitchen fit: -11 px at ~1.1 m, -7 px at ~2.3 m, with the shift above)."""
     jpeg_quality: int = 80
-    """JPEG round trip of the colour image (quality 1-100, 4:2:0 chroma), as the 7-Scenes
-    sample's colour frames (quality 80); 0 = none. The files stay PNG."""
+    """JPEG compression of the colour image (quality 1-100, 4:2:0 chroma), as the 7-Scenes
+    sample's colour frames (quality 80): written as ``.color.jpg``; 0 = none (``.color.png``)."""
     rgb_blur_sigma: float = 1.0
     """Optical blur of the colour camera (Gaussian sigma, pixels)."""
     motion_blur_exposure: float = 0.8

@@ -215,9 +215,16 @@ class ColourSensor:
         """8-bit RGB (H, W, 3) from the padded linear rendering ``img`` (He, We, 3); ``depth``
         (He, We) exact z drives the parallax; ``flow`` (2,) is the image motion per frame in
         depth-camera pixels (motion blur)."""
+        return self.encoded(img, gain, flow, rng, depth)[0]
+
+    def encoded(self, img: NDArray[np.float32], gain: float, flow: NDArray[np.float64],
+                rng: np.random.Generator, depth: NDArray[np.float32] | None = None
+                ) -> tuple[NDArray[np.uint8], bytes | None]:
+        """As :meth:`__call__`, with the JPEG file whose decoding the image is (None when
+        ``jpeg_quality`` is 0 or the sensor is noise-free)."""
         cfg = self.cfg
         if cfg.noise_free:
-            return np.clip(np.rint(img * 255), 0, 255).astype(np.uint8)
+            return np.clip(np.rint(img * 255), 0, 255).astype(np.uint8), None
         mx = self._mx
         if cfg.rgb_baseline_m and depth is not None:
             He, We = depth.shape
@@ -236,7 +243,9 @@ class ColourSensor:
         sd = np.sqrt(np.float32(cfg.read_noise_dn ** 2) + np.float32(cfg.shot_noise_gain) * dn)
         dn += sd * self.bank.normal(dn.shape, rng)
         out = np.clip(np.rint(dn), 0, 255).astype(np.uint8)
-        if cfg.jpeg_quality > 0:
-            ok, buf = cv2.imencode(".jpg", cv2.cvtColor(out, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(cfg.jpeg_quality)])
-            out = cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-        return out
+        if cfg.jpeg_quality <= 0:
+            return out, None
+        ok, buf = cv2.imencode(".jpg", cv2.cvtColor(out, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(cfg.jpeg_quality)])
+        if not ok:
+            raise RuntimeError("JPEG encoding of a synthetic colour image failed")
+        return cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB), buf.tobytes()
