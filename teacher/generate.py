@@ -92,8 +92,8 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> Te
         # too: workers - 1 children take chunks from the front, this process takes the ones
         # they have not started from the back.
         # Each process gets its share of the cores for OpenMP / BLAS (Open3D's kernels): with
-        # every process using every core they oversubscribe them (redkitchen: 46 fps with
-        # 2 OpenMP threads per process, 49 with 1).
+        # every process using every core they oversubscribe them (redkitchen, interleaved
+        # runs: 45.6 fps with 2 OpenMP threads per process, 48.0 with 1).
         threads = max(1, (os.cpu_count() or 1) // cfg.workers)
         ctx = multiprocessing.get_context("forkserver" if "forkserver" in multiprocessing.get_all_start_methods()
                                           else "spawn")
