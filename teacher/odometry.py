@@ -281,11 +281,11 @@ def _residuals(T: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDAr
     R, t = T[:3, :3], T[:3, 3]
     Y = (P_i - t) @ R
     X = Q_j @ R.T + t
-    fy_, bx = Y[:, 2] > 1e-6, X[:, 2] > 1e-6
-    if not (fy_.all() and bx.all()):
-        Y, uv_j, X, Q_j, uv_i = Y[fy_], uv_j[fy_], X[bx], Q_j[bx], uv_i[bx]
+    front_f, front_b = Y[:, 2] > 1e-6, X[:, 2] > 1e-6
+    if not (front_f.all() and front_b.all()):
+        Y, uv_j, X, Q_j, uv_i = Y[front_f], uv_j[front_f], X[front_b], Q_j[front_b], uv_i[front_b]
         if w3 > 0:
-            P_b = P_b[bx]
+            P_b = P_b[front_b]
     F, B = len(Y), len(X)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     n3 = 3 * B if w3 > 0 else 0
