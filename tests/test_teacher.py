@@ -129,34 +129,6 @@ def test_worker_processes_give_the_same_edges(office_clean):
         assert relative_pose_error(a.T_i_j, b.T_i_j)[0] < 1e-3
 
 
-def test_covariance_matches_numeric_jacobian():
-    """The refinement's covariance is sigma^2 (J^T J)^-1 with J w.r.t. T @ exp(delta),
-    delta in (v, w): checked against finite differences of the residuals."""
-    from teacher.odometry import _residuals, refine_two_way
-
-    rng = np.random.default_rng(3)
-    K = np.array([[585.0, 0, 320], [0, 585, 240], [0, 0, 1]])
-    T_true = geo.se3_exp([0.02, -0.01, 0.03, 0.01, -0.02, 0.015])
-    P = rng.uniform([-1, -1, 1.5], [1, 1, 3.5], (200, 3))
-    Q = rng.uniform([-1, -1, 1.5], [1, 1, 3.5], (150, 3))
-    Tji = geo.inv_T(T_true)
-    uv_j = (P @ Tji[:3, :3].T + Tji[:3, 3]) @ K.T
-    uv_j = uv_j[:, :2] / uv_j[:, 2:] + rng.normal(0, 0.5, (200, 2))
-    uv_i = (Q @ T_true[:3, :3].T + T_true[:3, 3]) @ K.T
-    uv_i = uv_i[:, :2] / uv_i[:, 2:] + rng.normal(0, 0.5, (150, 2))
-    T, cov, r = refine_two_way(geo.se3_exp(np.zeros(6)), P, uv_j, Q, uv_i, K, huber=10.0, iters=20)
-    assert np.linalg.norm(geo.se3_log(geo.inv_T(T_true) @ T)) < 5e-3
-    J = np.zeros((len(r), 6))
-    for k in range(6):
-        d = np.zeros(6)
-        d[k] = 1e-6
-        J[:, k] = (_residuals(T @ geo.se3_exp(d), P, uv_j, Q, uv_i, K, False)[0]
-                   - _residuals(T @ geo.se3_exp(-d), P, uv_j, Q, uv_i, K, False)[0]) / 2e-6
-    sigma2 = np.sum(r * r) / (len(r) - 6)
-    np.testing.assert_allclose(cov, sigma2 * np.linalg.inv(J.T @ J), rtol=1e-3, atol=1e-12)
-    assert 0.35 < np.sqrt(sigma2) < 0.65  # recovers the injected 0.5 px noise
-
-
 def _two_way_problem(seed: int, outliers: int = 0):
     """Random two-way refinement problem: points seen from two cameras, 0.5 px noise, and
     ``outliers`` forward observations moved by 5-20 px; the frame-i counterparts of the
@@ -177,6 +149,32 @@ def _two_way_problem(seed: int, outliers: int = 0):
     return K, T_true, P, uv_j, Q, uv_i, P_b
 
 
+def _numeric_jacobian(T, *args):
+    """Central differences of ``_residuals(T @ exp(d), *args)`` w.r.t. d (right perturbation)."""
+    from teacher.odometry import _residuals
+
+    cols = []
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = 1e-6
+        cols.append((_residuals(T @ geo.se3_exp(d), *args)[0] - _residuals(T @ geo.se3_exp(-d), *args)[0]) / 2e-6)
+    return np.stack(cols, axis=1)
+
+
+def test_covariance_matches_numeric_jacobian():
+    """The refinement's covariance is sigma^2 (J^T J)^-1 with J w.r.t. T @ exp(delta),
+    delta in (v, w): checked against finite differences of the residuals."""
+    from teacher.odometry import refine_two_way
+
+    K, T_true, P, uv_j, Q, uv_i, _ = _two_way_problem(3)
+    T, cov, r = refine_two_way(geo.se3_exp(np.zeros(6)), P, uv_j, Q, uv_i, K, huber=10.0, iters=20)
+    assert np.linalg.norm(geo.se3_log(geo.inv_T(T_true) @ T)) < 5e-3
+    J = _numeric_jacobian(T, P, uv_j, Q, uv_i, K, False)
+    sigma2 = np.sum(r * r) / (len(r) - 6)
+    np.testing.assert_allclose(cov, sigma2 * np.linalg.inv(J.T @ J), rtol=1e-3, atol=1e-12)
+    assert 0.35 < np.sqrt(sigma2) < 0.65  # recovers the injected 0.5 px noise
+
+
 def test_jacobian_with_depth_term_matches_finite_differences():
     """The closed-form Jacobian of every residual block (forward, backward, and the
     z^2-weighted 3-D term) against central differences of the residuals."""
@@ -186,12 +184,7 @@ def test_jacobian_with_depth_term_matches_finite_differences():
     T = T_true @ geo.se3_exp([0.003, -0.002, 0.004, 0.002, 0.001, -0.003])
     r, J = _residuals(T, P, uv_j, Q, uv_i, K, True, P_b, 1000.0)
     assert J.shape == (len(r), 6) and len(r) == 2 * 200 + 2 * 150 + 3 * 150
-    Jn = np.zeros_like(J)
-    for k in range(6):
-        d = np.zeros(6)
-        d[k] = 1e-6
-        Jn[:, k] = (_residuals(T @ geo.se3_exp(d), P, uv_j, Q, uv_i, K, False, P_b, 1000.0)[0]
-                    - _residuals(T @ geo.se3_exp(-d), P, uv_j, Q, uv_i, K, False, P_b, 1000.0)[0]) / 2e-6
+    Jn = _numeric_jacobian(T, P, uv_j, Q, uv_i, K, False, P_b, 1000.0)
     np.testing.assert_allclose(J, Jn, rtol=1e-5, atol=1e-4)
 
 
