@@ -132,14 +132,6 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     longer edges ending at that frame (from the tracks, predicted by the chained motion).
     ``threads`` limits the OpenMP / BLAS threads of both threads (None: no limit).
     """
-    if threads is None:
-        return _stream_chunk(seq, cfg, k0, k1, on_frame, None)
-    with threadpool_limits(threads):  # OpenMP's thread count is per calling thread
-        return _stream_chunk(seq, cfg, k0, k1, on_frame, threads)
-
-
-def _stream_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
-                  on_frame: Optional[Callable[[int], object]], threads: Optional[int]) -> list[EdgeEstimate]:
     n = len(seq)
     ids, times = seq.ids(), seq.times()
     intr = seq.intrinsics
@@ -152,8 +144,8 @@ def _stream_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
 
     # fingerprints of the frame before the chunk, to tell whether frame k0 repeats it
     prev_keys = image_keys(seq.rgb(k0 - 1), seq.depth(k0 - 1)) if k0 > 0 else None
-    with ThreadPoolExecutor(1, initializer=None if threads is None else threadpool_limits,
-                            initargs=() if threads is None else (threads,)) as pool:
+    # OpenMP's thread count is per calling thread: limit this one and the helper
+    with threadpool_limits(threads), ThreadPoolExecutor(1, initializer=threadpool_limits, initargs=(threads,)) as pool:
         ahead = 3
         feat_futs: dict[int, Future] = {k: pool.submit(_extract, k) for k in range(k0, min(k_end, k0 + ahead))}
         window: deque[_WindowEntry] = deque()
