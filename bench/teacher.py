@@ -19,11 +19,16 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
-import numpy as np
-
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+if __name__ == "__main__":  # as `teacher generate` does: its worker imports while this process does
+    from teacher import processes
+
+    processes.start()
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
 
 from data import geometry as geo  # noqa: E402
 from data.formats import Trajectory  # noqa: E402

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from data.errors import VOError
+from teacher import processes
 from teacher.config import PRESETS
 
 
@@ -32,13 +33,15 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s")
-    from teacher.generate import generate
-
     cfg = PRESETS[args.preset]
     if args.gaps is not None:
         cfg = dataclasses.replace(cfg, gaps=args.gaps)
     if args.workers is not None:
         cfg = dataclasses.replace(cfg, workers=args.workers)
+    if cfg.workers > 1:
+        processes.start()  # the workers import Open3D and the teacher while this process does
+    from teacher.generate import generate
+
     try:
         generate(args.scene, args.out, args.split, args.frames, cfg, args.overwrite)
     except VOError as exc:

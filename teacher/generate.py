@@ -20,9 +20,9 @@ ground truth), report.json, config.json.
 from __future__ import annotations
 
 import logging
-import multiprocessing
 import os
 import sys
+import threading
 import time
 from collections import Counter, deque
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
@@ -41,6 +41,7 @@ from data.io import ensure_dir, git_revision, write_json
 from data.metrics import relative_pose_error, trajectory_report
 from data.scenes import open_scene, scene_slug
 from data.sequence import Sequence
+from teacher import processes
 from teacher.config import TeacherConfig
 from teacher.odometry import EdgeEstimate, FrameFeatures, estimate_edge, extract, image_keys, make_orb, stale_stream
 
@@ -73,43 +74,80 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> Te
     With ``cfg.workers > 1`` and enough frames, the sequence is cut into chunks of about
     ``cfg.chunk_frames`` frames that this process and ``workers - 1`` worker processes
     estimate independently (each chunk also reads the ``gaps`` frames after it, so no edge
-    is lost at a boundary); processes,
-    not threads, because the refinement is NumPy code that holds the GIL. They are started
-    by a fork server, so a script that calls this with ``workers > 1`` must guard its entry
-    point with ``if __name__ == "__main__":`` (as multiprocessing requires).
+    is lost at a boundary); processes, not threads, because the refinement is NumPy code
+    that holds the GIL. They are forked by a fork server (:mod:`teacher.processes`; call
+    its ``start()`` early to have them ready), so a script that calls this with
+    ``workers > 1`` must guard its entry point with ``if __name__ == "__main__":`` (as
+    multiprocessing requires).
     """
     n = len(seq)
     t0 = time.perf_counter()
     bounds = _chunks(n, cfg)
     bar = tqdm(total=n, desc=f"teacher {seq.name}", unit="frame", disable=not (progress and sys.stderr.isatty()))
-    edges: list[EdgeEstimate] = []
     if len(bounds) == 1:
         edges = _run_chunk(seq, cfg, 0, n, bar.update)
     else:
-        # forkserver, not fork: Open3D (the dense step) starts thread pools at import, and
-        # children forked from a process holding them deadlock in their first parallel call.
-        # A fresh worker spends ~2 s importing (Open3D alone 1.5 s), so this process works
-        # too: workers - 1 children take chunks from the front, this process takes the ones
-        # they have not started from the back.
-        # Each process gets its share of the cores for OpenMP / BLAS (Open3D's kernels): with
-        # every process using every core they oversubscribe them (redkitchen, interleaved
-        # runs: 45.6 fps with 2 OpenMP threads per process, 48.0 with 1).
-        threads = max(1, (os.cpu_count() or 1) // cfg.workers)
-        ctx = multiprocessing.get_context("forkserver" if "forkserver" in multiprocessing.get_all_start_methods()
-                                          else "spawn")
-        with ProcessPoolExecutor(cfg.workers - 1, mp_context=ctx) as pool:
-            futs = [(pool.submit(_run_chunk, seq, cfg, a, b, None, threads), (a, b)) for a, b in bounds]
-            for f, (a, b) in reversed(futs):
-                if f.cancel():
-                    edges += _run_chunk(seq, cfg, a, b, bar.update, threads)
-            for f, (a, b) in futs:
-                if not f.cancelled():
-                    edges += f.result()
-                    bar.update(b - a)
+        edges = _run_chunks(seq, cfg, bounds, bar.update)
     bar.close()
     edges.sort(key=lambda e: (e.i, e.j))
     poses, bridges = chain_trajectory(seq.ids(), edges, cfg.gaps)
     return TeacherRun(edges, poses, bridges, time.perf_counter() - t0)
+
+
+def _run_chunks(seq: Sequence, cfg: TeacherConfig, bounds: list[tuple[int, int]],
+                on_frame: Callable[[int], object]) -> list[EdgeEstimate]:
+    """Edges of all chunks, shared between this process and ``cfg.workers - 1`` children.
+
+    Chunks are handed out one at a time as a process becomes free: children from the
+    front, this process from the back. A child is sent its first chunk only once it has
+    started (at once if :func:`teacher.processes.start` ran early enough; else about 2 s
+    of imports), and this process works meanwhile. A chunk queued in a pool cannot be
+    taken back, so handing all out up front left this process idle at the end
+    (synthetic/office, 300 frames: 1.8 s of 7.4). The chunk bounds depend only on the
+    sequence length, so the edges do not depend on who computes which chunk.
+    """
+    # Each process gets its share of the cores for OpenMP / BLAS (Open3D's kernels): with
+    # every process using every core they oversubscribe them (redkitchen, interleaved
+    # runs: 45.6 fps with 2 OpenMP threads per process, 48.0 with 1).
+    threads = max(1, (os.cpu_count() or 1) // cfg.workers)
+    processes.start()
+    todo = deque(bounds)
+    lock = threading.Lock()
+
+    def take(front: bool) -> Optional[tuple[int, int]]:
+        with lock:
+            return None if not todo else todo.popleft() if front else todo.pop()
+
+    def feed(children: ProcessPoolExecutor) -> list[EdgeEstimate]:
+        """Keeps one child busy, one chunk at a time (runs in a thread of this process)."""
+        out: list[EdgeEstimate] = []
+        try:
+            children.submit(_started).result()
+            while (ab := take(front=True)) is not None:
+                out += children.submit(_run_chunk, seq, cfg, *ab, None, threads).result()
+                on_frame(ab[1] - ab[0])
+        except BaseException:
+            todo.clear()  # the others stop after their current chunk
+            raise
+        return out
+
+    edges: list[EdgeEstimate] = []
+    with ProcessPoolExecutor(cfg.workers - 1, mp_context=processes.context()) as children, \
+            ThreadPoolExecutor(cfg.workers - 1) as feeders:
+        fed = [feeders.submit(feed, children) for _ in range(cfg.workers - 1)]
+        try:
+            while (ab := take(front=False)) is not None:
+                edges += _run_chunk(seq, cfg, *ab, on_frame, threads)
+        except BaseException:
+            todo.clear()
+            raise
+        for f in fed:
+            edges += f.result()
+    return edges
+
+
+def _started() -> None:
+    """A no-op a child runs to show it has started and imported this module."""
 
 
 def _chunks(n: int, cfg: TeacherConfig) -> list[tuple[int, int]]:
@@ -332,6 +370,8 @@ def generate(spec: str, out: Optional[Path] = None, split: str = "all", frames: 
 
     if config.gaps < 1:
         raise ConfigError(f"--gaps must be >= 1, got {config.gaps}")
+    if config.workers > 1:
+        processes.start()  # the workers import while the scene opens (or renders)
     seqs = open_scene(spec, split=split, frames=frames)
     base = Path(out) if out is not None else default_out(spec)
     ensure_dir(base)

@@ -119,7 +119,7 @@ def test_worker_processes_give_the_same_edges(office_clean):
     """Chunks estimated in 2 worker processes (fork server) give the edges of one process:
     same pairs and statuses (chunks overlap by ``gaps`` frames), poses within 1 mm, the
     teacher's accuracy on these frames (not identical: a chunk's first edge has no motion
-    prior to guide its matching, and RANSAC's random state differs per process)."""
+    prior to guide its matching)."""
     cfg = dataclasses.replace(TeacherConfig(), gaps=2)
     one = run_sequence(office_clean, dataclasses.replace(cfg, workers=1), progress=False)
     two = run_sequence(office_clean, dataclasses.replace(cfg, workers=2, chunk_frames=4), progress=False)
@@ -127,6 +127,46 @@ def test_worker_processes_give_the_same_edges(office_clean):
     assert len(one.edges) == 11 + 10
     for a, b in zip(one.edges, two.edges):
         assert relative_pose_error(a.T_i_j, b.T_i_j)[0] < 1e-3
+
+
+def _dense_step_in_child(threads: int) -> tuple[dict, float]:
+    """One dense alignment with ``threads`` OpenMP threads, of a wavy surface to itself
+    from 3 mm off: (its ``info["dense"]``, the translation left)."""
+    from threadpoolctl import threadpool_limits
+
+    from teacher.odometry import dense_maps, dense_refine
+
+    cfg = TeacherConfig()
+    K = np.array([[585.0, 0, 320], [0, 585, 240], [0, 0, 1]])
+    v, u = np.mgrid[0:480, 0:640]
+    depth = (2.0 + 0.3 * np.sin(u / 40.0) * np.cos(v / 30.0)).astype(np.float32)
+    with threadpool_limits(threads):
+        maps = dense_maps(depth, K, cfg)
+        res = EdgeEstimate(0, 1, "ok", T_i_j=geo.se3_exp([0.003, 0.0, 0.0, 0.0, 0.0, 0.0]))
+        dense_refine(res, maps, maps, dataclasses.replace(cfg, dense_blend=1.0))
+    return res.info["dense"], float(np.linalg.norm(res.T_i_j[:3, 3]))
+
+
+def test_workers_run_openmp_with_several_threads():
+    """Workers are forked from a fork server that has imported Open3D. Had that import
+    started OpenMP's thread pool, a child would hang in its first parallel region with 2+
+    threads (libgomp does not survive fork); the server imports with one thread."""
+    from concurrent.futures import ProcessPoolExecutor, TimeoutError
+
+    from teacher import processes
+
+    processes.start()
+    ex = ProcessPoolExecutor(1, mp_context=processes.context())
+    try:
+        info, left = ex.submit(_dense_step_in_child, 2).result(timeout=120)
+    except TimeoutError:
+        for p in ex._processes.values():
+            p.kill()
+        pytest.fail("the dense step hung in a worker with 2 OpenMP threads")
+    finally:
+        ex.shutdown(cancel_futures=True)
+    assert info["accepted"]
+    assert left < 0.5e-3
 
 
 def _two_way_problem(seed: int, outliers: int = 0):
