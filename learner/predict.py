@@ -177,7 +177,9 @@ def calibration(edges: EdgeSet, gt: NDArray[np.float64]) -> tuple[dict[str, floa
     err = se3_l2_errors(T_gt, T_est)
     d2 = mahalanobis2(np.array([geo.se3_log(geo.inv_T(a) @ b) for a, b in zip(T_est, T_gt)]), edges.cov)
     worst = err >= np.quantile(err, 0.9)
-    rho = spearmanr(edges.sigma, err).statistic if len(err) > 2 else float("nan")
+    # a rank correlation needs two rankings that vary (sigma is constant e.g. with 1 sample)
+    varies = len(err) > 2 and np.ptp(edges.sigma) > 0 and np.ptp(err) > 0
+    rho = spearmanr(edges.sigma, err).statistic if varies else float("nan")
     stats = nees_stats(d2)
     out = {
         "spearman_sigma_error": float(rho),

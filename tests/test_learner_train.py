@@ -195,7 +195,7 @@ def test_paper_preset_single_forward_backward() -> None:
     terms = L.window_loss(xi_s, xi_d[None], lab[:, :W], torch.ones(1, W), lab, torch.ones(1, P), G, 1.0, 3.0)
     terms.total.backward()
     assert xi_d.shape == (P, 6) and xi_s.shape == (1, W, 6)
-    assert torch.isfinite(terms.total.detach()) and float(terms.reg) > 0
+    assert torch.isfinite(terms.total.detach()) and float(terms.reg.detach()) > 0
     assert float(small.features[0].weight.grad.abs().sum()) > 0
     assert float(small.lstm.weight_ih_l0.grad.abs().sum()) > 0
 
