@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import subprocess
 import tempfile
@@ -74,3 +75,18 @@ def git_revision() -> str:
         return out.stdout.strip() + ("-dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
+
+
+#: the packages whose loggers the command-line tools show at INFO
+PACKAGES = ("data", "teacher", "learner", "posegraph")
+
+
+def setup_logging(verbose: bool = False, fmt: str = "%(levelname)s %(name)s: %(message)s") -> None:
+    """Log this project's messages at INFO (DEBUG with ``verbose``), other libraries' at WARNING.
+
+    Libraries log INFO lines of their own at import (numexpr, pulled in by evo's pandas:
+    "NumExpr defaulting to 2 threads."), which are not the tools' output.
+    """
+    logging.basicConfig(level=logging.WARNING, format=fmt)
+    for name in PACKAGES:
+        logging.getLogger(name).setLevel(logging.DEBUG if verbose else logging.INFO)

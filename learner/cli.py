@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from data.errors import VOError
+from data.io import setup_logging
 from learner.config import PRESETS, VARIANTS, PredictConfig
 
 
@@ -77,8 +78,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = _parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(levelname)s %(name)s: %(message)s")
+    setup_logging(args.verbose)
     try:
         if args.cmd == "fit":
             from learner.train import fit

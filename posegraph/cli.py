@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import logging
 import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
 from data.errors import VOError
+from data.io import setup_logging
 from posegraph.config import KERNELS, OUTLIER_ACTIONS, PRESETS, SOLVERS
 
 
@@ -44,8 +44,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = _parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(levelname)s %(name)s: %(message)s")
+    setup_logging(args.verbose)
     try:
         from posegraph.optimize import optimize
 

@@ -18,8 +18,9 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from data.errors import VOError
+from data.io import setup_logging
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("posegraph.pipeline")  # also when run as __main__
 
 
 def run(train: str, test: str, frames: Optional[str], epochs: Optional[int], steps_per_epoch: Optional[int],
@@ -58,7 +59,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--preset", default="cpu")
     p.add_argument("--variant", default="ctc")
     args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    setup_logging()
     try:
         out = run(args.train, args.test, args.frames, args.epochs, args.steps_per_epoch, args.preset, args.variant,
                   args.val or None)

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import logging
 import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
 from data.errors import VOError
+from data.io import setup_logging
 from teacher import processes
 from teacher.config import PRESETS
 
@@ -32,7 +32,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(message)s")
+    setup_logging(args.verbose, "%(message)s")
     cfg = PRESETS[args.preset]
     if args.gaps is not None:
         cfg = dataclasses.replace(cfg, gaps=args.gaps)

@@ -307,3 +307,18 @@ def test_module_docstring_names_every_writer() -> None:
     """Each writer here has a reader (no write-only formats)."""
     for w, r in [("write_tum", "read_tum"), ("write_g2o", "read_g2o"), ("write_edges_csv", "read_edges_csv")]:
         assert callable(getattr(formats, w)) and callable(getattr(formats, r))
+
+
+def test_setup_logging_shows_ours_at_info_and_libraries_at_warning() -> None:
+    """The tools print this project's INFO lines, not the INFO lines libraries log at import."""
+    import subprocess
+    import sys
+
+    code = ("import logging; from data.io import setup_logging; setup_logging(); "
+            "logging.getLogger('numexpr.utils').info('NumExpr defaulting to 2 threads.'); "
+            "logging.getLogger('numexpr.utils').warning('a library warning'); "
+            "logging.getLogger('teacher.generate').info('ours'); "
+            "logging.getLogger('teacher.generate').debug('not without -v')")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert res.stderr.splitlines() == ["WARNING numexpr.utils: a library warning", "INFO teacher.generate: ours"]
