@@ -106,6 +106,7 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--flip-prob", type=float, help="left-right mirroring augmentation (default: the preset's)")
+    ap.add_argument("--reverse-prob", type=float, help="time-reversal augmentation (default: the preset's)")
     ap.add_argument("--sub-length", type=int, default=30, help="frames per sub-trajectory of the ATE mean +- std")
     ap.add_argument("--sub-stride", type=int, default=15, help="frames between sub-trajectory starts")
     ap.add_argument("--out", type=Path, default=Path("runs/ablation"))
@@ -128,7 +129,7 @@ def main() -> None:
         res = fit(args.scene, variant=v, preset=args.preset, frames=args.frames, out=run,
                   resume=(run / "checkpoint.pt").is_file(), teacher_root=args.teacher, epochs=args.epochs,
                   steps_per_epoch=args.steps_per_epoch, seed=args.seed, lr_halve_every=args.lr_halve_every,
-                  flip_prob=args.flip_prob)
+                  flip_prob=args.flip_prob, reverse_prob=args.reverse_prob)
         t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
         rep = predict(res.checkpoint, test_scene, frames=args.test_frames, out=run / "predict",
                       config=PredictConfig(samples=args.samples)).reports[0]

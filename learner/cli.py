@@ -39,6 +39,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="halve the learning rate every N epochs (default: the preset's, scaled with --epochs)")
     f.add_argument("--seed", type=int, help="random seed (overrides the preset)")
     f.add_argument("--flip-prob", type=float, help="left-right mirroring augmentation probability (overrides the preset)")
+    f.add_argument("--reverse-prob", type=float, help="time-reversal augmentation probability (overrides the preset)")
     f.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     f.add_argument("--pretrained", type=Path, help="local torchvision vgg11_bn state-dict file")
     f.add_argument("--teacher", type=Path,
@@ -88,7 +89,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                       resume=args.resume,
                       pretrained=args.pretrained, teacher_root=args.teacher, epochs=args.epochs,
                       seed=args.seed, steps_per_epoch=args.steps_per_epoch, lr_halve_every=args.lr_halve_every,
-                      flip_prob=args.flip_prob,
+                      flip_prob=args.flip_prob, reverse_prob=args.reverse_prob,
                       calibrate=args.calibrate)
             logging.getLogger("learner").info("checkpoint: %s", res.checkpoint)
         elif args.cmd == "calibrate":

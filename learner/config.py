@@ -89,6 +89,12 @@ class TrainConfig:
     i.e. ``(v, w) -> (-vx, vy, vz, wx, -wy, -wz)``; compositions stay consistent, so the
     CTC holds. Exact for a principal point at the image centre (7-Scenes, the synthetic
     scenes; TUM's is 1-2 px off at 640 px)."""
+    reverse_prob: float = 0.0
+    """Play each training pair (phase 1) or window (phase 2) backwards with this
+    probability: the two frames of a pair swap places and the label becomes
+    ``log(T^-1) = -log(T)``; a window's frames run in reverse order, so its compositions
+    stay consistent and the CTC holds. Exact. The label set becomes symmetric, so the
+    network cannot learn the training recording's mean motion as a bias."""
 
     def __post_init__(self) -> None:
         if self.epochs < 1 or not 0 <= self.pretrain_epochs <= self.epochs:
@@ -97,8 +103,9 @@ class TrainConfig:
             raise ConfigError("need max_gap >= 1 and 1 <= window_min <= window_max")
         if self.batch_pairs < 1 or self.batch_windows < 1:
             raise ConfigError("batch sizes must be positive")
-        if not 0.0 <= self.flip_prob <= 1.0:
-            raise ConfigError(f"flip_prob must be in [0, 1], got {self.flip_prob}")
+        for name in ("flip_prob", "reverse_prob"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"{name} must be in [0, 1], got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)

@@ -399,6 +399,17 @@ def _mirror(x: Tensor, lab: Tensor, flip: Tensor) -> tuple[Tensor, Tensor]:
     return x, lab
 
 
+def _reverse(x: Tensor, lab: Tensor, rev: Tensor) -> tuple[Tensor, Tensor]:
+    """Play the samples ``rev`` (B,) bool backwards: the two frames of each pair in ``x``
+    (B, ..., 6, H, W) swap places, labels ``lab`` (B, ..., 6) become ``log(T^-1) = -log(T)``."""
+    if not bool(rev.any()):
+        return x, lab
+    x, lab = x.clone(), lab.clone()
+    x[rev] = torch.cat([x[rev][..., 3:, :, :], x[rev][..., :3, :, :]], dim=-3)
+    lab[rev] = -lab[rev]
+    return x, lab
+
+
 def _pairs_step(net, data, rows: np.ndarray, cfg: TrainConfig, aug: bool, gen, device) -> L.LossTerms:
     x, labs, masks = [], [], []
     for s in np.unique(rows[:, 0]):
@@ -412,6 +423,8 @@ def _pairs_step(net, data, rows: np.ndarray, cfg: TrainConfig, aug: bool, gen, d
     x, lab = torch.cat(x), torch.cat(labs)
     if cfg.flip_prob > 0:
         x, lab = _mirror(x, lab, torch.rand(len(x), generator=gen) < cfg.flip_prob)
+    if cfg.reverse_prob > 0:
+        x, lab = _reverse(x, lab, torch.rand(len(x), generator=gen) < cfg.reverse_prob)
     xi_d, _ = net(x.to(device))
     return L.pair_loss(xi_d, lab.to(device), torch.cat(masks).to(device), cfg.beta)
 
@@ -421,16 +434,20 @@ def _windows_step(net, data, rows: np.ndarray, W: int, cfg: TrainConfig, aug: bo
     P = len(pairs)
     pi = torch.tensor([i for i, _ in pairs])
     pg = torch.tensor([j - i for i, j in pairs])
+    B = len(rows)
+    # a reversed window: its pair (i, j) is the original pair (start + W - j, start + W - i)
+    # played backwards (its frames swapped and its label negated by _reverse below)
+    rev = (torch.rand(B, generator=gen) < cfg.reverse_prob) if cfg.reverse_prob > 0 else torch.zeros(B, dtype=torch.bool)
     x, labs, masks = [], [], []
-    for s, start in rows:
+    for b, (s, start) in enumerate(rows):
         d = data[int(s)]
-        k = pi + int(start)
+        k = int(start) + W - pi - pg if rev[b] else pi + int(start)
         x.append(d.pairs(k, k + pg))
         lab, m = _labels(d, k, pg, aug, gen)
         labs.append(lab)
         masks.append(m)
-    B = len(rows)
     x, lab = torch.stack(x), torch.stack(labs)  # (B, P, 6, H, W), (B, P, 6)
+    x, lab = _reverse(x, lab, rev)
     if cfg.flip_prob > 0:  # a whole window at a time
         x, lab = _mirror(x, lab, torch.rand(B, generator=gen) < cfg.flip_prob)
     seq_index = (torch.arange(B)[:, None] * P + torch.arange(W)[None, :]).to(device)  # gap-1 block first

@@ -159,6 +159,67 @@ def test_mirror_flips_only_the_chosen_samples() -> None:
     assert torch.equal(x[0, 0, 0], torch.tensor([0.0, 1.0, 2.0]))  # inputs untouched
 
 
+def _motion_reader(gt: np.ndarray):
+    """A stand-in network for frames whose pixels all equal their position k: it reads the
+    two positions of each pair and returns the true twist between them (direct head), and
+    the direct twists of the pairs ``seq_index`` (sequential head)."""
+
+    def net(x: torch.Tensor, seq_index: torch.Tensor | None = None):
+        a, b = x[:, 0, 0, 0].long().tolist(), x[:, 3, 0, 0].long().tolist()
+        xi = torch.tensor(np.array([geo.se3_log(geo.relative_pose(gt[i], gt[j])) for i, j in zip(a, b)]),
+                          dtype=torch.float32)
+        return xi, (xi[seq_index] if seq_index is not None else None)
+
+    return net
+
+
+@pytest.mark.parametrize("reverse_prob", [0.0, 1.0])
+def test_reversed_pairs_and_windows_keep_labels_and_ctc_exact(reverse_prob) -> None:
+    """Time reversal: with exact labels, a network that returns the true motion between the
+    frames it is shown has zero regression and CTC loss, also on pairs and windows played
+    backwards (frames swapped and re-ordered, labels negated)."""
+    from learner.dataset import SequenceData
+    from learner.train import _pairs_step, _windows_step
+    from learner.config import TrainConfig
+
+    rng = np.random.default_rng(1)
+    N, G, W = 30, 3, 6
+    gt = [np.eye(4)]
+    for _ in range(N - 1):
+        gt.append(gt[-1] @ geo.se3_exp(rng.normal(0, [0.01, 0.01, 0.01, 0.02, 0.02, 0.02])))
+    gt = np.array(gt)
+    labels = torch.zeros(G + 1, N, 6)
+    mask = torch.zeros(G + 1, N, dtype=torch.bool)
+    for g in range(1, G + 1):
+        for k in range(N - g):
+            labels[g, k] = torch.from_numpy(geo.se3_log(geo.relative_pose(gt[k], gt[k + g])))
+            mask[g, k] = True
+    frames = torch.arange(N, dtype=torch.uint8)[:, None, None, None].expand(N, 3, 2, 2).contiguous()
+    data = [SequenceData("s", np.arange(N), np.arange(N) / 30.0, frames, labels, mask, None, gt)]
+    cfg = TrainConfig(max_gap=G, reverse_prob=reverse_prob)
+    gen = torch.Generator().manual_seed(0)
+    net = _motion_reader(gt)
+    rows = np.array([[0, k, g] for g in range(1, G + 1) for k in range(0, N - g, 4)])
+    terms = _pairs_step(net, data, rows, cfg, False, gen, "cpu")
+    assert float(terms.reg) < 1e-12
+    terms = _windows_step(net, data, np.array([[0, 0], [0, 7], [0, N - 1 - W]]), W, cfg, False, gen, "cpu")
+    assert float(terms.reg) < 1e-12 and float(terms.ctc) < 1e-10
+    # and the check can fail: a network that ignores the direction of time does not fit
+    swapped = _motion_reader(gt[::-1].copy())
+    assert float(_pairs_step(swapped, data, rows, cfg, False, gen, "cpu").reg) > 1e-6
+
+
+def test_reverse_shows_the_later_frame_first() -> None:
+    from learner.train import _reverse
+
+    x = torch.arange(2 * 6 * 2 * 2, dtype=torch.float32).view(2, 6, 2, 2)
+    lab = torch.arange(12, dtype=torch.float32).view(2, 6)
+    xr, lr = _reverse(x, lab, torch.tensor([True, False]))
+    assert torch.equal(xr[0, :3], x[0, 3:]) and torch.equal(xr[0, 3:], x[0, :3]) and torch.equal(xr[1], x[1])
+    assert torch.equal(lr[0], -lab[0]) and torch.equal(lr[1], lab[1])
+    assert torch.equal(x[0, 0], torch.tensor([[0.0, 1.0], [2.0, 3.0]]))  # inputs untouched
+
+
 def test_flip_augmentation_trains(fixture_seq, tmp_path) -> None:
     seq, teacher = fixture_seq
     res = fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=teacher, flip_prob=1.0)
@@ -167,6 +228,16 @@ def test_flip_augmentation_trains(fixture_seq, tmp_path) -> None:
     assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["flip_prob"] == 1.0
     with pytest.raises(ConfigError, match="flip_prob"):
         fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "bad", teacher_root=teacher, flip_prob=1.5)
+
+
+def test_reverse_augmentation_trains(fixture_seq, tmp_path) -> None:
+    seq, teacher = fixture_seq
+    res = fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=teacher, reverse_prob=0.5)
+    assert [h["phase"] for h in res.history] == ["pairs", "windows"]
+    assert all(np.isfinite(h["loss"]) and h["reg"] > 0 for h in res.history)
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["reverse_prob"] == 0.5
+    with pytest.raises(ConfigError, match="reverse_prob"):
+        fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "bad", teacher_root=teacher, reverse_prob=-0.1)
 
 
 def test_paper_preset_single_forward_backward() -> None:
