@@ -189,14 +189,16 @@ PAPER = Preset("paper", ModelConfig(), TrainConfig())
 #: A network that trains on a 2-core CPU: 128x96 input, VGG-11 widths / 8 (8..64
 #: channels), strided convs 256, C = 256, LSTM 256.
 #:
-#: Trade-off: the issue asked for widths / 4 (16..128). Measured with bench/learner.py on the
-#: 2-core machine (see bench/README.md), widths / 4 trains at about 30-40 pairs per CPU
-#: second, so at most 60-80 pairs/s on two idle cores, short of the 100 pairs/s target;
-#: widths / 8 roughly triples that (the conv cost scales with the square of the width, and
-#: 8-channel blocks suit oneDNN's AVX2 kernels). The price is a thinner encoder: 8 channels
-#: after the first conv for 6 input channels, 64 at the deepest VGG layers, i.e. less
-#: capacity to represent texture at 128x96. The input resolution was kept (it bounds the
-#: translation precision of small frame-to-frame motions), as were the heads. Use
+#: Trade-off: the issue suggested widths / 4 (16..128). On a loaded 2-core machine widths / 4
+#: trained at 30-40 pairs per CPU second, short of the 100 pairs/s target, and widths / 8
+#: roughly tripled that (the conv cost scales with the square of the width, and 8-channel
+#: blocks suit oneDNN's AVX2 kernels). On the idle VM both pass (training 2 threads: widths
+#: / 4 170-218 pairs/s, widths / 8 299-323), and widths / 4 learnt no better: ctc on
+#: redkitchen 0:450 -> 450:600, se(3) L2 0.01189 / 0.01352 over two seeds against 0.01209 /
+#: 0.01278, in twice the time (bench/README.md). The price of widths / 8 is a thinner
+#: encoder: 8 channels after the first conv for 6 input channels, 64 at the deepest VGG
+#: layers. The input resolution was kept (it bounds the translation precision of small
+#: frame-to-frame motions), as were the heads. Use
 #: ``dataclasses.replace(CPU.model, conv_widths=_div(VGG11_WIDTHS, 4))`` for the wider one.
 #:
 #: Half the training pairs and windows are played backwards (``reverse_prob``; not in the
