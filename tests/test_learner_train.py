@@ -220,24 +220,17 @@ def test_reverse_shows_the_later_frame_first() -> None:
     assert torch.equal(x[0, 0], torch.tensor([[0.0, 1.0], [2.0, 3.0]]))  # inputs untouched
 
 
-def test_flip_augmentation_trains(fixture_seq, tmp_path) -> None:
+@pytest.mark.parametrize("name, good, bad", [("flip_prob", 1.0, 1.5), ("reverse_prob", 0.5, -0.1)])
+def test_augmentation_trains(fixture_seq, tmp_path, name, good, bad) -> None:
+    """Mirroring and time reversal: a tiny fit with each trains both phases, records its
+    probability in config.json, and a probability outside [0, 1] is refused."""
     seq, teacher = fixture_seq
-    res = fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=teacher, flip_prob=1.0)
+    res = fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=teacher, **{name: good})
     assert [h["phase"] for h in res.history] == ["pairs", "windows"]
     assert all(np.isfinite(h["loss"]) and h["reg"] > 0 for h in res.history)
-    assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["flip_prob"] == 1.0
-    with pytest.raises(ConfigError, match="flip_prob"):
-        fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "bad", teacher_root=teacher, flip_prob=1.5)
-
-
-def test_reverse_augmentation_trains(fixture_seq, tmp_path) -> None:
-    seq, teacher = fixture_seq
-    res = fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=teacher, reverse_prob=0.5)
-    assert [h["phase"] for h in res.history] == ["pairs", "windows"]
-    assert all(np.isfinite(h["loss"]) and h["reg"] > 0 for h in res.history)
-    assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["reverse_prob"] == 0.5
-    with pytest.raises(ConfigError, match="reverse_prob"):
-        fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "bad", teacher_root=teacher, reverse_prob=-0.1)
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["train"][name] == good
+    with pytest.raises(ConfigError, match=name):
+        fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "bad", teacher_root=teacher, **{name: bad})
 
 
 def test_paper_preset_single_forward_backward() -> None:
