@@ -92,3 +92,37 @@ def trajectory_report(gt: Trajectory, est: Trajectory) -> dict[str, float]:
         "rpe_rot_rmse_deg": r,
         "se3_l2_mean": float(np.mean(se3_l2_errors(relative_poses(gt.poses), relative_poses(est.poses)))),
     }
+
+
+#: names of the trivial baselines every learned figure is shown beside
+BASELINES = ("zero motion", "constant velocity")
+
+
+def zero_motion_poses(gt_poses: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A camera that never moves: every pose is the first ground-truth pose, (N, 4, 4)."""
+    gt_poses = np.asarray(gt_poses, dtype=np.float64)
+    return np.repeat(gt_poses[:1], len(gt_poses), axis=0)
+
+
+def constant_velocity_poses(gt_poses: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A constant-velocity motion model fed the true previous motion: step k -> k+1 repeats
+    the ground-truth step k-1 -> k (the first step is zero motion), chained from the first
+    pose, (N, 4, 4). Its relative error is what a predictor with a one-frame lag scores."""
+    gt_poses = np.asarray(gt_poses, dtype=np.float64)
+    out = [gt_poses[0]]
+    step = np.eye(4)
+    for k in range(1, len(gt_poses)):
+        out.append(out[-1] @ step)
+        step = geo.relative_pose(gt_poses[k - 1], gt_poses[k])
+    return np.array(out)
+
+
+def baseline_trajectories(gt: Trajectory) -> dict[str, Trajectory]:
+    """The trivial baselines (:data:`BASELINES`) as trajectories at the ground truth's times."""
+    return {"zero motion": Trajectory(gt.timestamps, zero_motion_poses(gt.poses)),
+            "constant velocity": Trajectory(gt.timestamps, constant_velocity_poses(gt.poses))}
+
+
+def baseline_reports(gt: Trajectory) -> dict[str, dict[str, float]]:
+    """:func:`trajectory_report` of each trivial baseline against ``gt``."""
+    return {name: trajectory_report(gt, traj) for name, traj in baseline_trajectories(gt).items()}
