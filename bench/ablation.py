@@ -15,7 +15,10 @@ paper's ATE: mean and standard deviation of the ATE RMSE of sub-trajectories of
 Umeyama, no scale); gap-1 RPE; the paper's se(3) L2 error of the gap-1 relative poses; the
 MC-dropout covariance calibration keys of ``learner predict``. Results go to
 ``--out``/ablation.json (with the load average after each variant) and are printed as
-Markdown tables.
+Markdown tables. Beside every learned row stand the trivial baselines of
+:func:`data.metrics.baseline_trajectories` on the test frames (computed once from the test
+ground truth): results ``zero_motion`` (the camera never moves) and ``constant_velocity``
+(each step repeats the previous true step), with the trajectory columns only.
 
     .venv/bin/python bench/ablation.py --scene ../shared/data/7scenes/redkitchen/seq-sample \\
         --frames 0:450 --test-frames 450:600 --teacher /tmp/rk/teacher --teacher-eval /tmp/rk/teacher \\
@@ -41,7 +44,7 @@ sys.path = [q for q in sys.path if Path(q or ".").resolve() != Path(__file__).re
 
 from data.formats import Trajectory, read_tum  # noqa: E402
 from data.io import write_json  # noqa: E402
-from data.metrics import associate, ate_rmse, trajectory_report  # noqa: E402
+from data.metrics import BASELINE_KEYS, associate, ate_rmse, baseline_trajectories, trajectory_report  # noqa: E402
 from data.scenes import open_scene  # noqa: E402
 from learner.config import VARIANTS, PredictConfig  # noqa: E402
 from learner.predict import predict  # noqa: E402
@@ -67,6 +70,13 @@ def trajectory_row(gt: Trajectory, est: Trajectory, length: int, stride: int) ->
     rep = trajectory_report(gt, est)
     rep.update(ate_sub_mean_m=float(sub.mean()), ate_sub_std_m=float(sub.std()), ate_sub_count=len(sub))
     return rep
+
+
+def baseline_rows(gt: Trajectory, length: int, stride: int) -> dict[str, dict]:
+    """The trajectory columns of the trivial baselines (keys ``zero_motion``,
+    ``constant_velocity``) on the test ground truth, each with its ``label``."""
+    return {BASELINE_KEYS[name]: {"label": name, **trajectory_row(gt, est, length, stride)}
+            for name, est in baseline_trajectories(gt).items()}
 
 
 def test_groundtruth(scene: str, frames: Optional[str]) -> Trajectory:
@@ -121,6 +131,7 @@ def main() -> None:
     rows: dict[str, dict] = {}
     if args.teacher_eval is not None:
         rows["teacher"] = teacher_row(args.teacher_eval, gt, args.sub_length, args.sub_stride)
+    rows.update(baseline_rows(gt, args.sub_length, args.sub_stride))
     meta = {"args": {k: str(x) for k, x in vars(args).items()}, "started": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
             "torch_threads": torch.get_num_threads()}
     for v in args.variants:
@@ -147,13 +158,14 @@ def main() -> None:
     print("| variant | ATE m (whole) | ATE m (sub-traj. mean +- std) | RPE trans m | RPE rot deg | se(3) L2 |")
     print("|---|---|---|---|---|---|")
     for v, r in rows.items():
-        print(f"| {v} | {fmt(r['ate_rmse_m'])} | {fmt(r['ate_sub_mean_m'])} +- {fmt(r['ate_sub_std_m'])} | "
+        print(f"| {r.get('label', v)} | {fmt(r['ate_rmse_m'])} | "
+              f"{fmt(r['ate_sub_mean_m'])} +- {fmt(r['ate_sub_std_m'])} | "
               f"{fmt(r['rpe_trans_rmse_m'])} | {fmt(r['rpe_rot_rmse_deg'])} | {fmt(r['se3_l2_mean'])} |")
     print()
     print("| variant | " + " | ".join(CAL_KEYS) + " | fit s (wall / CPU) | steps |")
     print("|---" * (len(CAL_KEYS) + 3) + "|")
     for v, r in rows.items():
-        if v == "teacher":
+        if v == "teacher" or v in BASELINE_KEYS.values():
             continue
         print(f"| {v} | " + " | ".join(fmt(r[k]) for k in CAL_KEYS) + f" | {r['fit_s']} / {r['fit_cpu_s']} | {r['steps']} |")
 

@@ -36,14 +36,33 @@ def _check(gt: Trajectory, est: Trajectory) -> None:
         raise VOError("need at least two poses to evaluate a trajectory")
 
 
+def _aligned_rmse(ref_xyz: NDArray[np.float64], est_xyz: NDArray[np.float64]) -> float:
+    """RMS distance of (N, 3) ``ref_xyz`` to ``R est_xyz + t`` for the best rotation and
+    translation (Umeyama, no scale, as evo). Also defined where evo refuses to align: an
+    estimate whose positions are all equal or collinear (any optimal ``R`` gives the same
+    value)."""
+    mx, my = est_xyz.mean(axis=0), ref_xyz.mean(axis=0)
+    U, _, Vt = np.linalg.svd((ref_xyz - my).T @ (est_xyz - mx) / len(ref_xyz))
+    S = np.diag([1.0, 1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0])
+    R = U @ S @ Vt
+    err = ref_xyz - (est_xyz @ R.T + (my - R @ mx))
+    return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+
+
 def ate_rmse(gt: Trajectory, est: Trajectory) -> float:
-    """ATE RMSE in metres after SE(3) Umeyama alignment without scale (evo APE)."""
+    """ATE RMSE in metres after SE(3) Umeyama alignment without scale (evo APE). Where evo
+    cannot align (the estimate's positions are all equal or collinear, e.g. the zero-motion
+    baseline) the same alignment is solved here (:func:`_aligned_rmse`)."""
     from evo.core import metrics
+    from evo.core.geometry import GeometryException
 
     _check(gt, est)
     ref, e = gt.to_evo(), est.to_evo()
     e = copy.deepcopy(e)
-    e.align(ref, correct_scale=False)
+    try:
+        e.align(ref, correct_scale=False)
+    except GeometryException:
+        return _aligned_rmse(np.asarray(gt.poses)[:, :3, 3], np.asarray(est.poses)[:, :3, 3])
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, e))
     return float(ape.get_statistic(metrics.StatisticsType.rmse))
@@ -96,6 +115,8 @@ def trajectory_report(gt: Trajectory, est: Trajectory) -> dict[str, float]:
 
 #: names of the trivial baselines every learned figure is shown beside
 BASELINES = ("zero motion", "constant velocity")
+#: the JSON key of each baseline's row (``report.json`` ``rows``, ``ablation.json`` ``results``)
+BASELINE_KEYS = {name: name.replace(" ", "_") for name in BASELINES}
 
 
 def zero_motion_poses(gt_poses: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -181,6 +181,7 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
     rows["fused"] = result.poses
     blocks["fused"] = rep.row_block("fused", result.poses, frames.ids, frames.times, gt, edges, None,
                                     f"{cfg.solver} over {'+'.join(used)} edges")
+    blocks.update(rep.baseline_blocks(frames.ids, frames.times, gt))  # absent without ground truth
 
     report = {
         "stage": "posegraph",

@@ -1,4 +1,5 @@
-"""The comparison table: teacher (chained), learner (chained), fused (graph).
+"""The comparison table: teacher (chained), learner (chained), fused (graph), and, with
+ground truth, the trivial baselines zero motion and constant velocity.
 
 Per row (``report.json`` ``rows.<name>``): the standard keys of
 :func:`data.metrics.trajectory_report` (``ate_rmse_m``, ``rpe_trans_rmse_m``,
@@ -14,6 +15,13 @@ Per row (``report.json`` ``rows.<name>``): the standard keys of
   ``d^T C^-1 d`` with ``d = log(inv(T_meas) @ T_gt)`` (expected 6), its ratio to 6, and
   the fraction of edges inside the 1-sigma (68.27 %) and 2-sigma (95.45 %) chi-square
   regions of 6 dof.
+
+With ground truth, two more rows follow (:func:`baseline_blocks`): ``zero_motion`` and
+``constant_velocity``, the trajectories of :func:`data.metrics.baseline_trajectories` (a
+camera that never moves; a constant-velocity model repeating the true previous step),
+with the same ground-truth metric keys and ``null`` composition keys
+(``composition_n`` 0) and no ``calibration``: no learned figure is shown without them.
+Without ground truth these rows are absent.
 
 Metrics that need ground truth are ``null`` without it. The top-level
 ``covariance_scales`` / ``covariance_calibration`` (see
@@ -33,7 +41,11 @@ from data import geometry as geo
 from data import metrics
 from data.formats import Edge, Trajectory
 
-ROW_LABELS = {"teacher": "teacher (chained)", "learner": "learner (chained)", "fused": "fused (graph)"}
+ROW_LABELS = {"teacher": "teacher (chained)", "learner": "learner (chained)", "fused": "fused (graph)",
+              "zero_motion": "zero motion", "constant_velocity": "constant velocity"}
+BASELINE_KEYS = metrics.BASELINE_KEYS  # ``rows`` key of each trivial baseline
+BASELINE_HOW = {"zero motion": "baseline: every pose is the first ground-truth pose",
+                "constant velocity": "baseline: each step repeats the previous ground-truth step (first step zero)"}
 RPE_GAPS = (1, 2, 3)
 #: chi-square (6 dof) quantiles of the 1-sigma and 2-sigma probability masses.
 CHI2_6_1SIGMA = 7.0405
@@ -142,6 +154,23 @@ def row_block(name: str, poses: NDArray[np.float64], frame_ids: NDArray[np.int64
     return block
 
 
+def baseline_blocks(frame_ids: NDArray[np.int64], times: NDArray[np.float64],
+                    gt_poses: Optional[NDArray[np.float64]]) -> dict[str, dict]:
+    """``rows.zero_motion`` and ``rows.constant_velocity`` (see module doc); ``{}`` without
+    ground truth."""
+    if gt_poses is None:
+        return {}
+    gt = Trajectory(times, gt_poses)
+    out = {}
+    for name, traj in metrics.baseline_trajectories(gt).items():
+        key = BASELINE_KEYS[name]
+        block: dict = {"label": ROW_LABELS[key], "how": BASELINE_HOW[name], "n_poses": len(frame_ids)}
+        block.update(gt_metrics(gt, traj))
+        block.update({"composition_trans_rmse_m": None, "composition_rot_rmse_deg": None, "composition_n": 0})
+        out[key] = block
+    return out
+
+
 def _cell(v, fmt: str) -> str:
     return "-" if v is None else format(v, fmt)
 
@@ -166,6 +195,9 @@ def report_markdown(report: dict) -> str:
         cells += [_cell(b["rpe_1s_trans_m"], ".4f"), _cell(b["rpe_1s_rot_deg"], ".3f"), _cell(b["se3_l2_mean"], ".4f"),
                   _cell(b["composition_trans_rmse_m"], ".4f"), _cell(b["composition_rot_rmse_deg"], ".3f")]
         lines.append("| " + " | ".join(cells) + " |")
+    if any(k in rows for k in BASELINE_KEYS.values()):
+        lines += ["", "Baselines from the ground truth: zero motion (the camera never moves) and constant "
+                  "velocity (each step repeats the previous true step, the first step is zero)."]
     cal = [(n, b["calibration"]) for n, b in rows.items() if "calibration" in b]
     if cal:
         lines += ["", "## Covariance calibration (edges vs ground truth)", "",

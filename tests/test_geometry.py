@@ -405,3 +405,39 @@ def test_opencv_odometry_returns_T_dst_src() -> None:
     assert ok
     assert np.abs(Rt - geo.inv_T(_T_S_T)).max() < 0.005
     assert np.abs(Rt - _T_S_T).max() > 0.03
+
+
+# ----------------------------------------------------------------------------------
+# data.metrics: trivial baselines
+# ----------------------------------------------------------------------------------
+def test_metrics_baselines_known_answers_on_a_screw_motion() -> None:
+    """Constant screw motion ``gt_k = T0 S^k``: zero motion stays at ``T0`` (every gap-1
+    pair misses one ``S``), constant velocity is ``gt`` one frame late (only the first pair
+    misses ``S``)."""
+    from data.formats import Trajectory
+    from data.metrics import (BASELINE_KEYS, BASELINES, baseline_reports, baseline_trajectories,
+                              constant_velocity_poses, zero_motion_poses)
+
+    rng = np.random.default_rng(RNG_SEED)
+    n, xi = 12, np.array([0.05, -0.02, 0.1, 0.01, 0.03, -0.02])
+    S, T0 = geo.se3_exp(xi), _random_T(rng)
+    gt = np.array([T0 @ np.linalg.matrix_power(S, k) for k in range(n)])
+    np.testing.assert_allclose(zero_motion_poses(gt), np.repeat(T0[None], n, axis=0))
+    cv = constant_velocity_poses(gt)
+    np.testing.assert_allclose(cv[0], T0)
+    np.testing.assert_allclose(cv[1:], gt[:-1], atol=1e-12)
+    times = 3.0 + 0.1 * np.arange(n)
+    trajs = baseline_trajectories(Trajectory(times, gt))
+    assert tuple(trajs) == BASELINES and BASELINE_KEYS == {"zero motion": "zero_motion",
+                                                           "constant velocity": "constant_velocity"}
+    assert all(np.array_equal(t.timestamps, times) for t in trajs.values())
+    rep = baseline_reports(Trajectory(times, gt))
+    step_t, step_deg = float(np.linalg.norm(S[:3, 3])), float(np.degrees(np.linalg.norm(xi[3:])))
+    zm, cvr = rep["zero motion"], rep["constant velocity"]
+    assert zm["rpe_trans_rmse_m"] == pytest.approx(step_t, rel=1e-9)
+    assert zm["rpe_rot_rmse_deg"] == pytest.approx(step_deg, rel=1e-6)
+    assert zm["se3_l2_mean"] == pytest.approx(np.linalg.norm(xi), rel=1e-9)
+    assert cvr["rpe_trans_rmse_m"] == pytest.approx(step_t / np.sqrt(n - 1), rel=1e-9)
+    assert cvr["rpe_rot_rmse_deg"] == pytest.approx(step_deg / np.sqrt(n - 1), rel=1e-6)
+    assert cvr["se3_l2_mean"] == pytest.approx(np.linalg.norm(xi) / (n - 1), rel=1e-9)
+    assert 0 < cvr["ate_rmse_m"] < zm["ate_rmse_m"]

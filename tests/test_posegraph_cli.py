@@ -10,6 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from data.formats import Trajectory
+from data.metrics import BASELINE_KEYS, baseline_reports
+from posegraph import report
 from posegraph import synthetic as syn
 from posegraph.cli import main
 from posegraph.report import METRIC_KEYS
@@ -40,12 +43,28 @@ def test_report_has_every_row_and_key(dirs, tmp_path, capsys):
     rc, err = _run(["optimize", "--teacher", str(t), "--learner", str(l), "--out", str(out), "--marginals"], capsys)
     assert rc == 0, err
     rep = json.loads((out / "report.json").read_text())
-    assert list(rep["rows"]) == ["teacher", "learner", "fused"]
-    extras = [f"rpe_g{g}_{q}" for g in (1, 2, 3) for q in ("trans_m", "rot_deg")] + [
-        "rpe_1s_trans_m", "rpe_1s_rot_deg", "composition_trans_rmse_m", "composition_rot_rmse_deg"]
+    assert list(rep["rows"]) == ["teacher", "learner", "fused", "zero_motion", "constant_velocity"]
+    gt_keys = [*METRIC_KEYS, *(f"rpe_g{g}_{q}" for g in (1, 2, 3) for q in ("trans_m", "rot_deg")),
+               "rpe_1s_trans_m", "rpe_1s_rot_deg"]
+    comp_keys = ["composition_trans_rmse_m", "composition_rot_rmse_deg"]
     for name, block in rep["rows"].items():
-        for k in (*METRIC_KEYS, *extras):
+        for k in gt_keys:
             assert isinstance(block[k], float), (name, k)
+        for k in comp_keys:  # the baselines have no edges to be consistent with
+            assert (block[k] is None) == (name in BASELINE_KEYS.values()), (name, k)
+    # the baseline rows are data.metrics' baselines of the ground truth at the graph's frames
+    times = 100.0 + np.arange(N) / 10.0
+    want = baseline_reports(Trajectory(times, syn.helix(N)))
+    for name, key in BASELINE_KEYS.items():
+        block = rep["rows"][key]
+        assert block["label"] == name and block["n_poses"] == N and "calibration" not in block
+        assert block["composition_n"] == 0 and block["rpe_1s_frames"] == 10
+        for k, v in want[name].items():
+            assert block[k] == pytest.approx(v, rel=1e-6, abs=1e-9), (key, k)  # GT via TUM text
+    # the learned rows beat both baselines on this easy fixture
+    best_baseline = min(rep["rows"][b]["rpe_g1_trans_m"] for b in BASELINE_KEYS.values())
+    for key in ("teacher", "learner", "fused"):
+        assert rep["rows"][key]["rpe_g1_trans_m"] < best_baseline
     assert rep["rows"]["fused"]["rpe_1s_frames"] == 10
     cal = rep["rows"]["learner"]["calibration"]
     assert cal["calibration_n"] == 4 * N - 10
@@ -59,7 +78,8 @@ def test_report_has_every_row_and_key(dirs, tmp_path, capsys):
               "relative_se3.png", "outliers.png", "error_over_time.png"):
         assert (out / f).stat().st_size > 0, f
     md = (out / "report.md").read_text()
-    assert all(lbl in md for lbl in ("teacher (chained)", "learner (chained)", "fused (graph)"))
+    assert all(f"| {lbl} |" in md for lbl in ("teacher (chained)", "learner (chained)", "fused (graph)",
+                                              "zero motion", "constant velocity"))
     m = np.load(out / "marginals.npz")
     assert m["cov"].shape == (N, 6, 6)
 
@@ -70,7 +90,9 @@ def test_without_groundtruth_reports_consistency_and_outliers(dirs, tmp_path, ca
     rc, err = _run(["optimize", "--learner", str(l), "--out", str(out), "--no-plots", "--solver", "isam2"], capsys)
     assert rc == 0, err
     rep = json.loads((out / "report.json").read_text())
-    assert list(rep["rows"]) == ["learner", "fused"] and not rep["has_groundtruth"]
+    assert list(rep["rows"]) == ["learner", "fused"] and not rep["has_groundtruth"]  # no baseline rows
+    md = (out / "report.md").read_text()
+    assert "zero motion" not in md and "constant velocity" not in md
     assert rep["rows"]["fused"]["ate_rmse_m"] is None
     assert rep["rows"]["fused"]["composition_trans_rmse_m"] < rep["rows"]["learner"]["composition_trans_rmse_m"]
     assert rep["rows"]["learner"]["calibration"]["calibration_n"] == 0
@@ -97,7 +119,43 @@ def test_console_script_smoke(dirs, tmp_path):
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     rep = json.loads((out / "report.json").read_text())
-    assert rep["synthetic_timestamps"] and list(rep["rows"]) == ["edges", "fused"]
+    assert rep["synthetic_timestamps"] and list(rep["rows"]) == ["edges", "fused"]  # no GT: no baselines
+
+
+def test_baseline_rows_known_answers_on_a_straight_line():
+    """Constant speed along x, 10 Hz: zero motion misses every step (gap-g RPE = g steps,
+    se(3) L2 = one step), constant velocity misses only the first step."""
+    n, step = 24, 0.1
+    gt = np.repeat(np.eye(4)[None], n, axis=0)
+    gt[:, 0, 3] = step * np.arange(n)
+    times = 5.0 + np.arange(n) / 10.0
+    assert report.baseline_blocks(np.arange(n), times, None) == {}
+    rows = report.baseline_blocks(np.arange(n), times, gt)
+    assert list(rows) == ["zero_motion", "constant_velocity"]
+    zm, cv = rows["zero_motion"], rows["constant_velocity"]
+    for g in (1, 2, 3):
+        assert zm[f"rpe_g{g}_trans_m"] == pytest.approx(g * step, rel=1e-9)
+        # evo takes the (n - 1) // g disjoint pairs 0-g, g-2g, ...; only the first is off, by one step
+        assert cv[f"rpe_g{g}_trans_m"] == pytest.approx(step / np.sqrt((n - 1) // g), rel=1e-9)
+        assert zm[f"rpe_g{g}_rot_deg"] == pytest.approx(0, abs=1e-6)
+        assert cv[f"rpe_g{g}_rot_deg"] == pytest.approx(0, abs=1e-6)
+    assert zm["rpe_trans_rmse_m"] == pytest.approx(step, rel=1e-9)
+    assert zm["rpe_1s_frames"] == cv["rpe_1s_frames"] == 10
+    assert zm["rpe_1s_trans_m"] == pytest.approx(10 * step, rel=1e-9)
+    assert cv["rpe_1s_trans_m"] == pytest.approx(step / np.sqrt((n - 1) // 10), rel=1e-9)
+    assert zm["se3_l2_mean"] == pytest.approx(step, rel=1e-9)
+    assert cv["se3_l2_mean"] == pytest.approx(step / (n - 1), rel=1e-9)
+    # a still camera aligned onto the line: the RMS distance of the positions to their mean
+    assert zm["ate_rmse_m"] == pytest.approx(step * np.sqrt((n**2 - 1) / 12), rel=1e-6)
+    assert 0 < cv["ate_rmse_m"] < step
+    for b in rows.values():
+        assert b["composition_trans_rmse_m"] is None and b["composition_rot_rmse_deg"] is None
+        assert "calibration" not in b
+    md = report.report_markdown({"rows": rows, "frames": n, "edges_total": 0, "edges_per_source": {},
+                                 "solver": {"name": "-", "initial_error": 0.0, "final_error": 0.0, "iterations": 0,
+                                            "time_s": 0.0},
+                                 "config": {"kernel": "-"}, "has_groundtruth": True, "outliers": [], "git": "-"})
+    assert "| zero motion | 0.6922 | 0.1000 | 0.000 | 0.2000 |" in md
 
 
 # ----------------------------------------------------------------------------------
@@ -174,7 +232,8 @@ def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
 
 def test_pipeline_end_to_end_on_tiny_scenes(tmp_path, monkeypatch, capsys):
     """`python -m posegraph.pipeline` with tiny presets: every stage runs, the learner is
-    calibrated on the validation scene, and the printed table has the three rows."""
+    calibrated on the validation scene, and the printed table has the three rows and the
+    two baselines (the scene has ground truth)."""
     from posegraph import pipeline
 
     monkeypatch.chdir(tmp_path)
@@ -182,7 +241,8 @@ def test_pipeline_end_to_end_on_tiny_scenes(tmp_path, monkeypatch, capsys):
                         "--frames", "0:12", "--epochs", "1", "--steps-per-epoch", "1", "--preset", "tiny"])
     assert rc == 0
     out = capsys.readouterr().out
-    for row in ("| teacher (chained)", "| learner (chained)", "| fused (graph)"):
+    for row in ("| teacher (chained)", "| learner (chained)", "| fused (graph)", "| zero motion",
+                "| constant velocity"):
         assert row in out, out
     runs = tmp_path / "runs"
     assert (runs / "synthetic-tiny" / "learner" / "calibration.json").is_file()
