@@ -331,9 +331,10 @@ class CalibrationResult:
 
 def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional[str] = None, split: str = "all",
               teacher_root: Optional[Path] = None, config: PredictConfig = PredictConfig(),
-              cal_config: CalibrationConfig = CalibrationConfig(), progress: Optional[bool] = None) -> CalibrationResult:
+              cal_config: CalibrationConfig = CalibrationConfig(), progress: Optional[bool] = None,
+              device: str = "auto") -> CalibrationResult:
     """Fit the covariance calibration of ``checkpoint`` on validation ``scenes`` and write
-    ``calibration.json`` beside it.
+    ``calibration.json`` beside it (the network runs on ``device``: auto, cpu or cuda).
 
     The MC-dropout edges come from :func:`learner.predict.mc_edges` with ``config`` (the
     same sample count, drop ratio and gaps ``learner predict`` uses); residuals are taken
@@ -350,7 +351,7 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
     if config.drop <= 0 or config.samples < 2:
         raise ConfigError(f"calibration scales MC-dropout variances: needs --drop > 0 and --samples >= 2, "
                           f"got {config.drop} and {config.samples}")
-    model, state = load_model(checkpoint)
+    model, state = load_model(checkpoint, device=device)
     uses_lstm, _, _ = check_variant(state["variant"])
     window = int(state["train_config"]["window_max"])
     train_seqs = _training_sequences(checkpoint)

@@ -33,13 +33,19 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--variant", default="ctc", choices=list(VARIANTS))
     f.add_argument("--preset", default="cpu", choices=list(PRESETS))
     f.add_argument("--out", type=Path, help="run folder (default runs/<scene-slug>/learner)")
-    f.add_argument("--epochs", type=int, help="total epochs (overrides the preset)")
-    f.add_argument("--steps-per-epoch", type=int, help="cap on optimiser steps per epoch")
-    f.add_argument("--lr-halve-every", type=int,
-                   help="halve the learning rate every N epochs (default: the preset's, scaled with --epochs)")
+    f.add_argument("--steps", type=int, help="total optimiser steps (overrides the preset; phase-1 and warm-up "
+                   "steps keep the preset's proportions unless given)")
+    f.add_argument("--pretrain-steps", type=int, help="phase-1 (single pairs) optimiser steps")
+    f.add_argument("--warmup-steps", type=int, help="learning-rate warm-up steps")
+    f.add_argument("--eval-every", type=int, help="steps per epoch: evaluation, log line and checkpoint")
+    f.add_argument("--lr", type=float, help="peak learning rate (overrides the preset)")
+    f.add_argument("--batch-pairs", type=int, help="phase-1 pairs per step (overrides the preset)")
     f.add_argument("--seed", type=int, help="random seed (overrides the preset)")
     f.add_argument("--flip-prob", type=float, help="left-right mirroring augmentation probability (overrides the preset)")
     f.add_argument("--reverse-prob", type=float, help="time-reversal augmentation probability (overrides the preset)")
+    f.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
+                   help="auto: CUDA when available (default), else the CPU")
+    f.add_argument("--bf16", action="store_true", help="bfloat16 autocast of the forward pass (GPU)")
     f.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     f.add_argument("--pretrained", type=Path, help="local torchvision vgg11_bn state-dict file")
     f.add_argument("--teacher", type=Path,
@@ -61,6 +67,7 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--samples", type=int, default=PredictConfig.samples, help="MC-dropout passes K")
     c.add_argument("--drop", type=float, default=PredictConfig.drop, help="MC-dropout drop ratio")
     c.add_argument("--max-gap", type=int, default=PredictConfig.max_gap, help="longest direct edge gap")
+    c.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
 
     p = sub.add_parser("predict", help="MC-dropout edges, trajectory and report")
     p.add_argument("--checkpoint", type=Path, required=True)
@@ -72,6 +79,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--drop", type=float, default=PredictConfig.drop, help="MC-dropout drop ratio")
     p.add_argument("--max-gap", type=int, default=PredictConfig.max_gap, help="longest direct edge gap")
     p.add_argument("--preset", choices=list(PRESETS), help="fail unless the checkpoint has this preset")
+    p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
     p.add_argument("--no-calibration", dest="calibration", action="store_false",
                    help="ignore the calibration.json beside the checkpoint")
     return ap
@@ -87,8 +95,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             res = fit(args.scene, variant=args.variant, preset=args.preset, val_scenes=args.val_scene,
                       frames=args.frames, val_frames=args.val_frames, split=args.split, out=args.out,
                       resume=args.resume,
-                      pretrained=args.pretrained, teacher_root=args.teacher, epochs=args.epochs,
-                      seed=args.seed, steps_per_epoch=args.steps_per_epoch, lr_halve_every=args.lr_halve_every,
+                      pretrained=args.pretrained, teacher_root=args.teacher, steps=args.steps,
+                      pretrain_steps=args.pretrain_steps, warmup_steps=args.warmup_steps, eval_every=args.eval_every,
+                      lr=args.lr, batch_pairs=args.batch_pairs, seed=args.seed, device=args.device, bf16=args.bf16,
                       flip_prob=args.flip_prob, reverse_prob=args.reverse_prob,
                       calibrate=args.calibrate)
             logging.getLogger("learner").info("checkpoint: %s", res.checkpoint)
@@ -97,14 +106,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
 
             cfg = PredictConfig(samples=args.samples, drop=args.drop, max_gap=args.max_gap)
             cres = calibrate(args.checkpoint, args.scene, frames=args.frames, split=args.split,
-                             teacher_root=args.teacher, config=cfg)
+                             teacher_root=args.teacher, config=cfg, device=args.device)
             print(cres.path)
         else:
             from learner.predict import predict
 
             cfg = PredictConfig(samples=args.samples, drop=args.drop, max_gap=args.max_gap)
             res = predict(args.checkpoint, args.scene, frames=args.frames, split=args.split, out=args.out,
-                          config=cfg, preset=args.preset, use_calibration=args.calibration)
+                          config=cfg, preset=args.preset, use_calibration=args.calibration, device=args.device)
             for d in res.out_dirs:
                 print(d)
     except VOError as exc:

@@ -52,13 +52,21 @@ class ModelConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Training schedule (two phases) and optimiser."""
+    """Training schedule (two phases, counted in optimiser steps), loss and optimiser.
 
-    epochs: int = 30
-    """Total epochs (phase 1 + phase 2)."""
-    pretrain_epochs: int = 10
-    """Phase-1 epochs: encoder + direct head on single pairs of gaps 1..max_gap, L_reg only.
-    Variants without an LSTM (``cnn-*``) train every epoch this way."""
+    An *epoch* is ``eval_every`` optimiser steps: the unit of logging, evaluation,
+    checkpointing and window growth, not a pass over the data, so that a short sequence and
+    a long corpus both get the steps they need (the number of epochs is derived).
+    """
+
+    steps: int = 60000
+    """Total optimiser steps (phase 1 + phase 2)."""
+    pretrain_steps: int = 20000
+    """Phase-1 steps: encoder + direct head on single pairs of gaps 1..max_gap, L_reg only.
+    Variants without an LSTM (``cnn-*``) train every step this way."""
+    eval_every: int = 1000
+    """Steps per epoch: the training and validation se(3) L2 (beside zero motion and
+    constant velocity) are logged, and the checkpoint written, after every epoch."""
     max_gap: int = 5
     """Largest frame gap of a direct-head pair (phase 1 pairs and the CTC's G)."""
     batch_pairs: int = 32
@@ -74,15 +82,22 @@ class TrainConfig:
     beta: float = 3.0
     """Weight of the label regression L_reg."""
     lr: float = 1e-4
-    """Adam learning rate of the first epoch."""
+    """Peak Adam learning rate (reached after the warm-up)."""
+    warmup_steps: int = 500
+    """Linear learning-rate warm-up from 0 over this many steps."""
+    lr_final: float = 0.05
+    """After the warm-up the learning rate follows a cosine from ``lr`` down to
+    ``lr * lr_final`` at the last step (the paper halves it "every few epochs"; a cosine
+    needs no epoch count)."""
     beta1: float = 0.9
     """Adam beta1."""
-    lr_halve_every: int = 5
-    """Halve the learning rate every this many epochs."""
-    steps_per_epoch: Optional[int] = None
-    """Cap on optimiser steps per epoch (``None``: one full pass over the data)."""
+    freeze_bn_phase2: bool = True
+    """Phase 2 uses the BatchNorm statistics learnt in phase 1 (running averages, not
+    updated) instead of batch statistics: a phase-2 batch is a few windows of strongly
+    correlated pairs (2 windows of the same ~20 frames at the cpu preset), whose batch
+    statistics differ from the ones used at test time. The affine parameters still train."""
     seed: int = 0
-    """Seed of shuffling, dropout, label sampling and initialisation."""
+    """Seed of sampling, dropout, label noise and initialisation."""
     flip_prob: float = 0.0
     """Mirror each training pair (phase 1) or window (phase 2) left-right with this
     probability, its labels with it: mirroring x maps ``T`` to ``S T S``, S = diag(-1, 1, 1),
@@ -96,9 +111,17 @@ class TrainConfig:
     stay consistent and the CTC holds. Exact. The label set becomes symmetric, so the
     network cannot learn the training recording's mean motion as a bias."""
 
+    @property
+    def epochs(self) -> int:
+        """Number of epochs of ``eval_every`` steps (the last one may be shorter)."""
+        return -(-self.steps // self.eval_every)
+
     def __post_init__(self) -> None:
-        if self.epochs < 1 or not 0 <= self.pretrain_epochs <= self.epochs:
-            raise ConfigError(f"need epochs >= 1 and 0 <= pretrain_epochs <= epochs, got {self.epochs}/{self.pretrain_epochs}")
+        if self.steps < 1 or not 0 <= self.pretrain_steps <= self.steps or self.eval_every < 1:
+            raise ConfigError(f"need steps >= 1, 0 <= pretrain_steps <= steps and eval_every >= 1, got "
+                              f"{self.steps}/{self.pretrain_steps}/{self.eval_every}")
+        if not 0 <= self.warmup_steps or not 0.0 <= self.lr_final <= 1.0 or self.lr <= 0:
+            raise ConfigError("need lr > 0, warmup_steps >= 0 and 0 <= lr_final <= 1")
         if self.max_gap < 1 or self.window_min < 1 or self.window_max < self.window_min:
             raise ConfigError("need max_gap >= 1 and 1 <= window_min <= window_max")
         if self.batch_pairs < 1 or self.batch_windows < 1:
@@ -209,15 +232,15 @@ CPU = Preset(
     "cpu",
     ModelConfig(width=128, height=96, conv_widths=_div(VGG11_WIDTHS, 8), strided_widths=(256, 256),
                 latent_dim=256, fc_dim=256, lstm_hidden=256),
-    TrainConfig(epochs=12, pretrain_epochs=4, batch_pairs=32, batch_windows=2, lr_halve_every=4, window_max=18,
-                reverse_prob=0.5),
+    TrainConfig(steps=1500, pretrain_steps=1000, eval_every=100, batch_pairs=32, batch_windows=2, window_max=18,
+                lr=1e-3, warmup_steps=100, reverse_prob=0.5),
 )
 TINY = Preset(
     "tiny",
     ModelConfig(width=64, height=48, conv_widths=_div(VGG11_WIDTHS, 16), strided_widths=(16, 16),
                 latent_dim=16, fc_dim=16, lstm_hidden=16),
-    TrainConfig(epochs=2, pretrain_epochs=1, max_gap=3, batch_pairs=4, batch_windows=2, window_min=3,
-                window_max=4, lr=1e-3, lr_halve_every=1, steps_per_epoch=2),
+    TrainConfig(steps=4, pretrain_steps=2, eval_every=2, max_gap=3, batch_pairs=4, batch_windows=2, window_min=3,
+                window_max=4, lr=1e-3, warmup_steps=0),
 )
 PRESETS: dict[str, Preset] = {p.name: p for p in (PAPER, CPU, TINY)}
 

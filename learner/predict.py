@@ -34,7 +34,7 @@ from data import geometry as geo
 from data.errors import ConfigError, DataError
 from data.formats import Edge, Trajectory, write_g2o, write_tum
 from data.io import atomic_write, ensure_dir, git_revision, write_json
-from data.metrics import se3_l2_errors, trajectory_report
+from data.metrics import BASELINES, baseline_reports, se3_l2_errors, trajectory_report
 from data.scenes import open_scene, scene_slug
 from data.sequence import frame_ranges_overlap
 from learner.calibrate import CALIBRATION_FILE, calibration_for, mahalanobis2, nees_stats
@@ -73,8 +73,12 @@ class PredictResult:
     reports: list[dict] = field(default_factory=list)
 
 
-def load_model(checkpoint: Path, preset: Optional[str] = None) -> tuple[CTCNet, dict]:
-    """The network of a checkpoint (eval mode) and the checkpoint's metadata."""
+def load_model(checkpoint: Path, preset: Optional[str] = None, device: str = "auto") -> tuple[CTCNet, dict]:
+    """The network of a checkpoint (eval mode, on ``device``: auto, cpu or cuda) and the
+    checkpoint's metadata."""
+    from learner.train import resolve_device
+
+    dev = resolve_device(device)
     state = load_checkpoint(checkpoint)
     if preset is not None and preset != state["preset"]:
         raise ConfigError(f"{checkpoint} was trained with preset {state['preset']!r}, not {preset!r}")
@@ -83,6 +87,7 @@ def load_model(checkpoint: Path, preset: Optional[str] = None) -> tuple[CTCNet, 
         model.load_state_dict(state["model"])
     except RuntimeError as exc:
         raise ConfigError(f"{checkpoint} does not match its own model config: {str(exc).splitlines()[0]}") from None
+    model.to(dev)
     model.eval()
     return model, state
 
@@ -92,6 +97,9 @@ def mc_edges(model: CTCNet, frames: torch.Tensor, *, uses_lstm: bool, window: in
              progress: bool = False, seed: int = 0) -> EdgeSet:
     """MC-dropout edges of one sequence of frames (N, 3, H, W) uint8."""
     n = len(frames)
+    device = model.output_scale.device  # frames may live on the CPU (pinned) or on the model's device
+    if device.type == "cuda" and frames.device.type == "cpu":
+        frames = frames.pin_memory()
     torch.manual_seed(seed)
     G = max(1, min(cfg.max_gap, n - 1))
     ii, jj, means, covs, heads = [], [], [], [], []
@@ -101,7 +109,7 @@ def mc_edges(model: CTCNet, frames: torch.Tensor, *, uses_lstm: bool, window: in
         out = []
         for a in range(0, n - g, cfg.batch_pairs):
             k = torch.arange(a, min(a + cfg.batch_pairs, n - g))
-            out.append(model.encode(torch.cat([frames[k], frames[k + g]], 1)))
+            out.append(model.encode(torch.cat([frames[k], frames[k + g]], 1).to(device, non_blocking=True)))
             bar.update(len(k))
         return torch.cat(out)
 
@@ -113,7 +121,7 @@ def mc_edges(model: CTCNet, frames: torch.Tensor, *, uses_lstm: bool, window: in
             samples, head = torch.cat(chunks, dim=1), "lstm"  # (K, n-1, 6)
         else:
             samples, head = model.direct_mc(z, cfg.samples, cfg.drop), "direct"
-        s = samples.double().numpy()
+        s = samples.double().cpu().numpy()
         mean = s.mean(0)
         dev = s - mean
         cov = np.einsum("kei,kej->eij", dev, dev) / max(cfg.samples - 1, 1)
@@ -197,13 +205,15 @@ def _nan_to_none(d: dict) -> dict:
 
 def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split: str = "all",
             out: Optional[Path] = None, config: PredictConfig = PredictConfig(), preset: Optional[str] = None,
-            progress: Optional[bool] = None, use_calibration: bool = True) -> PredictResult:
-    """Predict edges, trajectory and report for every sequence of ``scene``.
+            progress: Optional[bool] = None, use_calibration: bool = True, device: str = "auto") -> PredictResult:
+    """Predict edges, trajectory and report for every sequence of ``scene`` (on ``device``:
+    auto, cpu or cuda). With ground truth the report carries the trivial baselines'
+    figures (``baselines``) beside the learner's.
 
     ``use_calibration``: apply the ``calibration.json`` beside the checkpoint when there is
     one (an error when it was fitted for other weights or another drop ratio)."""
     checkpoint = Path(checkpoint)
-    model, state = load_model(checkpoint, preset)
+    model, state = load_model(checkpoint, preset, device)
     found = calibration_for(checkpoint, config) if use_calibration else None
     if found is not None:
         log.info("applying covariance calibration %s (fitted on %s)", found[0],
@@ -252,7 +262,12 @@ def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split
         err = d2 = None
         if gt is not None:
             write_tum(out_dir / "groundtruth.tum", Trajectory(seq.times(), gt))
-            report.update(trajectory_report(Trajectory(seq.times(), gt), Trajectory(seq.times(), poses)))
+            gt_traj = Trajectory(seq.times(), gt)
+            report.update(trajectory_report(gt_traj, Trajectory(seq.times(), poses)))
+            report["baselines"] = baseline_reports(gt_traj)
+            log.info("%s: se(3) L2 %.5f, ATE %.4f m (zero motion %.5f / %.4f m, constant velocity %.5f / %.4f m)",
+                     seq.name, report["se3_l2_mean"], report["ate_rmse_m"],
+                     *(report["baselines"][b][k] for b in BASELINES for k in ("se3_l2_mean", "ate_rmse_m")))
             cal, err, d2 = calibration(edges, gt)
             report.update(cal)
             if found is not None:  # the same figures under the uncalibrated MC-dropout covariances

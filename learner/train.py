@@ -1,9 +1,15 @@
 """``learner fit``: train the network on teacher (or ground-truth) labels.
 
-Phase 1 (``pretrain_epochs``, and every epoch of the ``cnn-*`` variants) trains the
-encoder and the direct head on single pairs of gaps 1..G with L_reg only. Phase 2 trains
-on windows of consecutive pairs whose length grows linearly from ``window_min`` to
-``window_max`` with ``alpha L_ctc + beta L_reg`` (``alpha = 0`` except for ``ctc``).
+Phase 1 (the first ``pretrain_steps`` optimiser steps, and every step of the ``cnn-*``
+variants) trains the encoder and the direct head on single pairs of gaps 1..G with L_reg
+only. Phase 2 trains on windows of consecutive pairs whose length grows linearly from
+``window_min`` to ``window_max`` with ``alpha L_ctc + beta L_reg`` (``alpha = 0`` except
+for ``ctc``), BatchNorm statistics frozen (``freeze_bn_phase2``). Losses are normalised per
+gap and dimension (:mod:`learner.loss`): 1.0 is what zero motion scores on the labels. The
+schedule counts optimiser steps (warm-up, cosine decay); an epoch is ``eval_every`` steps,
+after which the training and validation se(3) L2 are logged beside zero motion and
+constant velocity (:class:`Evaluator`), and a loud warning ends a run whose model is no
+better than zero motion.
 
 The run folder holds ``config.json`` (resolved configuration, variant, scenes, git
 revision), ``checkpoint.pt`` (written atomically after every epoch; ``resume=True``
@@ -37,9 +43,11 @@ from typing import Any, Optional, Sequence as TypingSequence
 import numpy as np
 import torch
 import torch.distributed as dist
+from numpy.typing import NDArray
 from torch import Tensor
 from tqdm import tqdm
 
+from data import geometry as geo
 from data.errors import ConfigError, DataError, VOError
 from data.io import atomic_write, ensure_dir, git_revision, write_json
 from data.scenes import open_scene, scene_slug
@@ -48,7 +56,7 @@ from learner import loss as L
 from learner import se3
 from learner.calibrate import CALIBRATION_FILE
 from learner.calibrate import calibrate as run_calibration
-from learner.config import Preset, TrainConfig, check_variant, get_preset, to_dict
+from learner.config import PredictConfig, Preset, TrainConfig, check_variant, get_preset, to_dict
 from learner.dataset import SequenceData, check_labels, find_teacher_edges, load_sequences
 from learner.model import CTCNet, load_pretrained_vgg
 
@@ -85,20 +93,33 @@ class _Dist:
             dist.barrier()
 
 
-def _setup_dist() -> _Dist:
+def resolve_device(choice: str = "auto") -> torch.device:
+    """The torch device of a single process: ``auto`` (CUDA when available, else the CPU),
+    ``cpu`` or ``cuda`` (an error without a GPU)."""
+    if choice not in ("auto", "cpu", "cuda"):
+        raise ConfigError(f"--device must be auto, cpu or cuda, got {choice!r}")
+    cuda = torch.cuda.is_available()
+    if choice == "cuda" and not cuda:
+        raise ConfigError("--device cuda: no CUDA device is available")
+    return torch.device("cuda" if choice == "cuda" or (choice == "auto" and cuda) else "cpu")
+
+
+def _setup_dist(device: str = "auto") -> _Dist:
+    """One process: the device of :func:`resolve_device`. Under torchrun (``WORLD_SIZE > 1``):
+    a process group (nccl on GPUs, gloo on the CPU), one GPU per process by ``LOCAL_RANK``."""
+    dev = resolve_device(device)
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world <= 1:
-        return _Dist()
-    cuda = torch.cuda.is_available()
+        return _Dist(device=dev)
+    cuda = dev.type == "cuda"
     if not dist.is_initialized():
         dist.init_process_group("nccl" if cuda else "gloo")
     rank = dist.get_rank()
-    device = torch.device("cpu")
     if cuda:
         local = int(os.environ.get("LOCAL_RANK", "0"))
         torch.cuda.set_device(local)
-        device = torch.device("cuda", local)
-    return _Dist(rank, dist.get_world_size(), device)
+        dev = torch.device("cuda", local)
+    return _Dist(rank, dist.get_world_size(), dev)
 
 
 def default_run_dir(scene: str) -> Path:
@@ -108,40 +129,66 @@ def default_run_dir(scene: str) -> Path:
 # ----------------------------------------------------------------------------------
 # batches
 # ----------------------------------------------------------------------------------
+def lr_at(cfg: TrainConfig, step: int) -> float:
+    """Learning rate of optimiser step ``step`` (0-based): linear warm-up, then a cosine
+    from ``lr`` to ``lr * lr_final`` at the last step."""
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    span = max(cfg.steps - cfg.warmup_steps - 1, 1)
+    t = min(max(step - cfg.warmup_steps, 0) / span, 1.0)
+    return cfg.lr * (cfg.lr_final + (1.0 - cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * t)))
+
+
 def window_length(cfg: TrainConfig, epoch: int) -> int:
-    """Phase-2 window length (pairs) of ``epoch`` (linear growth min -> max)."""
-    n2 = cfg.epochs - cfg.pretrain_epochs
-    e2 = epoch - cfg.pretrain_epochs
+    """Phase-2 window length (pairs) of ``epoch``: grows linearly from ``window_min`` in the
+    first epoch holding phase-2 steps to ``window_max`` in the last one."""
+    first = cfg.pretrain_steps // cfg.eval_every
+    n2 = cfg.epochs - first
     if n2 <= 1:
         return cfg.window_max
-    return int(round(cfg.window_min + (cfg.window_max - cfg.window_min) * e2 / (n2 - 1)))
+    return int(round(cfg.window_min + (cfg.window_max - cfg.window_min) * (epoch - first) / (n2 - 1)))
 
 
-def _pair_batches(data: list[SequenceData], cfg: TrainConfig, rng: np.random.Generator) -> list[np.ndarray]:
-    """Shuffled batches of rows (seq, k, gap) of labelled pairs."""
+def _cycle(rows: np.ndarray, n_batches: int, size: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """``n_batches`` batches of ``size`` rows, drawn from reshuffled passes over ``rows``."""
+    out: list[np.ndarray] = []
+    pool = rows[:0]
+    while len(out) < n_batches:
+        if len(pool) < size:
+            pool = np.concatenate([pool, rows[rng.permutation(len(rows))]])
+        out.append(pool[:size])
+        pool = pool[size:]
+    return out
+
+
+def _pair_batches(data: list[SequenceData], cfg: TrainConfig, rng: np.random.Generator,
+                  n_batches: Optional[int] = None) -> list[np.ndarray]:
+    """Batches of rows (seq, k, gap) of labelled pairs: one shuffled pass (``n_batches``
+    None), or ``n_batches`` batches from as many passes as they need."""
     rows = []
     for s, d in enumerate(data):
         g, k = np.nonzero(d.mask.numpy())
         rows.append(np.stack([np.full_like(k, s), k, g], 1))
     allrows = np.concatenate(rows)
-    allrows = allrows[rng.permutation(len(allrows))]
-    return [allrows[i:i + cfg.batch_pairs] for i in range(0, len(allrows), cfg.batch_pairs)]
+    if n_batches is None:
+        allrows = allrows[rng.permutation(len(allrows))]
+        return [allrows[i:i + cfg.batch_pairs] for i in range(0, len(allrows), cfg.batch_pairs)]
+    return _cycle(allrows, n_batches, min(cfg.batch_pairs, len(allrows)), rng)
 
 
-def _window_batches(data: list[SequenceData], W: int, cfg: TrainConfig, rng: np.random.Generator) -> list[np.ndarray]:
-    """Shuffled batches of rows (seq, start) of non-overlapping windows of W pairs."""
-    rows = []
-    for s, d in enumerate(data):
-        n = len(d)
-        if n - 1 < W:
-            continue
-        off = int(rng.integers(0, min(W, n - W)))
-        starts = np.arange(off, n - W, W)
-        rows += [(s, int(k)) for k in starts]
+def _window_batches(data: list[SequenceData], W: int, cfg: TrainConfig, rng: np.random.Generator,
+                    n_batches: Optional[int] = None) -> list[np.ndarray]:
+    """Batches of rows (seq, start) of windows of W pairs (frames start..start+W), every
+    start position of every sequence long enough: one shuffled pass (``n_batches`` None),
+    or ``n_batches`` batches from as many passes as they need."""
+    rows = [(s, k) for s, d in enumerate(data) for k in range(max(len(d) - W, 0))]
     if not rows:
         return []
-    arr = np.array(rows)[rng.permutation(len(rows))]
-    return [arr[i:i + cfg.batch_windows] for i in range(0, len(arr), cfg.batch_windows)]
+    arr = np.array(rows)
+    if n_batches is None:
+        arr = arr[rng.permutation(len(arr))]
+        return [arr[i:i + cfg.batch_windows] for i in range(0, len(arr), cfg.batch_windows)]
+    return _cycle(arr, n_batches, min(cfg.batch_windows, len(arr)), rng)
 
 
 def _labels(d: SequenceData, k: Tensor, g: Tensor, aug: bool, gen: torch.Generator) -> tuple[Tensor, Tensor]:
@@ -195,12 +242,15 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
         val_scenes: TypingSequence[str] = (), frames: Optional[str] = None, split: str = "all",
         val_frames: Optional[str] = None, out: Optional[Path] = None, resume: bool = False,
         pretrained: Optional[Path] = None, teacher_root: Optional[Path] = None,
-        progress: Optional[bool] = None, calibrate: bool = True,
+        progress: Optional[bool] = None, calibrate: bool = True, device: str = "auto", bf16: bool = False,
         **train_overrides: Any) -> FitResult:
     """Train a learner on the sequences of ``scenes`` and return the run's outputs.
 
     ``train_overrides`` replace fields of the preset's :class:`TrainConfig`
-    (e.g. ``epochs=3, seed=1, steps_per_epoch=10``). ``calibrate``: fit the covariance
+    (e.g. ``steps=300, seed=1, eval_every=50``; ``steps`` alone keeps the preset's
+    proportions of phase-1 and warm-up steps). ``device``: ``auto`` (CUDA when available),
+    ``cpu`` or ``cuda``; ``bf16``: bfloat16 autocast of the network's forward pass (the
+    losses and the se(3) maps stay in float32). ``calibrate``: fit the covariance
     calibration on ``val_scenes`` (their teacher labels, never ground truth) at the end.
     ``val_frames`` is the frame range of the validation sequences (default: ``frames``); a
     validation sequence may be a training sequence only with a disjoint range (e.g. train
@@ -211,11 +261,11 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
     uses_lstm, label_source, uses_ctc = check_variant(variant)
     p = get_preset(preset) if isinstance(preset, str) else preset
     overrides = {k: v for k, v in train_overrides.items() if v is not None}
-    if "epochs" in overrides and "pretrain_epochs" not in overrides:  # keep the phase proportion
-        overrides["pretrain_epochs"] = min(overrides["epochs"], int(round(
-            overrides["epochs"] * p.train.pretrain_epochs / p.train.epochs)))
-    if "epochs" in overrides and "lr_halve_every" not in overrides:  # and the lr schedule's
-        overrides["lr_halve_every"] = max(1, int(round(overrides["epochs"] * p.train.lr_halve_every / p.train.epochs)))
+    if "steps" in overrides:  # keep the preset's proportions
+        n = overrides["steps"]
+        overrides.setdefault("pretrain_steps", min(n, int(round(n * p.train.pretrain_steps / p.train.steps))))
+        overrides.setdefault("warmup_steps", int(round(n * p.train.warmup_steps / p.train.steps)))
+        overrides.setdefault("eval_every", max(1, min(p.train.eval_every, n)))
     try:
         p = dataclasses.replace(p, train=dataclasses.replace(p.train, **overrides))
     except TypeError as exc:
@@ -224,10 +274,10 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
     if not uses_ctc:
         cfg = dataclasses.replace(cfg, alpha=0.0)
     if not uses_lstm:
-        cfg = dataclasses.replace(cfg, pretrain_epochs=cfg.epochs)
+        cfg = dataclasses.replace(cfg, pretrain_steps=cfg.steps)
     p = dataclasses.replace(p, train=cfg)
 
-    dd = _setup_dist()
+    dd = _setup_dist(device)
     run_dir = Path(out) if out is not None else default_run_dir(scenes[0])
     ckpt_path = run_dir / CHECKPOINT
     state = None
@@ -273,6 +323,14 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
     if not dd.main:
         train_data, val_data = _load(opened, frames), _load(val_opened, vframes)
     check_labels(train_data)
+    scale = L.target_scale(torch.cat([d.labels for d in train_data], 1), torch.cat([d.mask for d in train_data], 1))
+    log.info("target scale (gap-1 RMS of the training labels): v %s mm, w %s mrad",
+             np.array2string(scale[1, :3].numpy() * 1e3, precision=2), np.array2string(scale[1, 3:].numpy() * 1e3, precision=2))
+    if dd.device.type == "cuda":  # the cached frames live on the GPU: no host-to-device copy per step
+        for d in train_data:
+            d.frames = d.frames.to(dd.device)
+    scale = scale.to(dd.device)
+    evaluator = Evaluator(train_data, val_data, uses_lstm, cfg.window_max)
 
     # -------------------------------------------------------------- model
     torch.manual_seed(cfg.seed)
@@ -280,7 +338,7 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
     if state is None:
         if pretrained is not None:
             load_pretrained_vgg(model, Path(pretrained))
-        model.output_scale.copy_(_label_scale(train_data))
+        model.output_scale.copy_(scale[1])
     else:
         try:
             model.load_state_dict(state["model"])
@@ -314,58 +372,73 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
         stale.unlink()
 
     # -------------------------------------------------------------- epochs
+    if start_epoch > 0:
+        log.info("resuming %s after epoch %d/%d (step %d of %d)", run_dir, start_epoch, cfg.epochs,
+                 min(start_epoch * cfg.eval_every, cfg.steps), cfg.steps)
+    aug = label_source == "aug"
     for epoch in range(start_epoch, cfg.epochs):
-        lr = cfg.lr * 0.5 ** (epoch // cfg.lr_halve_every)
-        for group in opt.param_groups:
-            group["lr"] = lr
-        phase = "pairs" if epoch < cfg.pretrain_epochs else "windows"
+        first, last = epoch * cfg.eval_every, min((epoch + 1) * cfg.eval_every, cfg.steps)
+        n_pairs = max(0, min(last, cfg.pretrain_steps) - first)
+        n_windows = (last - first) - n_pairs
         rng = np.random.default_rng([cfg.seed, epoch])
         gen = torch.Generator().manual_seed(int(rng.integers(2**31)) + dd.rank)
         torch.manual_seed(cfg.seed * 100_003 + epoch * 101 + dd.rank)  # dropout masks
-        W = window_length(cfg, epoch) if phase == "windows" else 0
-        batches = _pair_batches(train_data, cfg, rng) if phase == "pairs" else _window_batches(train_data, W, cfg, rng)
-        # every process needs a share; batch norm needs two pairs per share (a window has several)
-        min_len = (min(cfg.batch_pairs, 2) if phase == "pairs" else 1) * dd.world
-        batches = [b for b in batches if len(b) >= min_len]
-        if cfg.steps_per_epoch is not None:
-            batches = batches[: cfg.steps_per_epoch]
-        if not batches:
-            raise DataError(f"epoch {epoch + 1}: no training {phase} (sequences too short for windows of {W} pairs?)")
+        W = window_length(cfg, epoch) if n_windows else 0
+        # every process needs a share of each batch
+        plan = [("pairs", b) for b in (_pair_batches(train_data, cfg, rng, n_pairs) if n_pairs else [])]
+        if n_windows:
+            wins = _window_batches(train_data, W, cfg, rng, n_windows)
+            if not wins:
+                raise DataError(f"epoch {epoch + 1}: no training windows (sequences too short for windows of {W} pairs)")
+            plan += [("windows", b) for b in wins]
+        if any(len(b) < dd.world for _, b in plan):
+            raise DataError(f"epoch {epoch + 1}: batches smaller than the {dd.world} processes")
         net.train()
-        sums = {"loss": 0.0, "ctc": 0.0, "reg": 0.0}
-        bar = tqdm(batches, desc=f"epoch {epoch + 1}/{cfg.epochs} {phase}" + (f" W={W}" if W else ""),
+        sums: dict[str, dict[str, float]] = {}
+        bar = tqdm(plan, desc=f"epoch {epoch + 1}/{cfg.epochs}" + (f" W={W}" if W else ""),
                    disable=not (progress and dd.main), leave=False)
-        for step, batch in enumerate(bar):
+        for i, (phase, batch) in enumerate(bar):
+            step = first + i
+            for group in opt.param_groups:
+                group["lr"] = lr_at(cfg, step)
+            if phase == "windows" and cfg.freeze_bn_phase2:
+                _freeze_batchnorm(model)
             mine = batch[dd.rank::dd.world]
-            if phase == "pairs":
-                terms = _pairs_step(net, train_data, mine, cfg, label_source == "aug", gen, dd.device)
-            else:
-                terms = _windows_step(net, train_data, mine, W, cfg, label_source == "aug", gen, dd.device)
+            with torch.autocast(dd.device.type, dtype=torch.bfloat16, enabled=bf16):
+                if phase == "pairs":
+                    terms = _pairs_step(net, train_data, mine, cfg, aug, gen, dd.device, scale)
+                else:
+                    terms = _windows_step(net, train_data, mine, W, cfg, aug, gen, dd.device, scale)
             items = terms.items()
             if not all(math.isfinite(v) for v in items.values()):
-                raise VOError(f"non-finite loss at epoch {epoch + 1} step {step + 1} ({_fmt(items)}); "
+                raise VOError(f"non-finite loss at step {step + 1} (epoch {epoch + 1}, {_fmt(items)}); "
                               f"last good checkpoint kept at {ckpt_path if ckpt_path.exists() else 'none yet'}")
             opt.zero_grad(set_to_none=True)
             terms.total.backward()
             opt.step()
-            for k in sums:
-                sums[k] += items[k]
+            acc = sums.setdefault(phase, {"loss": 0.0, "ctc": 0.0, "reg": 0.0, "steps": 0})
+            for k in items:
+                acc[k] += items[k]
+            acc["steps"] += 1
             bar.set_postfix({k: f"{v:.3g}" for k, v in items.items()})
-        entry: dict[str, Any] = {"epoch": epoch + 1, "phase": phase, "window": W, "lr": lr, "steps": len(batches)}
-        entry.update({k: v / len(batches) for k, v in sums.items()})
-        if val_data and dd.main:
-            entry["val_reg"] = evaluate_reg(model, val_data, cfg, dd.device)
-        history.append(entry)
-        log.info("epoch %d/%d %s: %s", epoch + 1, cfg.epochs, phase,
-                 _fmt({k: v for k, v in entry.items() if k in ("loss", "ctc", "reg", "val_reg")}))
+        entry: dict[str, Any] = {"epoch": epoch + 1, "steps": last, "phase": "+".join(sums), "window": W,
+                                 "lr": lr_at(cfg, last - 1)}
+        for phase, acc in sums.items():  # losses are normalised: 1.0 = zero motion on the labels
+            entry.update({f"{phase}_{k}": acc[k] / acc["steps"] for k in ("loss", "ctc", "reg")})
         if dd.main:
+            entry.update(evaluator(model, dd.device))
+        history.append(entry)
+        if dd.main:
+            log.info("epoch %d/%d (step %d): %s", epoch + 1, cfg.epochs, last, _epoch_line(entry))
             save_checkpoint(ckpt_path, model, opt, epoch + 1, p, variant, history)
             write_json(run_dir / "history.json", history)
         dd.barrier()
+    if dd.main and history:
+        _warn_if_no_skill(history[-1])
     cal_path = None
     if dd.main and calibrate and val_scenes:
         cal_path = run_calibration(ckpt_path, val_scenes, frames=vframes, split=split, teacher_root=teacher_root,
-                                   progress=progress).path
+                                   progress=progress, device=device).path
     elif dd.main and calibrate:
         log.info("no validation scene: no calibration.json (run `learner calibrate --checkpoint %s --scene VAL` "
                  "on a scene that is neither trained nor tested on)", ckpt_path)
@@ -374,14 +447,6 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
 
 def _fmt(d: dict) -> str:
     return ", ".join(f"{k}={v:.4g}" for k, v in d.items())
-
-
-def _label_scale(data: list[SequenceData]) -> Tensor:
-    """Per-dimension spread (6,) of the gap-1 training labels, used as the output scale."""
-    labs = torch.cat([d.labels[1][d.mask[1]] for d in data])
-    if len(labs) < 2:
-        return torch.full((6,), 0.01)
-    return labs.std(0).clamp(min=1e-4)
 
 
 _MIRROR = torch.tensor([-1.0, 1.0, 1.0, 1.0, -1.0, -1.0])
@@ -410,8 +475,17 @@ def _reverse(x: Tensor, lab: Tensor, rev: Tensor) -> tuple[Tensor, Tensor]:
     return x, lab
 
 
-def _pairs_step(net, data, rows: np.ndarray, cfg: TrainConfig, aug: bool, gen, device) -> L.LossTerms:
-    x, labs, masks = [], [], []
+def _freeze_batchnorm(model: torch.nn.Module) -> None:
+    """Put every BatchNorm layer in eval mode: normalise with the running statistics and
+    leave them as they are (``TrainConfig.freeze_bn_phase2``)."""
+    for m in model.modules():
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+            m.eval()
+
+
+def _pairs_step(net, data, rows: np.ndarray, cfg: TrainConfig, aug: bool, gen, device,
+                scale: Tensor) -> L.LossTerms:
+    x, labs, masks, gaps = [], [], [], []
     for s in np.unique(rows[:, 0]):
         r = rows[rows[:, 0] == s]
         d = data[int(s)]
@@ -420,16 +494,19 @@ def _pairs_step(net, data, rows: np.ndarray, cfg: TrainConfig, aug: bool, gen, d
         lab, m = _labels(d, k, g, aug, gen)
         labs.append(lab)
         masks.append(m)
+        gaps.append(g)
     x, lab = torch.cat(x), torch.cat(labs)
     if cfg.flip_prob > 0:
         x, lab = _mirror(x, lab, torch.rand(len(x), generator=gen) < cfg.flip_prob)
     if cfg.reverse_prob > 0:
         x, lab = _reverse(x, lab, torch.rand(len(x), generator=gen) < cfg.reverse_prob)
     xi_d, _ = net(x.to(device))
-    return L.pair_loss(xi_d, lab.to(device), torch.cat(masks).to(device), cfg.beta)
+    return L.pair_loss(xi_d.float(), lab.to(device), torch.cat(masks).to(device), torch.cat(gaps).to(device),
+                       cfg.beta, scale)
 
 
-def _windows_step(net, data, rows: np.ndarray, W: int, cfg: TrainConfig, aug: bool, gen, device) -> L.LossTerms:
+def _windows_step(net, data, rows: np.ndarray, W: int, cfg: TrainConfig, aug: bool, gen, device,
+                  scale: Tensor) -> L.LossTerms:
     pairs = L.window_pairs(W, cfg.max_gap)
     P = len(pairs)
     pi = torch.tensor([i for i, _ in pairs])
@@ -454,24 +531,111 @@ def _windows_step(net, data, rows: np.ndarray, W: int, cfg: TrainConfig, aug: bo
     xi_d, xi_s = net(x.flatten(0, 1).to(device), seq_index)
     lab = lab.to(device)
     mask = torch.stack(masks).to(device)
-    xi_d = xi_d.view(B, P, 6)
+    xi_d = xi_d.float().view(B, P, 6)
     # the LSTM's consecutive pairs share the labels of the direct gap-1 pairs
-    return L.window_loss(xi_s, xi_d, lab[:, :W], mask[:, :W], lab, mask, cfg.max_gap, cfg.alpha, cfg.beta)
+    with torch.autocast(device.type, enabled=False):  # se(3) maps in float32
+        return L.window_loss(xi_s.float(), xi_d, lab[:, :W], mask[:, :W], lab, mask, cfg.max_gap, cfg.alpha,
+                             cfg.beta, scale)
 
 
-@torch.no_grad()
-def evaluate_reg(model: CTCNet, data: list[SequenceData], cfg: TrainConfig, device: torch.device,
-                 max_pairs: int = 512) -> float:
-    """Mean squared error (sum over the 6 dims) of the direct head on labelled pairs."""
-    was = model.training
-    model.eval()
-    total, count = 0.0, 0
-    for d in data:
-        g, k = np.nonzero(d.mask.numpy())
-        for a in range(0, min(len(k), max_pairs), 64):
-            kk, gg = torch.from_numpy(k[a:a + 64]), torch.from_numpy(g[a:a + 64])
-            xi, _ = model(d.pairs(kk, kk + gg).to(device))
-            total += float(((xi.cpu() - d.labels[gg, kk]) ** 2).sum())
-            count += len(kk)
-    model.train(was)
-    return total / max(count, 1)
+
+
+# ----------------------------------------------------------------------------------
+# per-epoch evaluation beside the trivial baselines
+# ----------------------------------------------------------------------------------
+@dataclass
+class _EvalSeq:
+    frames: Tensor
+    """(n, 3, H, W) uint8 frames of a stretch of one sequence."""
+    ref: NDArray[np.float64]
+    """(n-1, 6) reference gap-1 twists; rows of NaN where there is none."""
+
+
+class Evaluator:
+    """The se(3) L2 error of the gap-1 estimates that ``learner predict`` writes (the LSTM
+    head for LSTM variants, the direct head otherwise; no dropout) on the training and
+    validation frames, beside the same figure of zero motion and of constant velocity
+    (each step repeats the previous reference step) on the same pairs.
+
+    The reference is the ground truth when every sequence of a set has it, else the
+    teacher's gap-1 labels (``<set>_reference`` in the history says which). At most
+    ``max_pairs`` pairs per set, the first frames of each sequence in turn, are scored.
+    """
+
+    def __init__(self, train: list[SequenceData], val: list[SequenceData], uses_lstm: bool, window: int,
+                 max_pairs: int = 1000) -> None:
+        self.uses_lstm, self.window = uses_lstm, window
+        self.sets = {name: self._view(data, max_pairs) for name, data in (("train", train), ("val", val)) if data}
+        self.baselines = {name: self._baselines(v) for name, v in self.sets.items()}
+
+    @staticmethod
+    def _view(data: list[SequenceData], max_pairs: int) -> tuple[str, list[_EvalSeq]]:
+        use_gt = all(d.gt is not None for d in data)
+        out, left = [], max_pairs
+        for d in data:
+            n = min(len(d), left + 1)
+            if n < 2:
+                break
+            if use_gt:
+                ref = np.array([geo.se3_log(geo.relative_pose(d.gt[k], d.gt[k + 1])) for k in range(n - 1)])
+            else:
+                ref = d.labels[1, : n - 1].double().numpy().copy()
+                ref[~d.mask[1, : n - 1].numpy()] = np.nan
+            out.append(_EvalSeq(d.frames[:n], ref))
+            left -= n - 1
+        return ("ground truth" if use_gt else "teacher"), out
+
+    @staticmethod
+    def _score(seqs: list[_EvalSeq], preds: list[NDArray[np.float64]]) -> float:
+        err = np.concatenate([np.linalg.norm(s.ref - p, axis=1) for s, p in zip(seqs, preds)])
+        err = err[np.isfinite(err)]
+        return float(err.mean()) if len(err) else float("nan")
+
+    def _baselines(self, view: tuple[str, list[_EvalSeq]]) -> dict[str, float]:
+        seqs = view[1]
+        zero = [np.zeros_like(s.ref) for s in seqs]
+        cv = [np.nan_to_num(np.vstack([np.zeros((1, 6)), s.ref[:-1]])) for s in seqs]
+        return {"zero_motion": self._score(seqs, zero), "constant_velocity": self._score(seqs, cv)}
+
+    @torch.no_grad()
+    def __call__(self, model: CTCNet, device: torch.device) -> dict[str, Any]:
+        from learner.predict import mc_edges  # predict imports this module
+
+        was = model.training
+        model.eval()
+        cfg = PredictConfig(samples=1, drop=0.0, max_gap=1)
+        out: dict[str, Any] = {}
+        for name, (ref_kind, seqs) in self.sets.items():
+            preds = [mc_edges(model, s.frames, uses_lstm=self.uses_lstm, window=self.window, cfg=cfg).mean
+                     for s in seqs]
+            out[f"{name}_se3_l2"] = self._score(seqs, preds)
+            out[f"{name}_zero_motion_se3_l2"] = self.baselines[name]["zero_motion"]
+            out[f"{name}_constant_velocity_se3_l2"] = self.baselines[name]["constant_velocity"]
+            out[f"{name}_reference"] = ref_kind
+        model.train(was)
+        return out
+
+
+def _epoch_line(entry: dict) -> str:
+    parts = [", ".join(f"{k}={entry[k]:.4g}" for k in ("pairs_reg", "windows_reg", "windows_ctc") if k in entry)]
+    for name in ("train", "val"):
+        if f"{name}_se3_l2" in entry:
+            parts.append(f"{name} se(3) L2 {entry[f'{name}_se3_l2']:.5f} (zero motion "
+                         f"{entry[f'{name}_zero_motion_se3_l2']:.5f}, constant velocity "
+                         f"{entry[f'{name}_constant_velocity_se3_l2']:.5f}; vs {entry[f'{name}_reference']})")
+    return " | ".join(parts)
+
+
+def _warn_if_no_skill(entry: dict) -> None:
+    """Say loudly when the trained model is no better than a camera that never moves."""
+    for name in ("val", "train"):
+        err, zero = entry.get(f"{name}_se3_l2"), entry.get(f"{name}_zero_motion_se3_l2")
+        if err is None or zero is None or not (math.isfinite(err) and math.isfinite(zero)):
+            continue
+        if err >= zero:
+            log.warning("!!! the trained model is NOT better than zero motion on its %s frames: se(3) L2 %.5f vs "
+                        "%.5f for a camera that never moves. Its predictions carry no usable motion.",
+                        "validation" if name == "val" else "training", err, zero)
+        else:
+            log.info("%s se(3) L2 %.5f = %.2fx zero motion (%.5f)", name, err, err / zero, zero)
+        return

@@ -2,7 +2,7 @@
 scene) -> learner predict -> pose graph.
 
     python -m posegraph.pipeline [--train synthetic/office] [--val synthetic/lab]
-                                 [--test synthetic/kitchen] [--frames 0:120] [--epochs 2]
+                                 [--test synthetic/kitchen] [--frames 0:120] [--steps 200]
 
 Each stage is called through its library function and writes its usual files under
 ``runs/<scene-slug>/`` (teacher/, learner/, posegraph/); work already on disk is reused by
@@ -23,7 +23,7 @@ from data.io import setup_logging
 log = logging.getLogger("posegraph.pipeline")  # also when run as __main__
 
 
-def run(train: str, test: str, frames: Optional[str], epochs: Optional[int], steps_per_epoch: Optional[int],
+def run(train: str, test: str, frames: Optional[str], steps: Optional[int],
         preset: str = "cpu", variant: str = "ctc", val: Optional[str] = "synthetic/lab") -> Path:
     """Run every stage; return the pose-graph output folder of ``test``. With ``val``, the
     learner's MC-dropout covariances are calibrated on that scene's teacher labels (never
@@ -38,7 +38,7 @@ def run(train: str, test: str, frames: Optional[str], epochs: Optional[int], ste
         generate(scene, None, "all", frames)
     log.info("learner fit %s (%s, %s)%s", train, preset, variant, f", calibrated on {val}" if val else "")
     res = fit([train], variant=variant, preset=preset, val_scenes=[val] if val else (), frames=frames,
-              epochs=epochs, steps_per_epoch=steps_per_epoch)
+              steps=steps)
     log.info("learner predict %s", test)
     predict(res.checkpoint, test, frames=frames)
     log.info("posegraph optimize %s", test)
@@ -54,14 +54,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                    help="validation scene for the covariance calibration ('' for none)")
     p.add_argument("--test", default="synthetic/kitchen", help="test scene")
     p.add_argument("--frames", default=None, help="frame range START:STOP[:STEP] of every scene")
-    p.add_argument("--epochs", type=int, default=None, help="learner epochs (default: the preset's)")
-    p.add_argument("--steps-per-epoch", type=int, default=None)
+    p.add_argument("--steps", type=int, default=None, help="learner optimiser steps (default: the preset's)")
     p.add_argument("--preset", default="cpu")
     p.add_argument("--variant", default="ctc")
     args = p.parse_args(argv)
     setup_logging()
     try:
-        out = run(args.train, args.test, args.frames, args.epochs, args.steps_per_epoch, args.preset, args.variant,
+        out = run(args.train, args.test, args.frames, args.steps, args.preset, args.variant,
                   args.val or None)
     except VOError as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -255,7 +255,7 @@ def test_predict_applies_the_calibration(run, data_dirs, tmp_path) -> None:
 
 
 def test_fit_with_validation_scene_calibrates(data_dirs, tmp_path, caplog) -> None:
-    kw = dict(variant="cnn-unsup", preset="tiny", teacher_root=data_dirs["teacher"], epochs=1)
+    kw = dict(variant="cnn-unsup", preset="tiny", teacher_root=data_dirs["teacher"], steps=2)
     res = fit([str(data_dirs["train"])], val_scenes=[str(data_dirs["val"])], out=tmp_path / "run", **kw)
     assert res.calibration == tmp_path / "run" / CALIBRATION_FILE and res.calibration.is_file()
     d = json.loads(res.calibration.read_text())
@@ -268,7 +268,7 @@ def test_fit_with_validation_scene_calibrates(data_dirs, tmp_path, caplog) -> No
     predict(res.checkpoint, str(data_dirs["val"]), out=tmp_path / "pred-val", config=PredictConfig(samples=4, max_gap=3))
     assert "val-seq-01 is also a calibration sequence" in caplog.text
     # training on deletes the calibration of the old weights (and this run refits it)
-    res2 = fit([str(data_dirs["train"])], out=tmp_path / "run", resume=True, **{**kw, "epochs": 2})
+    res2 = fit([str(data_dirs["train"])], out=tmp_path / "run", resume=True, **{**kw, "steps": 4})
     assert res2.calibration is None and not (tmp_path / "run" / CALIBRATION_FILE).exists()
     # no validation scene, no calibration
     res3 = fit([str(data_dirs["train"])], out=tmp_path / "run3", **kw)
@@ -278,7 +278,7 @@ def test_fit_with_validation_scene_calibrates(data_dirs, tmp_path, caplog) -> No
 def test_fit_checks_validation_teacher_labels_before_training(data_dirs, tmp_path) -> None:
     with pytest.raises(DataError, match="has no teacher labels"):
         fit([str(data_dirs["train"])], val_scenes=[str(data_dirs["val"])], variant="cnn-gt", preset="tiny",
-            out=tmp_path / "run", teacher_root=tmp_path / "nothing", epochs=1)
+            out=tmp_path / "run", teacher_root=tmp_path / "nothing", steps=2)
     assert not (tmp_path / "run" / "checkpoint.pt").exists()
 
 

@@ -80,15 +80,43 @@ def _gt_window(W: int, G: int, noise: float = 0.0, seed: int = 0):
     return torch.tensor(seq)[None], torch.tensor(direct)[None]
 
 
+ONES = torch.ones(6, 6, dtype=torch.float64)
+
+
 def test_ctc_zero_on_consistent_poses_and_positive_otherwise() -> None:
     seq, direct = _gt_window(6, 4)
-    assert float(L.ctc_loss(seq, direct, 4)[0]) < 1e-20
+    assert float(L.ctc_loss(seq, direct, 4, ONES)[0]) < 1e-20
     seq, noisy = _gt_window(6, 4, noise=0.01)
-    val = float(L.ctc_loss(seq, noisy, 4)[0])
-    # the constraint only looks at gaps >= 2: the noise added there, squared and summed
+    val = float(L.ctc_loss(seq, noisy, 4, ONES)[0])
+    # the constraint only looks at gaps >= 2: the noise added there, squared, averaged
+    # over the 6 dimensions and the 5 + 4 + 3 constraints
     sl = L.gap_slices(6, 4)
-    expect = sum(float(((noisy - direct)[0, sl[g]] ** 2).sum()) for g in (2, 3, 4))
-    assert val == pytest.approx(expect, rel=1e-6) and val > 1e-4
+    expect = sum(float(((noisy - direct)[0, sl[g]] ** 2).sum()) for g in (2, 3, 4)) / (6 * 12)
+    assert val == pytest.approx(expect, rel=1e-6) and val > 1e-5
+    # each gap's residual is divided by its own scale
+    scale = ONES.clone()
+    scale[2:] = 2.0
+    assert float(L.ctc_loss(seq, noisy, 4, scale)[0]) == pytest.approx(expect / 4, rel=1e-6)
+
+
+def test_target_scale_makes_zero_motion_score_one() -> None:
+    """The RMS per gap and dimension: predicting zero motion gives a regression loss of 1,
+    whatever the units and magnitudes of translation and rotation, and also when the
+    motion has a non-zero mean; unlabelled entries do not count."""
+    rng = np.random.default_rng(0)
+    lab = torch.tensor(rng.normal(size=(4, 50, 6)) * [0.02, 0.01, 0.03, 0.001, 0.004, 0.002] + 0.01,
+                       dtype=torch.float32)
+    mask = torch.ones(4, 50, dtype=torch.bool)
+    mask[:, ::7] = False
+    lab[~mask] = 100.0  # must be ignored
+    scale = L.target_scale(lab, mask)
+    assert scale.shape == (4, 6)
+    for g in (1, 2, 3):
+        gap = torch.full((50,), g)
+        terms = L.pair_loss(torch.zeros(50, 6), lab[g], mask[g], gap, 3.0, scale)
+        assert float(terms.reg) == pytest.approx(1.0, rel=1e-5)
+        assert float(terms.total) == pytest.approx(3.0, rel=1e-5)
+    assert torch.allclose(scale[0], scale[1])  # row 0 (unused) copies gap 1
 
 
 def test_window_pairs_order() -> None:
@@ -102,14 +130,16 @@ def test_window_loss_masks_failed_labels() -> None:
     pred_s, pred_d = seq + 0.1, direct.clone()
     m_s = torch.ones(1, 4)
     m_d = torch.ones(1, direct.shape[1])
-    full = L.window_loss(pred_s, pred_d, seq, m_s, direct, m_d, 3, 1.0, 3.0)
-    assert float(full.reg) == pytest.approx(4 * 6 * 0.01)
+    P = direct.shape[1]
+    # a mean over the labelled predictions (4 LSTM + P direct, of which the LSTM's are off by 0.1)
+    full = L.window_loss(pred_s, pred_d, seq, m_s, direct, m_d, 3, 1.0, 3.0, ONES)
+    assert float(full.reg) == pytest.approx(4 * 0.01 / (4 + P))
     m_s[0, 1] = 0
-    part = L.window_loss(pred_s, pred_d, seq, m_s, direct, m_d, 3, 1.0, 3.0)
-    assert float(part.reg) == pytest.approx(3 * 6 * 0.01)
+    part = L.window_loss(pred_s, pred_d, seq, m_s, direct, m_d, 3, 1.0, 3.0, ONES)
+    assert float(part.reg) == pytest.approx(3 * 0.01 / (3 + P))
     assert float(part.total) == pytest.approx(float(part.ctc) + 3 * float(part.reg))
     assert float(part.ctc) > 0
-    no_ctc = L.window_loss(pred_s, pred_d, seq, m_s, direct, m_d, 3, 0.0, 3.0)
+    no_ctc = L.window_loss(pred_s, pred_d, seq, m_s, direct, m_d, 3, 0.0, 3.0, ONES)
     assert float(no_ctc.ctc) == 0.0
 
 
@@ -117,6 +147,6 @@ def test_ctc_gradient_flows_to_both_heads() -> None:
     seq, direct = _gt_window(5, 3, noise=0.02)
     seq = seq.clone().requires_grad_(True)
     direct = direct.clone().requires_grad_(True)
-    L.ctc_loss(seq, direct, 3).sum().backward()
+    L.ctc_loss(seq, direct, 3, ONES).sum().backward()
     assert torch.all(torch.isfinite(seq.grad)) and float(seq.grad.abs().sum()) > 0
     assert float(direct.grad.abs().sum()) > 0

@@ -96,14 +96,16 @@ def test_every_variant_trains_two_steps(variant: str, fixture_seq, tmp_path) -> 
     res = fit([str(seq)], variant=variant, preset="tiny", out=tmp_path / "run", teacher_root=teacher)
     assert res.checkpoint.is_file()
     hist = json.loads((tmp_path / "run" / "history.json").read_text())
-    assert [h["steps"] for h in hist] == [2, 2]
-    phases = [h["phase"] for h in hist]
-    assert phases == (["pairs", "windows"] if variant.startswith(("lstm", "ctc")) else ["pairs", "pairs"])
-    assert all(np.isfinite(h["loss"]) and h["reg"] > 0 for h in hist)
-    if variant == "ctc":
-        assert hist[1]["ctc"] > 0
-    else:
-        assert hist[1]["ctc"] == 0
+    assert [h["steps"] for h in hist] == [2, 4]
+    second = "windows" if variant.startswith(("lstm", "ctc")) else "pairs"
+    assert "pairs_loss" in hist[0] and "windows_loss" not in hist[0] and f"{second}_loss" in hist[1]
+    assert all(np.isfinite(h[f"{ph}_loss"]) and h[f"{ph}_reg"] > 0 for h, ph in zip(hist, ("pairs", second)))
+    assert hist[1][f"{second}_ctc"] > 0 if variant == "ctc" else hist[1][f"{second}_ctc"] == 0
+    # every epoch is scored beside the trivial baselines, against ground truth when there is one
+    for h in hist:
+        assert h["train_reference"] == "ground truth"
+        assert 0 < h["train_constant_velocity_se3_l2"] < h["train_zero_motion_se3_l2"]
+        assert np.isfinite(h["train_se3_l2"])
     cfg = json.loads((tmp_path / "run" / "config.json").read_text())
     assert cfg["variant"] == variant and cfg["preset"] == "tiny" and cfg["git_revision"]
     # weights moved
@@ -114,9 +116,9 @@ def test_every_variant_trains_two_steps(variant: str, fixture_seq, tmp_path) -> 
 def test_cpu_preset_two_steps(fixture_seq, tmp_path) -> None:
     seq, teacher = fixture_seq
     res = fit([str(seq)], variant="ctc", preset="cpu", out=tmp_path / "run", teacher_root=teacher,
-              epochs=2, pretrain_epochs=1, steps_per_epoch=1, batch_pairs=2, batch_windows=2, window_max=4)
-    assert [h["phase"] for h in res.history] == ["pairs", "windows"]
-    assert all(np.isfinite(h["loss"]) for h in res.history)
+              steps=2, pretrain_steps=1, eval_every=1, batch_pairs=2, batch_windows=2, window_max=4)
+    assert ["pairs_loss" in h for h in res.history] == [True, False]
+    assert np.isfinite(res.history[0]["pairs_loss"]) and np.isfinite(res.history[1]["windows_loss"])
 
 
 def test_mirrored_labels_are_the_mirrored_motion() -> None:
@@ -200,13 +202,14 @@ def test_reversed_pairs_and_windows_keep_labels_and_ctc_exact(reverse_prob) -> N
     gen = torch.Generator().manual_seed(0)
     net = _motion_reader(gt)
     rows = np.array([[0, k, g] for g in range(1, G + 1) for k in range(0, N - g, 4)])
-    terms = _pairs_step(net, data, rows, cfg, False, gen, "cpu")
-    assert float(terms.reg) < 1e-12
-    terms = _windows_step(net, data, np.array([[0, 0], [0, 7], [0, N - 1 - W]]), W, cfg, False, gen, "cpu")
-    assert float(terms.reg) < 1e-12 and float(terms.ctc) < 1e-10
+    cpu, scale = torch.device("cpu"), torch.full((G + 1, 6), 0.01)  # losses in units of 1 cm / 10 mrad
+    terms = _pairs_step(net, data, rows, cfg, False, gen, cpu, scale)
+    assert float(terms.reg) < 1e-8
+    terms = _windows_step(net, data, np.array([[0, 0], [0, 7], [0, N - 1 - W]]), W, cfg, False, gen, cpu, scale)
+    assert float(terms.reg) < 1e-8 and float(terms.ctc) < 1e-6
     # and the check can fail: a network that ignores the direction of time does not fit
     swapped = _motion_reader(gt[::-1].copy())
-    assert float(_pairs_step(swapped, data, rows, cfg, False, gen, "cpu").reg) > 1e-6
+    assert float(_pairs_step(swapped, data, rows, cfg, False, gen, cpu, scale).reg) > 1e-2
 
 
 def test_reverse_shows_the_later_frame_first() -> None:
@@ -227,7 +230,7 @@ def test_augmentation_trains(fixture_seq, tmp_path, name, good, bad) -> None:
     seq, teacher = fixture_seq
     res = fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=teacher, **{name: good})
     assert [h["phase"] for h in res.history] == ["pairs", "windows"]
-    assert all(np.isfinite(h["loss"]) and h["reg"] > 0 for h in res.history)
+    assert all(np.isfinite(h[f"{ph}_loss"]) and h[f"{ph}_reg"] > 0 for h, ph in zip(res.history, ("pairs", "windows")))
     assert json.loads((tmp_path / "run" / "config.json").read_text())["train"][name] == good
     with pytest.raises(ConfigError, match=name):
         fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "bad", teacher_root=teacher, **{name: bad})
@@ -256,7 +259,8 @@ def test_paper_preset_single_forward_backward() -> None:
     x = torch.randint(0, 256, (P, 6, 48, 64), dtype=torch.uint8)
     xi_d, xi_s = small(x, torch.arange(W)[None])
     lab = torch.zeros(1, P, 6)
-    terms = L.window_loss(xi_s, xi_d[None], lab[:, :W], torch.ones(1, W), lab, torch.ones(1, P), G, 1.0, 3.0)
+    terms = L.window_loss(xi_s, xi_d[None], lab[:, :W], torch.ones(1, W), lab, torch.ones(1, P), G, 1.0, 3.0,
+                          torch.full((G + 1, 6), 0.01))
     terms.total.backward()
     assert xi_d.shape == (P, 6) and xi_s.shape == (1, W, 6)
     assert torch.isfinite(terms.total.detach()) and float(terms.reg.detach()) > 0
@@ -266,7 +270,7 @@ def test_paper_preset_single_forward_backward() -> None:
 
 def test_resume_reaches_the_same_state(fixture_seq, tmp_path) -> None:
     seq, teacher = fixture_seq
-    kw = dict(variant="lstm-aug", preset="tiny", teacher_root=teacher, epochs=2, pretrain_epochs=1, seed=7)
+    kw = dict(variant="lstm-aug", preset="tiny", teacher_root=teacher, steps=4, pretrain_steps=2, seed=7)
     straight = fit([str(seq)], out=tmp_path / "a", **kw)
     # interrupted run: killed right after writing the epoch-1 checkpoint, then resumed
     e = tmp_path / "e"
@@ -306,20 +310,27 @@ def _train_one_epoch_then_stop(seq: Path, out: Path, kw: dict) -> None:
         T.save_checkpoint = orig
 
 
-def test_epochs_override_scales_the_lr_schedule(fixture_seq, tmp_path) -> None:
-    """``--epochs`` keeps the preset's schedule in proportion (the cpu preset halves the lr
-    every 4 of 12 epochs, so 3 epochs halve it every epoch); an explicit value wins."""
+def test_steps_override_keeps_the_preset_proportions(fixture_seq, tmp_path) -> None:
+    """``--steps`` keeps the preset's phase-1 and warm-up proportions (the cpu preset:
+    1000 of 1500 steps in phase 1, 100 of warm-up), an explicit value wins, and the
+    learning rate warms up, peaks, then decays to ``lr * lr_final``."""
     from learner.config import get_preset
+    from learner.train import lr_at
 
     seq, teacher = fixture_seq
     cpu = get_preset("cpu").train
-    assert (cpu.epochs, cpu.lr_halve_every) == (12, 4)
-    fit([str(seq)], variant="cnn-unsup", preset="cpu", out=tmp_path / "a", teacher_root=teacher, epochs=3,
-        steps_per_epoch=1, batch_pairs=2)
-    assert json.loads((tmp_path / "a" / "config.json").read_text())["train"]["lr_halve_every"] == 1
-    fit([str(seq)], variant="cnn-unsup", preset="cpu", out=tmp_path / "b", teacher_root=teacher, epochs=3,
-        steps_per_epoch=1, batch_pairs=2, lr_halve_every=2)
-    assert json.loads((tmp_path / "b" / "config.json").read_text())["train"]["lr_halve_every"] == 2
+    assert (cpu.steps, cpu.pretrain_steps, cpu.warmup_steps) == (1500, 1000, 100)
+    fit([str(seq)], variant="ctc", preset="cpu", out=tmp_path / "a", teacher_root=teacher, steps=3,
+        batch_pairs=2, window_max=4, calibrate=False)
+    train = json.loads((tmp_path / "a" / "config.json").read_text())["train"]
+    assert (train["pretrain_steps"], train["warmup_steps"], train["eval_every"]) == (2, 0, 3)
+    fit([str(seq)], variant="ctc", preset="cpu", out=tmp_path / "b", teacher_root=teacher, steps=3,
+        pretrain_steps=1, batch_pairs=2, window_max=4)
+    assert json.loads((tmp_path / "b" / "config.json").read_text())["train"]["pretrain_steps"] == 1
+    lrs = [lr_at(cpu, k) for k in range(cpu.steps)]
+    assert lrs[0] == pytest.approx(cpu.lr / 100) and max(lrs) == pytest.approx(cpu.lr)
+    assert int(np.argmax(lrs)) == 99 and lrs[-1] == pytest.approx(cpu.lr * cpu.lr_final)
+    assert all(a >= b for a, b in zip(lrs[99:], lrs[100:]))
 
 
 def test_fit_refuses_teacher_labels_of_another_sequence(fixture_seq, tmp_path) -> None:
@@ -332,12 +343,12 @@ def test_fit_refuses_teacher_labels_of_another_sequence(fixture_seq, tmp_path) -
     shutil.copytree(teacher, other)
     (other / "report.json").write_text(json.dumps({"sequence": "some-other-sequence"}))
     with pytest.raises(DataError, match="of sequence 'some-other-sequence'"):
-        fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=other, epochs=1)
+        fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=other, steps=2)
 
 
 def test_resume_with_another_preset_or_variant_fails(fixture_seq, tmp_path) -> None:
     seq, teacher = fixture_seq
-    fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher, epochs=1)
+    fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher, steps=2)
     with pytest.raises(ConfigError, match="preset 'tiny', not 'cpu'"):
         fit([str(seq)], variant="cnn-unsup", preset="cpu", out=tmp_path / "run", teacher_root=teacher, resume=True)
     with pytest.raises(ConfigError, match="variant 'cnn-unsup', not 'ctc'"):
@@ -355,15 +366,15 @@ def test_resume_with_another_preset_or_variant_fails(fixture_seq, tmp_path) -> N
 
 def test_nan_loss_is_a_clear_error_and_keeps_checkpoint(fixture_seq, tmp_path, monkeypatch) -> None:
     seq, teacher = fixture_seq
-    fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher, epochs=1)
+    fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher, steps=2)
     import learner.loss as L
 
     before = (tmp_path / "run" / "checkpoint.pt").read_bytes()
     real = L.pair_loss
     monkeypatch.setattr(L, "pair_loss", lambda *a, **k: (lambda t: L.LossTerms(t.total * float("nan"), t.ctc, t.reg))(real(*a, **k)))
-    with pytest.raises(VOError, match="non-finite loss at epoch 2 step 1"):
+    with pytest.raises(VOError, match=r"non-finite loss at step 3 \(epoch 2"):
         fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher,
-            epochs=2, pretrain_epochs=2, resume=True)
+            steps=4, resume=True)
     assert (tmp_path / "run" / "checkpoint.pt").read_bytes() == before
 
 
@@ -372,7 +383,7 @@ def test_missing_teacher_labels_is_a_clear_error(fixture_seq, tmp_path) -> None:
     with pytest.raises(DataError, match="has no teacher labels"):
         fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=tmp_path / "nothing")
     # ground-truth variants need no teacher
-    fit([str(seq)], variant="cnn-gt", preset="tiny", out=tmp_path / "gt", teacher_root=tmp_path / "nothing", epochs=1)
+    fit([str(seq)], variant="cnn-gt", preset="tiny", out=tmp_path / "gt", teacher_root=tmp_path / "nothing", steps=2)
 
 
 def test_val_scene_must_differ_from_training(fixture_seq, tmp_path) -> None:
@@ -388,7 +399,7 @@ def test_val_frames_of_a_training_sequence(fixture_seq, tmp_path) -> None:
     """Train on frames 0:6 of a sequence and validate (calibrate) on its frames 6:20."""
     seq, teacher = fixture_seq
     res = fit([str(seq)], val_scenes=[str(seq)], frames="0:6", val_frames="6:20", variant="cnn-unsup",
-              preset="tiny", out=tmp_path / "r", teacher_root=teacher, epochs=1)
+              preset="tiny", out=tmp_path / "r", teacher_root=teacher, steps=2)
     cfg = json.loads((res.run_dir / "config.json").read_text())
     assert cfg["frames"] == "0:6" and cfg["val_frames"] == "6:20"
     assert res.calibration is not None and res.calibration.is_file()
@@ -451,7 +462,7 @@ def test_auroc_known_answers() -> None:
 # ----------------------------------------------------------------------------------
 def test_cli_fit_and_predict(fixture_seq, tmp_path, capsys) -> None:
     seq, teacher = fixture_seq
-    assert cli.main(["fit", "--scene", str(seq), "--variant", "cnn-unsup", "--preset", "tiny", "--epochs", "1",
+    assert cli.main(["fit", "--scene", str(seq), "--variant", "cnn-unsup", "--preset", "tiny", "--steps", "2",
                      "--out", str(tmp_path / "run"), "--teacher", str(teacher), "--seed", "3"]) == 0
     assert cli.main(["predict", "--checkpoint", str(tmp_path / "run" / "checkpoint.pt"), "--scene", str(seq),
                      "--frames", "2:10", "--out", str(tmp_path / "pred"), "--samples", "3"]) == 0
@@ -495,6 +506,6 @@ def test_ddp_two_cpu_processes(fixture_seq, tmp_path) -> None:
     proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr[-3000:]
     state = load_checkpoint(tmp_path / "ddp" / "checkpoint.pt")
-    assert state["epoch"] == 2 and [h["steps"] for h in state["history"]] == [2, 2]
+    assert state["epoch"] == 2 and [h["steps"] for h in state["history"]] == [2, 4]
     assert json.loads((tmp_path / "ddp" / "config.json").read_text())["world_size"] == 2
     assert all(torch.isfinite(v).all() for v in state["model"].values() if v.is_floating_point())

@@ -238,7 +238,7 @@ def test_pipeline_end_to_end_on_tiny_scenes(tmp_path, monkeypatch, capsys):
 
     monkeypatch.chdir(tmp_path)
     rc = pipeline.main(["--train", "synthetic/tiny", "--val", "synthetic/tiny-clean", "--test", "synthetic/tiny",
-                        "--frames", "0:12", "--epochs", "1", "--steps-per-epoch", "1", "--preset", "tiny"])
+                        "--frames", "0:12", "--steps", "2", "--preset", "tiny"])
     assert rc == 0
     out = capsys.readouterr().out
     for row in ("| teacher (chained)", "| learner (chained)", "| fused (graph)", "| zero motion",
