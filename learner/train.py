@@ -554,8 +554,10 @@ class _EvalSeq:
 class Evaluator:
     """The se(3) L2 error of the gap-1 estimates that ``learner predict`` writes (the LSTM
     head for LSTM variants, the direct head otherwise; no dropout) on the training and
-    validation frames, beside the same figure of zero motion and of constant velocity
-    (each step repeats the previous reference step) on the same pairs.
+    validation frames (``<set>_se3_l2``), beside the same figure of zero motion and of
+    constant velocity (each step repeats the previous reference step) on the same pairs.
+    LSTM variants also get the direct head's figure (``<set>_direct_se3_l2``; the LSTM
+    head only trains in phase 2).
 
     The reference is the ground truth when every sequence of a set has it, else the
     teacher's gap-1 labels (``<set>_reference`` in the history says which). At most
@@ -606,9 +608,10 @@ class Evaluator:
         cfg = PredictConfig(samples=1, drop=0.0, max_gap=1)
         out: dict[str, Any] = {}
         for name, (ref_kind, seqs) in self.sets.items():
-            preds = [mc_edges(model, s.frames, uses_lstm=self.uses_lstm, window=self.window, cfg=cfg).mean
-                     for s in seqs]
-            out[f"{name}_se3_l2"] = self._score(seqs, preds)
+            for lstm in (False, True) if self.uses_lstm else (False,):
+                preds = [mc_edges(model, s.frames, uses_lstm=lstm, window=self.window, cfg=cfg).mean for s in seqs]
+                out[f"{name}_{'lstm' if lstm else 'direct'}_se3_l2"] = self._score(seqs, preds)
+            out[f"{name}_se3_l2"] = out[f"{name}_{'lstm' if self.uses_lstm else 'direct'}_se3_l2"]
             out[f"{name}_zero_motion_se3_l2"] = self.baselines[name]["zero_motion"]
             out[f"{name}_constant_velocity_se3_l2"] = self.baselines[name]["constant_velocity"]
             out[f"{name}_reference"] = ref_kind
@@ -620,7 +623,9 @@ def _epoch_line(entry: dict) -> str:
     parts = [", ".join(f"{k}={entry[k]:.4g}" for k in ("pairs_reg", "windows_reg", "windows_ctc") if k in entry)]
     for name in ("train", "val"):
         if f"{name}_se3_l2" in entry:
-            parts.append(f"{name} se(3) L2 {entry[f'{name}_se3_l2']:.5f} (zero motion "
+            heads = (f"direct {entry[f'{name}_direct_se3_l2']:.5f}, lstm {entry[f'{name}_lstm_se3_l2']:.5f}"
+                     if f"{name}_lstm_se3_l2" in entry else f"{entry[f'{name}_se3_l2']:.5f}")
+            parts.append(f"{name} se(3) L2 {heads} (zero motion "
                          f"{entry[f'{name}_zero_motion_se3_l2']:.5f}, constant velocity "
                          f"{entry[f'{name}_constant_velocity_se3_l2']:.5f}; vs {entry[f'{name}_reference']})")
     return " | ".join(parts)
