@@ -21,10 +21,11 @@ ground truth): results ``zero_motion`` (the camera never moves) and ``constant_v
 (each step repeats the previous true step), with the trajectory columns only.
 
     .venv/bin/python bench/ablation.py --scene ../shared/data/7scenes/redkitchen/seq-sample \\
-        --frames 0:450 --test-frames 450:600 --teacher /tmp/rk/teacher --teacher-eval /tmp/rk/teacher \\
-        --epochs 48 --lr-halve-every 16 --out /tmp/rk/runs
+        --test-frames 450:600 --teacher /tmp/rk/teacher --teacher-eval /tmp/rk/teacher \\
+        --val-scene ../shared/data/7scenes/redkitchen/seq-sample --val-frames 350:450 --frames 0:350 \\
+        --out /tmp/rk/runs
     .venv/bin/python bench/ablation.py --scene synthetic/office --scene synthetic/lab \\
-        --test-scene synthetic/kitchen --epochs 4 --steps-per-epoch 25 --out runs/ablation-synth
+        --test-scene synthetic/kitchen --steps 300 --out runs/ablation-synth
 """
 
 from __future__ import annotations
@@ -110,9 +111,10 @@ def main() -> None:
     ap.add_argument("--teacher-eval", type=Path, help="teacher output folder covering the test frames (teacher row)")
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--preset", default="cpu")
-    ap.add_argument("--epochs", type=int, default=4)
-    ap.add_argument("--steps-per-epoch", type=int, default=20)
-    ap.add_argument("--lr-halve-every", type=int, help="epochs per learning-rate halving (default: the preset's)")
+    ap.add_argument("--steps", type=int, help="optimiser steps per variant (default: the preset's)")
+    ap.add_argument("--lr", type=float, help="peak learning rate (default: the preset's)")
+    ap.add_argument("--val-scene", action="append", default=[], help="validation scene (repeatable; logged per epoch)")
+    ap.add_argument("--val-frames", help="validation frame range (never the test range)")
     ap.add_argument("--samples", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--flip-prob", type=float, help="left-right mirroring augmentation (default: the preset's)")
@@ -123,8 +125,6 @@ def main() -> None:
     args = ap.parse_args()
     if args.teacher is not None and len(args.scene) > 1:
         ap.error("--teacher needs a single --scene (several scenes read runs/<scene-slug>/teacher)")
-    if args.steps_per_epoch is not None and args.steps_per_epoch <= 0:
-        args.steps_per_epoch = None  # 0: every batch of the epoch
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     test_scene = args.test_scene or args.scene[0]
     gt = test_groundtruth(test_scene, args.test_frames)
@@ -138,9 +138,9 @@ def main() -> None:
         run = args.out / v
         t0, c0 = time.perf_counter(), time.process_time()
         res = fit(args.scene, variant=v, preset=args.preset, frames=args.frames, out=run,
-                  resume=(run / "checkpoint.pt").is_file(), teacher_root=args.teacher, epochs=args.epochs,
-                  steps_per_epoch=args.steps_per_epoch, seed=args.seed, lr_halve_every=args.lr_halve_every,
-                  flip_prob=args.flip_prob, reverse_prob=args.reverse_prob)
+                  val_scenes=args.val_scene, val_frames=args.val_frames, calibrate=False,
+                  resume=(run / "checkpoint.pt").is_file(), teacher_root=args.teacher, steps=args.steps,
+                  lr=args.lr, seed=args.seed, flip_prob=args.flip_prob, reverse_prob=args.reverse_prob)
         t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
         rep = predict(res.checkpoint, test_scene, frames=args.test_frames, out=run / "predict",
                       config=PredictConfig(samples=args.samples)).reports[0]
@@ -150,8 +150,8 @@ def main() -> None:
             if rep.get(k) is not None and not np.isclose(rep[k], row[k], rtol=1e-6, atol=1e-9):
                 logging.warning("%s: %s %.6g here vs %.6g in report.json", v, k, row[k], rep[k])
         rows[v] = {**row, **{k: rep.get(k) for k in CAL_KEYS}, "fit_s": round(t_fit, 1), "fit_cpu_s": round(c_fit, 1),
-                   "epochs": res.epochs_done, "steps": sum(h["steps"] for h in res.history),
-                   "final_loss": res.history[-1]["loss"], "loadavg_1_5_15": [round(x, 2) for x in os.getloadavg()],
+                   "epochs": res.epochs_done, "steps": res.history[-1]["steps"] if res.history else 0,
+                   "final_loss": res.history[-1].get("windows_loss", res.history[-1].get("pairs_loss")), "loadavg_1_5_15": [round(x, 2) for x in os.getloadavg()],
                    "finished": time.strftime("%H:%M:%S", time.gmtime())}
         write_json(args.out / "ablation.json", {**meta, "results": rows})
     write_json(args.out / "ablation.json", {**meta, "results": rows})

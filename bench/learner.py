@@ -87,6 +87,7 @@ def main() -> None:
     data = [fake_sequence(args.frames, m.width, m.height, t.max_gap)]
     rng = np.random.default_rng(0)
     gen = torch.Generator().manual_seed(0)
+    scale = torch.full((t.max_gap + 1, 6), 0.01)  # the losses' target scale (any value costs the same)
     out: dict = {"preset": p.name, "threads": args.threads, "input": f"{m.width}x{m.height}",
                  "conv_widths": ",".join(map(str, m.conv_widths)), "batch_pairs": t.batch_pairs}
 
@@ -102,7 +103,7 @@ def main() -> None:
 
     def step_pairs() -> int:
         rows = next(batches)
-        optimise(_pairs_step(net, data, rows, t, True, gen, torch.device("cpu")))
+        optimise(_pairs_step(net, data, rows, t, True, gen, torch.device("cpu"), scale))
         return len(rows)
 
     wall, cpu, n = timed(step_pairs, args.steps)
@@ -114,7 +115,7 @@ def main() -> None:
 
     def step_windows() -> int:
         rows = next(wins)
-        optimise(_windows_step(net, data, rows, W, t, False, gen, torch.device("cpu")))
+        optimise(_windows_step(net, data, rows, W, t, False, gen, torch.device("cpu"), scale))
         return len(rows) * P
 
     wall, cpu, n = timed(step_windows, max(1, args.steps // 2))

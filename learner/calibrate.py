@@ -368,7 +368,7 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
                             train_seqs[seq.name] or "all", frames or "all")
             if len(seq) < 2:
                 raise DataError(f"sequence {seq.name} needs at least 2 frames to calibrate")
-            x = load_frames(seq, model.cfg.width, model.cfg.height, checkpoint.parent / "cache")
+            x = load_frames(seq, model.cfg.width, model.cfg.height, checkpoint.parent / "cache", model.cfg.input)
             edges = mc_edges(model, x, uses_lstm=uses_lstm, window=window, cfg=config, progress=progress)
             idx, T_t, C_t = teacher_matches(edges.i, edges.j, seq.ids(), g2o)
             log.info("%s: %d of %d edges have teacher labels", seq.name, len(idx), len(edges.i))

@@ -43,6 +43,9 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--seed", type=int, help="random seed (overrides the preset)")
     f.add_argument("--flip-prob", type=float, help="left-right mirroring augmentation probability (overrides the preset)")
     f.add_argument("--reverse-prob", type=float, help="time-reversal augmentation probability (overrides the preset)")
+    f.add_argument("--input", choices=["rgb", "rgbd", "flow"],
+                   help="encoder input: the paper's RGB pair, plus inverse depth, or plus optical flow and "
+                        "inverse depth (default: the preset's)")
     f.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
                    help="auto: CUDA when available (default), else the CPU")
     f.add_argument("--bf16", action="store_true", help="bfloat16 autocast of the forward pass (GPU)")
@@ -97,7 +100,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                       resume=args.resume,
                       pretrained=args.pretrained, teacher_root=args.teacher, steps=args.steps,
                       pretrain_steps=args.pretrain_steps, warmup_steps=args.warmup_steps, eval_every=args.eval_every,
-                      lr=args.lr, batch_pairs=args.batch_pairs, seed=args.seed, device=args.device, bf16=args.bf16,
+                      lr=args.lr, batch_pairs=args.batch_pairs, seed=args.seed, device=args.device, bf16=args.bf16, input=args.input,
                       flip_prob=args.flip_prob, reverse_prob=args.reverse_prob,
                       calibrate=args.calibrate)
             logging.getLogger("learner").info("checkpoint: %s", res.checkpoint)

@@ -40,8 +40,15 @@ class ModelConfig:
     dropout: float = 0.3
     """Drop probability at the direct head's penultimate FC and at the LSTM output during
     training. The paper's 0.7 is read as TensorFlow's *keep* probability (drop 0.3)."""
+    input: str = "rgb"
+    """What the encoder sees of a pair (i, j): ``rgb`` the paper's two stacked RGB frames (6
+    channels); ``rgbd`` plus both frames' inverse depth (8); ``flow`` the RGB pair plus the
+    DIS optical flow i -> j and frame i's inverse depth (9). Not in the paper (it lists
+    RGB-D as future work); see bench/README.md for what each brings."""
 
     def __post_init__(self) -> None:
+        if self.input not in ("rgb", "rgbd", "flow"):
+            raise ConfigError(f"input must be rgb, rgbd or flow, got {self.input!r}")
         if len(self.conv_widths) != 8 or len(self.strided_widths) != 2:
             raise ConfigError("conv_widths needs 8 entries and strided_widths 2")
         if min(self.width, self.height) < 32:
@@ -276,6 +283,7 @@ def to_dict(obj: Any) -> dict:
 
 def model_from_dict(d: dict) -> ModelConfig:
     d = dict(d)
+    d.setdefault("input", "rgb")
     d["conv_widths"] = tuple(d["conv_widths"])
     d["strided_widths"] = tuple(d["strided_widths"])
     return ModelConfig(**d)

@@ -2,7 +2,11 @@
 
 Frames are decoded and resized once per sequence and cached as an uint8 ``.npy`` file
 (``frames-<sequence>-<W>x<H>-<hash>.npy``, (N, 3, H, W)) in the run folder, so training
-epochs never touch the image decoder.
+epochs never touch the image decoder. The ``rgbd`` and ``flow`` inputs
+(``ModelConfig.input``) also cache quantised inverse depth (``invdepth-...``, (N, 1, H, W)
+uint8, 100 / metres, 0 = no depth) and ``flow`` grey frames at twice the resolution
+(``grey2x-...``, (N, 2H, 2W) uint8), from which the optical flow of each pair is computed
+when the pair is drawn (:class:`Frames`). The caches are memory-mapped, not read into RAM.
 
 Labels live in dense arrays indexed by gap and start position: ``labels[g, k]`` is the
 twist ``xi = (v, w)`` of the pair (k, k + g) (positions in the sequence view), valid where
@@ -19,7 +23,7 @@ import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import cv2
 import numpy as np
@@ -37,11 +41,100 @@ from data.sequence import Sequence
 log = logging.getLogger(__name__)
 
 
+#: network inputs: the paper's stacked RGB pair, plus both frames' inverse depth, plus the
+#: pair's optical flow (DIS) and the first frame's inverse depth
+INPUTS: dict[str, int] = {"rgb": 6, "rgbd": 8, "flow": 9}
+#: one inverse-depth unit of the uint8 cache, 1/m (100 units = 1 m^-1; 255 = 0.39 m)
+INVDEPTH_UNIT = 0.01
+
+
+def _dis() -> "cv2.DISOpticalFlow":
+    return cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)
+
+
+@dataclass
+class Frames:
+    """The cached inputs of one sequence at the network's resolution and the pairs built
+    from them.
+
+    ``rgb`` (N, 3, H, W) uint8; ``invdepth`` (N, 1, H, W) uint8 in units of
+    :data:`INVDEPTH_UNIT` (``rgbd``, ``flow``); ``grey2x`` (N, 2H, 2W) uint8 (``flow``).
+    ``rgb`` and ``invdepth`` are tensors or (memory-mapped) arrays: a batch copies only the
+    frames it needs, so a corpus larger than RAM trains from its cache files.
+    """
+
+    rgb: Tensor | NDArray[np.uint8]
+    invdepth: Optional[Tensor | NDArray[np.uint8]] = None
+    grey2x: Optional[NDArray[np.uint8]] = None
+    mode: str = "rgb"
+
+    def __post_init__(self) -> None:
+        if self.mode not in INPUTS:
+            raise DataError(f"unknown input {self.mode!r} (choose from {', '.join(INPUTS)})")
+        if self.mode != "rgb" and self.invdepth is None:
+            raise DataError(f"input {self.mode!r} needs inverse depth")
+        if self.mode == "flow" and self.grey2x is None:
+            raise DataError("input 'flow' needs the grey frames at twice the resolution")
+
+    def __len__(self) -> int:
+        return len(self.rgb)
+
+    @property
+    def device(self) -> torch.device:
+        return self.rgb.device if isinstance(self.rgb, Tensor) else torch.device("cpu")
+
+    @staticmethod
+    def _take(arr: Tensor | NDArray[np.uint8], k: Tensor) -> Tensor:
+        if isinstance(arr, Tensor):
+            return arr[k]
+        return torch.from_numpy(np.ascontiguousarray(arr[k.numpy()]))
+
+    def head(self, n: int) -> "Frames":
+        """The first ``n`` frames."""
+        return Frames(self.rgb[:n], None if self.invdepth is None else self.invdepth[:n],
+                      None if self.grey2x is None else self.grey2x[:n], self.mode)
+
+    def to(self, device: torch.device) -> "Frames":
+        """The cached tensors on ``device`` (the flow is computed on the CPU, then moved)."""
+        def move(a):
+            return None if a is None else torch.as_tensor(np.asarray(a) if not isinstance(a, Tensor) else a).to(device)
+
+        return Frames(move(self.rgb), move(self.invdepth), self.grey2x, self.mode)
+
+    def flow(self, i: NDArray[np.int64], j: NDArray[np.int64]) -> Tensor:
+        """Optical flow (n, 2, H, W) float32 in pixels of the network's resolution, from frame
+        ``i`` to frame ``j`` (where the content of a pixel of i lies in j), by DIS on the
+        grey frames at twice the resolution, then averaged down."""
+        H, W = self.rgb.shape[-2:]
+        dis = _dis()
+        out = np.empty((len(i), 2, H, W), np.float32)
+        for n, (a, b) in enumerate(zip(i, j)):
+            f = dis.calc(np.asarray(self.grey2x[a]), np.asarray(self.grey2x[b]), None)
+            out[n] = cv2.resize(f, (W, H), interpolation=cv2.INTER_AREA).transpose(2, 0, 1) * 0.5
+        return torch.from_numpy(out)
+
+    def pairs(self, i: Tensor, j: Tensor) -> Tensor:
+        """Network inputs (n, C, H, W) of the pairs (i, j), frame ``i`` first: uint8 for
+        ``rgb`` (6 channels) and ``rgbd`` (8: RGB i, RGB j, inverse depth i, j), float32 for
+        ``flow`` (9: RGB i, RGB j, flow i -> j in pixels, inverse depth i)."""
+        i = torch.as_tensor(i, device=self.device)
+        j = torch.as_tensor(j, device=self.device)
+        rgb_i, rgb_j = self._take(self.rgb, i), self._take(self.rgb, j)
+        if self.mode == "rgb":
+            return torch.cat([rgb_i, rgb_j], dim=1)
+        inv_i = self._take(self.invdepth, i)
+        if self.mode == "rgbd":
+            return torch.cat([rgb_i, rgb_j, inv_i, self._take(self.invdepth, j)], dim=1)
+        flow = self.flow(i.cpu().numpy(), j.cpu().numpy()).to(self.device)
+        return torch.cat([rgb_i.float(), rgb_j.float(), flow, inv_i.float()], dim=1)
+
+
 @dataclass
 class SequenceData:
     """One sequence ready for training or prediction.
 
-    ``frames`` (N, 3, H, W) uint8; ``labels`` (G+1, N, 6) float32 with ``mask`` (G+1, N)
+    ``frames`` the cached inputs (:class:`Frames`; an (N, 3, H, W) uint8 tensor is taken as
+    the ``rgb`` input); ``labels`` (G+1, N, 6) float32 with ``mask`` (G+1, N)
     bool (row 0 unused); ``chol`` (G+1, N, 6, 6) Cholesky factors of the label covariances
     (teacher labels only, else ``None``); ``gt`` (N, 4, 4) ``T_world_cam`` or ``None``.
     """
@@ -49,18 +142,22 @@ class SequenceData:
     name: str
     ids: NDArray[np.int64]
     times: NDArray[np.float64]
-    frames: Tensor
+    frames: Frames
     labels: Tensor
     mask: Tensor
     chol: Optional[Tensor]
     gt: Optional[NDArray[np.float64]]
 
+    def __post_init__(self) -> None:
+        if isinstance(self.frames, Tensor):
+            self.frames = Frames(self.frames)
+
     def __len__(self) -> int:
         return len(self.ids)
 
     def pairs(self, i: Tensor, j: Tensor) -> Tensor:
-        """Stacked frame pairs (n, 6, H, W) uint8 of positions ``i`` and ``j`` (n,)."""
-        return torch.cat([self.frames[i], self.frames[j]], dim=1)
+        """Network inputs (n, C, H, W) of the pairs of positions ``i`` and ``j`` (n,)."""
+        return self.frames.pairs(i, j)
 
 
 # ----------------------------------------------------------------------------------
@@ -70,26 +167,51 @@ def _resize(img: NDArray[np.uint8], width: int, height: int) -> NDArray[np.uint8
     return cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
 
 
-def load_frames(seq: Sequence, width: int, height: int, cache_dir: Path) -> Tensor:
-    """(N, 3, H, W) uint8 frames of ``seq`` resized to ``width x height``, cached as .npy."""
+def _cached(seq: Sequence, what: str, shape: tuple[int, ...], cache_dir: Path,
+            make: "Callable[[int], NDArray[np.uint8]]") -> NDArray[np.uint8]:
+    """(N, *shape) uint8 per-frame arrays of ``seq``, cached as a memory-mapped .npy file."""
     ids = seq.ids()
     key = hashlib.sha1(np.ascontiguousarray(ids).tobytes() + str(getattr(seq, "root", seq.name)).encode()).hexdigest()[:10]
-    path = Path(cache_dir) / f"frames-{seq.name}-{width}x{height}-{key}.npy"
+    size = "x".join(map(str, shape[::-1][:2]))
+    path = Path(cache_dir) / f"{what}-{seq.name}-{size}-{key}.npy"
     if path.is_file():
         try:
-            arr = np.load(path)
-            if arr.shape == (len(ids), 3, height, width) and arr.dtype == np.uint8:
-                return torch.from_numpy(arr)
+            arr = np.load(path, mmap_mode="r")
+            if arr.shape == (len(ids), *shape) and arr.dtype == np.uint8:
+                return arr
         except (OSError, ValueError):
             pass
-        log.warning("ignoring unreadable frame cache %s", path)
-    log.info("decoding %d frames of %s to %dx%d", len(ids), seq.name, width, height)
+        log.warning("ignoring unreadable cache %s", path)
+    log.info("caching %s of %d frames of %s (%s)", what, len(ids), seq.name, size)
     with ThreadPoolExecutor(max_workers=4) as pool:
-        imgs = list(pool.map(lambda k: _resize(seq.rgb(k), width, height), range(len(seq))))
-    arr = np.ascontiguousarray(np.stack(imgs).transpose(0, 3, 1, 2))
+        arr = np.stack(list(pool.map(make, range(len(seq)))))
     with atomic_write(path, "wb") as fh:
-        np.save(fh, arr)
-    return torch.from_numpy(arr)
+        np.save(fh, np.ascontiguousarray(arr))
+    return np.load(path, mmap_mode="r")
+
+
+def _invdepth(depth: NDArray[np.float32], width: int, height: int) -> NDArray[np.uint8]:
+    """(1, H, W) uint8 inverse depth in :data:`INVDEPTH_UNIT` (0 where depth is invalid)."""
+    d = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
+    with np.errstate(divide="ignore"):
+        q = np.where(d > 0, np.round(1.0 / (np.maximum(d, 1e-6) * INVDEPTH_UNIT)), 0)
+    return np.clip(q, 0, 255).astype(np.uint8)[None]
+
+
+def load_frames(seq: Sequence, width: int, height: int, cache_dir: Path, mode: str = "rgb") -> Frames:
+    """The inputs of ``seq`` for the network input ``mode`` at ``width x height``, cached as
+    memory-mapped .npy files in ``cache_dir`` (only the frames' RGB is then held in RAM)."""
+    if mode not in INPUTS:
+        raise DataError(f"unknown input {mode!r} (choose from {', '.join(INPUTS)})")
+    rgb = _cached(seq, "frames", (3, height, width), cache_dir,
+                  lambda k: _resize(seq.rgb(k), width, height).transpose(2, 0, 1))
+    inv = grey = None
+    if mode != "rgb":
+        inv = _cached(seq, "invdepth", (1, height, width), cache_dir, lambda k: _invdepth(seq.depth(k), width, height))
+    if mode == "flow":
+        grey = _cached(seq, "grey2x", (2 * height, 2 * width), cache_dir,
+                       lambda k: cv2.cvtColor(_resize(seq.rgb(k), 2 * width, 2 * height), cv2.COLOR_RGB2GRAY))
+    return Frames(rgb, inv, grey, mode)
 
 
 # ----------------------------------------------------------------------------------
@@ -183,7 +305,7 @@ def find_teacher_edges(spec: str, seqs: list[Sequence], split: str, frames: Opti
 
 def load_sequences(spec: str, seqs: list[Sequence], *, width: int, height: int, max_gap: int, label_source: str,
                    cache_dir: Path, split: str = "all", frames: Optional[str] = None,
-                   teacher_root: Optional[Path] = None) -> list[SequenceData]:
+                   teacher_root: Optional[Path] = None, mode: str = "rgb") -> list[SequenceData]:
     """Frames and labels of the sequences of one ``--scene``.
 
     ``label_source`` is ``gt`` (poses), ``teacher``/``aug`` (teacher edges) or ``none``.
@@ -205,7 +327,7 @@ def load_sequences(spec: str, seqs: list[Sequence], *, width: int, height: int, 
             labels, mask, chol = teacher_labels(g2o, seq.ids(), max_gap)
         else:
             labels, mask = torch.zeros(max_gap + 1, n, 6), torch.zeros(max_gap + 1, n, dtype=torch.bool)
-        out.append(SequenceData(seq.name, seq.ids(), seq.times(), load_frames(seq, width, height, cache_dir),
+        out.append(SequenceData(seq.name, seq.ids(), seq.times(), load_frames(seq, width, height, cache_dir, mode),
                                 labels, mask, chol, gt))
     return out
 

@@ -31,6 +31,16 @@ log = logging.getLogger(__name__)
 #: ImageNet statistics used to normalise RGB (the pretrained VGG expects them)
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
+#: per-channel (mean, std) of the raw inputs (:class:`learner.dataset.Frames`): RGB in
+#: 0..255; inverse depth in units of 0.01 / m (50 = 2 m); flow in pixels
+_RGB = [(255 * m, 255 * s) for m, s in zip(IMAGENET_MEAN, IMAGENET_STD)]
+_INVDEPTH = (50.0, 30.0)
+_FLOW = (0.0, 2.0)
+INPUT_STATS: dict[str, list[tuple[float, float]]] = {
+    "rgb": _RGB * 2,
+    "rgbd": _RGB * 2 + [_INVDEPTH] * 2,
+    "flow": _RGB * 2 + [_FLOW] * 2 + [_INVDEPTH],
+}
 
 
 def _vgg_features(widths: tuple[int, ...], in_ch: int = 6) -> nn.Sequential:
@@ -52,7 +62,8 @@ class CTCNet(nn.Module):
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
         self.cfg = cfg
-        self.features = _vgg_features(cfg.conv_widths)
+        stats = INPUT_STATS[cfg.input]
+        self.features = _vgg_features(cfg.conv_widths, in_ch=len(stats))
         s1, s2 = cfg.strided_widths
         self.reduce = nn.Sequential(
             nn.Conv2d(cfg.conv_widths[-1], s1, 3, stride=2, padding=1), nn.BatchNorm2d(s1), nn.ReLU(inplace=True),
@@ -67,8 +78,8 @@ class CTCNet(nn.Module):
             nn.init.normal_(head.weight, std=1e-3)
             nn.init.zeros_(head.bias)
         self.register_buffer("output_scale", torch.full((6,), 0.01))
-        self.register_buffer("pixel_mean", torch.tensor(IMAGENET_MEAN * 2).view(1, 6, 1, 1))
-        self.register_buffer("pixel_std", torch.tensor(IMAGENET_STD * 2).view(1, 6, 1, 1))
+        self.register_buffer("pixel_mean", torch.tensor([m for m, _ in stats]).view(1, -1, 1, 1))
+        self.register_buffer("pixel_std", torch.tensor([s for _, s in stats]).view(1, -1, 1, 1))
         # channels-last (NHWC) conv weights and activations: oneDNN's fast path on CPU
         # (1.3-1.6x faster training, 1.5x faster inference than NCHW at the cpu preset) and
         # the tensor-core layout on GPU. Only 4-D tensors change layout; values do not.
@@ -77,12 +88,14 @@ class CTCNet(nn.Module):
 
     # ---------------------------------------------------------------- building blocks
     def normalise(self, pairs_u8: Tensor) -> Tensor:
-        """uint8 (N, 6, H, W) -> normalised float (N, 6, H, W), channels-last in memory."""
+        """Raw pair inputs (N, C_in, H, W) (uint8 or float, :class:`learner.dataset.Frames`)
+        -> normalised float, channels-last in memory."""
         x = pairs_u8.contiguous(memory_format=torch.channels_last).float()
-        return (x / 255.0 - self.pixel_mean) / self.pixel_std
+        return (x - self.pixel_mean) / self.pixel_std
 
     def encode(self, pairs_u8: Tensor) -> Tensor:
-        """Latents (N, C) of uint8 stacked frame pairs (N, 6, H, W)."""
+        """Latents (N, C) of pair inputs (N, C_in, H, W): 6 stacked RGB channels, more for
+        the ``rgbd`` and ``flow`` inputs."""
         x = self.reduce(self.features(self.normalise(pairs_u8)))
         return x.mean(dim=(2, 3))
 
@@ -165,7 +178,8 @@ def load_pretrained_vgg(model: CTCNet, path: Path) -> int:
         if key == "0.weight":
             if src.shape[1] != 3:
                 raise ConfigError(f"--pretrained features.0.weight has shape {tuple(src.shape)}, expected (64, 3, 3, 3)")
-            src = torch.cat([src, src], dim=1) * 0.5
+            extra = val.shape[1] - 6  # depth / flow channels start at zero weight
+            src = torch.cat([src, src, src.new_zeros(src.shape[0], extra, 3, 3)], dim=1) * 0.5
         if tuple(src.shape) != tuple(val.shape):
             raise ConfigError(
                 f"--pretrained features.{key} has shape {tuple(src.shape)} but the model needs {tuple(val.shape)} "

@@ -39,7 +39,7 @@ from data.scenes import open_scene, scene_slug
 from data.sequence import frame_ranges_overlap
 from learner.calibrate import CALIBRATION_FILE, calibration_for, mahalanobis2, nees_stats
 from learner.config import PredictConfig, check_variant, model_from_dict
-from learner.dataset import load_frames
+from learner.dataset import Frames, load_frames
 from learner.model import CTCNet
 from learner.train import load_checkpoint
 
@@ -93,13 +93,14 @@ def load_model(checkpoint: Path, preset: Optional[str] = None, device: str = "au
 
 
 @torch.no_grad()
-def mc_edges(model: CTCNet, frames: torch.Tensor, *, uses_lstm: bool, window: int, cfg: PredictConfig,
+def mc_edges(model: CTCNet, frames: Frames | torch.Tensor, *, uses_lstm: bool, window: int, cfg: PredictConfig,
              progress: bool = False, seed: int = 0) -> EdgeSet:
-    """MC-dropout edges of one sequence of frames (N, 3, H, W) uint8."""
+    """MC-dropout edges of one sequence's cached inputs (:class:`learner.dataset.Frames`, or
+    (N, 3, H, W) uint8 RGB frames)."""
     n = len(frames)
-    device = model.output_scale.device  # frames may live on the CPU (pinned) or on the model's device
-    if device.type == "cuda" and frames.device.type == "cpu":
-        frames = frames.pin_memory()
+    device = model.output_scale.device  # the frames may live on the CPU or on the model's device
+    if isinstance(frames, torch.Tensor):
+        frames = Frames(frames)
     torch.manual_seed(seed)
     G = max(1, min(cfg.max_gap, n - 1))
     ii, jj, means, covs, heads = [], [], [], [], []
@@ -109,7 +110,7 @@ def mc_edges(model: CTCNet, frames: torch.Tensor, *, uses_lstm: bool, window: in
         out = []
         for a in range(0, n - g, cfg.batch_pairs):
             k = torch.arange(a, min(a + cfg.batch_pairs, n - g))
-            out.append(model.encode(torch.cat([frames[k], frames[k + g]], 1).to(device, non_blocking=True)))
+            out.append(model.encode(frames.pairs(k, k + g).to(device)))
             bar.update(len(k))
         return torch.cat(out)
 
@@ -233,7 +234,7 @@ def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split
         if len(seq) < 2:
             raise DataError(f"sequence {seq.name} needs at least 2 frames to predict edges")
         out_dir = ensure_dir(base / seq.name if len(seqs) > 1 else base)
-        frames_u8 = load_frames(seq, mcfg.width, mcfg.height, checkpoint.parent / "cache")
+        frames_u8 = load_frames(seq, mcfg.width, mcfg.height, checkpoint.parent / "cache", mcfg.input)
         edges = mc_edges(model, frames_u8, uses_lstm=uses_lstm, window=window, cfg=config, progress=progress)
         raw = edges
         if (found is not None and seq.name in {str(s.get("sequence")) for s in found[1].info.get("sequences", [])}

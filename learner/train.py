@@ -57,13 +57,14 @@ from learner import se3
 from learner.calibrate import CALIBRATION_FILE
 from learner.calibrate import calibrate as run_calibration
 from learner.config import PredictConfig, Preset, TrainConfig, check_variant, get_preset, to_dict
-from learner.dataset import SequenceData, check_labels, find_teacher_edges, load_sequences
+from learner.dataset import Frames, SequenceData, check_labels, find_teacher_edges, load_sequences
 from learner.model import CTCNet, load_pretrained_vgg
 
 log = logging.getLogger(__name__)
 
 CHECKPOINT = "checkpoint.pt"
-CHECKPOINT_FORMAT = 1
+CHECKPOINT_FORMAT = 2
+"""2: losses normalised by the labels' RMS, inputs normalised in raw units (``ModelConfig.input``)."""
 
 
 @dataclass
@@ -226,8 +227,11 @@ def load_checkpoint(path: Path) -> dict:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - corrupt pickles raise many types
         raise DataError(f"cannot read checkpoint {path}: {exc}") from None
-    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT or "model" not in state:
+    if not isinstance(state, dict) or "model" not in state or "format" not in state:
         raise DataError(f"{path} is not a learner checkpoint")
+    if state["format"] != CHECKPOINT_FORMAT:
+        raise DataError(f"{path} is a learner checkpoint of format {state['format']}, this version reads format "
+                        f"{CHECKPOINT_FORMAT}: train it again")
     return state
 
 
@@ -243,14 +247,15 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
         val_frames: Optional[str] = None, out: Optional[Path] = None, resume: bool = False,
         pretrained: Optional[Path] = None, teacher_root: Optional[Path] = None,
         progress: Optional[bool] = None, calibrate: bool = True, device: str = "auto", bf16: bool = False,
-        **train_overrides: Any) -> FitResult:
+        input: Optional[str] = None, **train_overrides: Any) -> FitResult:
     """Train a learner on the sequences of ``scenes`` and return the run's outputs.
 
     ``train_overrides`` replace fields of the preset's :class:`TrainConfig`
     (e.g. ``steps=300, seed=1, eval_every=50``; ``steps`` alone keeps the preset's
     proportions of phase-1 and warm-up steps). ``device``: ``auto`` (CUDA when available),
     ``cpu`` or ``cuda``; ``bf16``: bfloat16 autocast of the network's forward pass (the
-    losses and the se(3) maps stay in float32). ``calibrate``: fit the covariance
+    losses and the se(3) maps stay in float32). ``input`` replaces the preset's
+    ``ModelConfig.input`` (``rgb``, ``rgbd`` or ``flow``). ``calibrate``: fit the covariance
     calibration on ``val_scenes`` (their teacher labels, never ground truth) at the end.
     ``val_frames`` is the frame range of the validation sequences (default: ``frames``); a
     validation sequence may be a training sequence only with a disjoint range (e.g. train
@@ -260,6 +265,11 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
         raise ConfigError("give at least one --scene")
     uses_lstm, label_source, uses_ctc = check_variant(variant)
     p = get_preset(preset) if isinstance(preset, str) else preset
+    if input is not None:
+        try:
+            p = dataclasses.replace(p, model=dataclasses.replace(p.model, input=input))
+        except ConfigError as exc:
+            raise ConfigError(f"--input: {exc}") from None
     overrides = {k: v for k, v in train_overrides.items() if v is not None}
     if "steps" in overrides:  # keep the preset's proportions
         n = overrides["steps"]
@@ -311,7 +321,8 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
         for spec, seqs in items:
             out_ += load_sequences(spec, seqs, width=mcfg.width, height=mcfg.height, max_gap=cfg.max_gap,
                                    label_source=label_source if label_source != "aug" else "aug",
-                                   cache_dir=cache, split=split, frames=frame_range, teacher_root=teacher_root)
+                                   cache_dir=cache, split=split, frames=frame_range, teacher_root=teacher_root,
+                                   mode=mcfg.input)
         return out_
 
     if dd.main:  # rank 0 decodes, runs the teacher if needed and fills the cache
@@ -327,7 +338,7 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
     log.info("target scale (gap-1 RMS of the training labels): v %s mm, w %s mrad",
              np.array2string(scale[1, :3].numpy() * 1e3, precision=2), np.array2string(scale[1, 3:].numpy() * 1e3, precision=2))
     if dd.device.type == "cuda":  # the cached frames live on the GPU: no host-to-device copy per step
-        for d in train_data:
+        for d in train_data + val_data:
             d.frames = d.frames.to(dd.device)
     scale = scale.to(dd.device)
     evaluator = Evaluator(train_data, val_data, uses_lstm, cfg.window_max)
@@ -453,26 +464,28 @@ _MIRROR = torch.tensor([-1.0, 1.0, 1.0, 1.0, -1.0, -1.0])
 """Twist of a left-right mirrored motion, per component (see ``TrainConfig.flip_prob``)."""
 
 
+#: channel of the horizontal flow component in the ``flow`` input (negated by a mirror)
+_FLOW_U = 6
+
+
 def _mirror(x: Tensor, lab: Tensor, flip: Tensor) -> tuple[Tensor, Tensor]:
-    """Mirror the samples ``flip`` (B,) bool of images ``x`` (B, ..., W) and labels
-    ``lab`` (B, ..., 6)."""
+    """Mirror the samples ``flip`` (B,) bool of images ``x`` (B, ..., C, H, W) and labels
+    ``lab`` (B, ..., 6); a float input of 9 channels (``flow``) also has its horizontal
+    flow negated."""
     if not bool(flip.any()):
         return x, lab
     x, lab = x.clone(), lab.clone()
     x[flip] = x[flip].flip(-1)
+    if x.is_floating_point() and x.shape[-3] == 9:
+        x[flip, ..., _FLOW_U, :, :] *= -1
     lab[flip] = lab[flip] * _MIRROR
     return x, lab
 
 
-def _reverse(x: Tensor, lab: Tensor, rev: Tensor) -> tuple[Tensor, Tensor]:
-    """Play the samples ``rev`` (B,) bool backwards: the two frames of each pair in ``x``
-    (B, ..., 6, H, W) swap places, labels ``lab`` (B, ..., 6) become ``log(T^-1) = -log(T)``."""
-    if not bool(rev.any()):
-        return x, lab
-    x, lab = x.clone(), lab.clone()
-    x[rev] = torch.cat([x[rev][..., 3:, :, :], x[rev][..., :3, :, :]], dim=-3)
-    lab[rev] = -lab[rev]
-    return x, lab
+def _reversed_pairs(d: SequenceData, i: Tensor, j: Tensor, rev: Tensor) -> Tensor:
+    """Inputs of the pairs (i, j), those with ``rev`` played backwards: built as (j, i),
+    the later frame first (the flow and depth of the ``flow`` input come out right too)."""
+    return d.pairs(torch.where(rev, j, i), torch.where(rev, i, j))
 
 
 def _freeze_batchnorm(model: torch.nn.Module) -> None:
@@ -490,16 +503,17 @@ def _pairs_step(net, data, rows: np.ndarray, cfg: TrainConfig, aug: bool, gen, d
         r = rows[rows[:, 0] == s]
         d = data[int(s)]
         k, g = torch.from_numpy(r[:, 1]), torch.from_numpy(r[:, 2])
-        x.append(d.pairs(k, k + g))
+        rev = torch.rand(len(k), generator=gen) < cfg.reverse_prob if cfg.reverse_prob > 0 \
+            else torch.zeros(len(k), dtype=torch.bool)
+        x.append(_reversed_pairs(d, k, k + g, rev))
         lab, m = _labels(d, k, g, aug, gen)
+        lab = torch.where(rev[:, None], -lab, lab)  # log(T^-1) = -log(T)
         labs.append(lab)
         masks.append(m)
         gaps.append(g)
     x, lab = torch.cat(x), torch.cat(labs)
     if cfg.flip_prob > 0:
         x, lab = _mirror(x, lab, torch.rand(len(x), generator=gen) < cfg.flip_prob)
-    if cfg.reverse_prob > 0:
-        x, lab = _reverse(x, lab, torch.rand(len(x), generator=gen) < cfg.reverse_prob)
     xi_d, _ = net(x.to(device))
     return L.pair_loss(xi_d.float(), lab.to(device), torch.cat(masks).to(device), torch.cat(gaps).to(device),
                        cfg.beta, scale)
@@ -513,18 +527,17 @@ def _windows_step(net, data, rows: np.ndarray, W: int, cfg: TrainConfig, aug: bo
     pg = torch.tensor([j - i for i, j in pairs])
     B = len(rows)
     # a reversed window: its pair (i, j) is the original pair (start + W - j, start + W - i)
-    # played backwards (its frames swapped and its label negated by _reverse below)
+    # played backwards (built as (j, i), its label negated)
     rev = (torch.rand(B, generator=gen) < cfg.reverse_prob) if cfg.reverse_prob > 0 else torch.zeros(B, dtype=torch.bool)
     x, labs, masks = [], [], []
     for b, (s, start) in enumerate(rows):
         d = data[int(s)]
         k = int(start) + W - pi - pg if rev[b] else pi + int(start)
-        x.append(d.pairs(k, k + pg))
+        x.append(_reversed_pairs(d, k, k + pg, rev[b].expand(len(k))))
         lab, m = _labels(d, k, pg, aug, gen)
-        labs.append(lab)
+        labs.append(-lab if rev[b] else lab)  # log(T^-1) = -log(T)
         masks.append(m)
-    x, lab = torch.stack(x), torch.stack(labs)  # (B, P, 6, H, W), (B, P, 6)
-    x, lab = _reverse(x, lab, rev)
+    x, lab = torch.stack(x), torch.stack(labs)  # (B, P, C, H, W), (B, P, 6)
     if cfg.flip_prob > 0:  # a whole window at a time
         x, lab = _mirror(x, lab, torch.rand(B, generator=gen) < cfg.flip_prob)
     seq_index = (torch.arange(B)[:, None] * P + torch.arange(W)[None, :]).to(device)  # gap-1 block first
@@ -545,8 +558,8 @@ def _windows_step(net, data, rows: np.ndarray, W: int, cfg: TrainConfig, aug: bo
 # ----------------------------------------------------------------------------------
 @dataclass
 class _EvalSeq:
-    frames: Tensor
-    """(n, 3, H, W) uint8 frames of a stretch of one sequence."""
+    frames: Frames
+    """The cached inputs of a stretch of n frames of one sequence."""
     ref: NDArray[np.float64]
     """(n-1, 6) reference gap-1 twists; rows of NaN where there is none."""
 
@@ -583,7 +596,7 @@ class Evaluator:
             else:
                 ref = d.labels[1, : n - 1].double().numpy().copy()
                 ref[~d.mask[1, : n - 1].numpy()] = np.nan
-            out.append(_EvalSeq(d.frames[:n], ref))
+            out.append(_EvalSeq(d.frames.head(n), ref))
             left -= n - 1
         return ("ground truth" if use_gt else "teacher"), out
 

@@ -212,15 +212,37 @@ def test_reversed_pairs_and_windows_keep_labels_and_ctc_exact(reverse_prob) -> N
     assert float(_pairs_step(swapped, data, rows, cfg, False, gen, cpu, scale).reg) > 1e-2
 
 
-def test_reverse_shows_the_later_frame_first() -> None:
-    from learner.train import _reverse
+def test_input_pairs_rgb_rgbd_and_flow() -> None:
+    """The encoder's inputs of a pair (i, j): RGB i then RGB j (a reversed pair, built as
+    (j, i), shows the later frame first), inverse depth of both (``rgbd``), and for ``flow``
+    the DIS flow i -> j, which on a texture shifted by (dx, dy) pixels at twice the
+    resolution is (dx, dy) / 2 at the network's, negated for the reversed pair and, in
+    the horizontal, by a mirror."""
+    from learner.dataset import Frames
+    from learner.train import _mirror
 
-    x = torch.arange(2 * 6 * 2 * 2, dtype=torch.float32).view(2, 6, 2, 2)
-    lab = torch.arange(12, dtype=torch.float32).view(2, 6)
-    xr, lr = _reverse(x, lab, torch.tensor([True, False]))
-    assert torch.equal(xr[0, :3], x[0, 3:]) and torch.equal(xr[0, 3:], x[0, :3]) and torch.equal(xr[1], x[1])
-    assert torch.equal(lr[0], -lab[0]) and torch.equal(lr[1], lab[1])
-    assert torch.equal(x[0, 0], torch.tensor([[0.0, 1.0], [2.0, 3.0]]))  # inputs untouched
+    rng = np.random.default_rng(0)
+    H, W, N = 24, 32, 3
+    tex = cv2.GaussianBlur(rng.integers(0, 256, (2 * H + 20, 2 * W + 20)).astype(np.uint8), (5, 5), 0)
+    shifts = [(0, 0), (4, -2), (8, -4)]  # px at twice the resolution
+    grey = np.stack([tex[10 + dy:10 + dy + 2 * H, 10 + dx:10 + dx + 2 * W] for dx, dy in shifts])
+    rgb = torch.from_numpy(rng.integers(0, 256, (N, 3, H, W)).astype(np.uint8))
+    inv = torch.from_numpy(np.arange(N, dtype=np.uint8).repeat(H * W).reshape(N, 1, H, W) + 40)
+    i, j = torch.tensor([0, 2]), torch.tensor([1, 0])
+    x = Frames(rgb).pairs(i, j)
+    assert x.dtype == torch.uint8 and torch.equal(x[:, :3], rgb[i]) and torch.equal(x[:, 3:], rgb[j])
+    x = Frames(rgb, inv, mode="rgbd").pairs(i, j)
+    assert x.shape == (2, 8, H, W) and torch.equal(x[:, 6:7], inv[i]) and torch.equal(x[:, 7:], inv[j])
+    f = Frames(rgb, inv, grey, mode="flow")
+    x = f.pairs(torch.tensor([0, 1]), torch.tensor([1, 0]))
+    assert x.shape == (2, 9, H, W) and x.dtype == torch.float32 and torch.equal(x[:, 8:], inv[[0, 1]].float())
+    inner = (slice(None), slice(4, -4), slice(4, -4))
+    # the content of pixel p of frame 0 lies at p - shift in frame 1 (the crop moved by +shift)
+    assert torch.allclose(x[0, 6:8][inner].median(-1).values.median(-1).values, torch.tensor([-2.0, 1.0]), atol=0.15)
+    assert torch.allclose(x[1, 6:8][inner].median(-1).values.median(-1).values, torch.tensor([2.0, -1.0]), atol=0.15)
+    xm, _ = _mirror(x, torch.zeros(2, 6), torch.tensor([True, False]))
+    assert torch.equal(xm[0, 6], -x[0, 6].flip(-1)) and torch.equal(xm[0, 7], x[0, 7].flip(-1))
+    assert torch.equal(xm[1], x[1])
 
 
 @pytest.mark.parametrize("name, good, bad", [("flip_prob", 1.0, 1.5), ("reverse_prob", 0.5, -0.1)])
