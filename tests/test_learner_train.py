@@ -588,3 +588,44 @@ def test_tiny_model_overfits_exact_labels_and_only_aligned_ones(labels: str, tmp
         assert last["pairs_reg"] < 0.3 * res.history[0]["pairs_reg"] or last["pairs_reg"] < 0.1
     else:
         assert ratio > 0.6, res.history
+
+
+def test_device_choice(monkeypatch) -> None:
+    """``--device auto`` takes CUDA when it is there and the CPU otherwise; ``cuda`` without
+    a GPU and unknown names are clear errors; a single process never needs torchrun."""
+    from learner.train import _setup_dist, resolve_device
+
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_device("auto").type == "cpu" and resolve_device("cpu").type == "cpu"
+    with pytest.raises(ConfigError, match="no CUDA device"):
+        resolve_device("cuda")
+    with pytest.raises(ConfigError, match="auto, cpu or cuda"):
+        resolve_device("gpu")
+    assert _setup_dist("auto").device.type == "cpu" and _setup_dist("auto").world == 1
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert resolve_device("auto").type == "cuda" and resolve_device("cpu").type == "cpu"
+    d = _setup_dist("auto")
+    assert d.device.type == "cuda" and d.world == 1 and d.rank == 0
+
+
+def test_no_skill_warning(caplog) -> None:
+    """The end of a fit says loudly when the model is no better than zero motion on its
+    validation frames (or, without them, its training frames), and quietly otherwise."""
+    import logging
+
+    from learner.train import _warn_if_no_skill
+
+    with caplog.at_level(logging.INFO, logger="learner.train"):
+        _warn_if_no_skill({"train_se3_l2": 0.004, "train_zero_motion_se3_l2": 0.01,
+                           "val_se3_l2": 0.012, "val_zero_motion_se3_l2": 0.011})
+    assert [r.levelname for r in caplog.records] == ["WARNING"] and "validation" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="learner.train"):
+        _warn_if_no_skill({"train_se3_l2": 0.012, "train_zero_motion_se3_l2": 0.01,
+                           "val_se3_l2": 0.008, "val_zero_motion_se3_l2": 0.011})
+    assert [r.levelname for r in caplog.records] == ["INFO"] and "0.73x zero motion" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="learner.train"):
+        _warn_if_no_skill({"train_se3_l2": 0.012, "train_zero_motion_se3_l2": 0.01})
+    assert [r.levelname for r in caplog.records] == ["WARNING"] and "training" in caplog.text
