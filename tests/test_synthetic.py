@@ -323,3 +323,23 @@ def test_colour_files_are_the_sensor_jpeg(tmp_path) -> None:
     fc = syn.FrameRenderer(clean, *syn.build(clean))
     np.testing.assert_array_equal(read_rgb(seq_dir / "frame-000001.color.png"), fc.frame(1)[0])
     assert syn.colour_suffix(cfg.sensor) == ".color.jpg" and syn.colour_suffix(clean.sensor) == ".color.png"
+
+
+def test_training_corpus_rooms(tmp_path: Path):
+    """``synthetic/room-<N>``: rooms of the three layouts in turn, each from its own seed
+    (never a named scene's) with its own trajectory statistics; ``-clean`` works for them
+    too, unknown forms are refused, and a room renders."""
+    from data.synthetic.config import CORPUS_SEED0, resolve_preset
+
+    rooms = [resolve_preset(f"room-{k}") for k in range(6)]
+    assert [r.layout for r in rooms] == ["office", "kitchen", "lab"] * 2
+    assert [r.seed for r in rooms] == list(range(CORPUS_SEED0, CORPUS_SEED0 + 6))
+    assert len({r.mean_speed_mps for r in rooms}) == 6 and all(0.12 <= r.mean_speed_mps <= 0.40 for r in rooms)
+    assert not {r.seed for r in rooms} & {c.seed for c in syn.config.PRESETS.values()}
+    assert resolve_preset("room-4-clean").sensor.noise_free and resolve_preset("room-4") == rooms[4]
+    for bad in ("room-", "room-x", "room--1"):
+        with pytest.raises(DataError):
+            open_scene(f"synthetic/{bad}", cache_dir=tmp_path)
+    cfg = dataclasses.replace(rooms[1], frames=3, width=160, height=120, fx=146.25, fy=146.25, cx=80.0, cy=60.0)
+    seq = syn.synthetic_sequence("room-1", cache_dir=tmp_path, config=cfg)
+    assert len(seq) == 3 and seq.rgb(0).shape == (120, 160, 3) and seq.groundtruth().shape == (3, 4, 4)

@@ -29,6 +29,8 @@ import json
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 #: Bump when the renderer's output changes for the same config (invalidates caches).
 RENDER_VERSION = 10
 
@@ -192,15 +194,41 @@ PRESETS: dict[str, SceneConfig] = {
 CLEAN_SUFFIX = "-clean"
 
 
-def resolve_preset(name: str) -> SceneConfig:
-    """Config of a preset name (``office``, ``office-clean``, ...); KeyError if unknown."""
+#: first seed of the training corpus rooms (the named scenes use seeds below 100)
+CORPUS_SEED0 = 1000
+CORPUS_PREFIX = "room-"
+
+
+def corpus_room(index: int) -> SceneConfig:
+    """Room ``index`` of the synthetic training corpus (``synthetic/room-<index>``): a new
+    room of one of the three layout generators in turn (its own furniture placement,
+    materials, textures and lights from seed ``CORPUS_SEED0 + index``, never one of the
+    named scenes' seeds), and a trajectory of its own speed (0.12-0.40 m/s mean), top
+    rotation rate (15-45 deg/s) and viewing distances, drawn from the same seed."""
+    if index < 0:
+        raise KeyError(f"{CORPUS_PREFIX}{index}")
+    rng = np.random.default_rng([CORPUS_SEED0, index])
+    near = float(rng.uniform(0.6, 1.2))
+    return SceneConfig(layout=("office", "kitchen", "lab")[index % 3], seed=CORPUS_SEED0 + index, frames=300,
+                       mean_speed_mps=float(rng.uniform(0.12, 0.40)), max_angular_dps=float(rng.uniform(15.0, 45.0)),
+                       max_speed_mps=0.6, view_distance_m=(near, float(near + rng.uniform(1.2, 2.4))))
+
+
+def _base(name: str) -> SceneConfig:
     if name in PRESETS:
         return PRESETS[name]
-    if name.endswith(CLEAN_SUFFIX) and name[: -len(CLEAN_SUFFIX)] in PRESETS:
-        cfg = PRESETS[name[: -len(CLEAN_SUFFIX)]]
-        return dataclasses.replace(cfg, sensor=dataclasses.replace(cfg.sensor, noise_free=True))
+    if name.startswith(CORPUS_PREFIX) and name[len(CORPUS_PREFIX):].isdigit():
+        return corpus_room(int(name[len(CORPUS_PREFIX):]))
     raise KeyError(name)
 
 
+def resolve_preset(name: str) -> SceneConfig:
+    """Config of a scene name (``office``, ``office-clean``, ``room-7``, ...); KeyError if unknown."""
+    if name.endswith(CLEAN_SUFFIX):
+        cfg = _base(name[: -len(CLEAN_SUFFIX)])
+        return dataclasses.replace(cfg, sensor=dataclasses.replace(cfg.sensor, noise_free=True))
+    return _base(name)
+
+
 def known_names() -> list[str]:
-    return sorted(PRESETS)
+    return sorted(PRESETS) + [f"{CORPUS_PREFIX}<N> (training corpus)"]
