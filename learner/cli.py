@@ -51,6 +51,8 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--bf16", action="store_true", help="bfloat16 autocast of the forward pass (GPU)")
     f.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     f.add_argument("--pretrained", type=Path, help="local torchvision vgg11_bn state-dict file")
+    f.add_argument("--init", type=Path, help="fine-tune: start from the weights of this learner checkpoint "
+                   "(same preset shape and --input), with a fresh optimiser and schedule")
     f.add_argument("--teacher", type=Path,
                    help="teacher output folder to read labels from (never generated); "
                         "default runs/<scene-slug>/teacher, generated when missing")
@@ -100,7 +102,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                       resume=args.resume,
                       pretrained=args.pretrained, teacher_root=args.teacher, steps=args.steps,
                       pretrain_steps=args.pretrain_steps, warmup_steps=args.warmup_steps, eval_every=args.eval_every,
-                      lr=args.lr, batch_pairs=args.batch_pairs, seed=args.seed, device=args.device, bf16=args.bf16, input=args.input,
+                      lr=args.lr, batch_pairs=args.batch_pairs, seed=args.seed, device=args.device, bf16=args.bf16, input=args.input, init=args.init,
                       flip_prob=args.flip_prob, reverse_prob=args.reverse_prob,
                       calibrate=args.calibrate)
             logging.getLogger("learner").info("checkpoint: %s", res.checkpoint)

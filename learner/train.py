@@ -247,7 +247,7 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
         val_frames: Optional[str] = None, out: Optional[Path] = None, resume: bool = False,
         pretrained: Optional[Path] = None, teacher_root: Optional[Path] = None,
         progress: Optional[bool] = None, calibrate: bool = True, device: str = "auto", bf16: bool = False,
-        input: Optional[str] = None, **train_overrides: Any) -> FitResult:
+        input: Optional[str] = None, init: Optional[Path] = None, **train_overrides: Any) -> FitResult:
     """Train a learner on the sequences of ``scenes`` and return the run's outputs.
 
     ``train_overrides`` replace fields of the preset's :class:`TrainConfig`
@@ -255,7 +255,9 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
     proportions of phase-1 and warm-up steps). ``device``: ``auto`` (CUDA when available),
     ``cpu`` or ``cuda``; ``bf16``: bfloat16 autocast of the network's forward pass (the
     losses and the se(3) maps stay in float32). ``input`` replaces the preset's
-    ``ModelConfig.input`` (``rgb``, ``rgbd`` or ``flow``). ``calibrate``: fit the covariance
+    ``ModelConfig.input`` (``rgb``, ``rgbd`` or ``flow``). ``init``: start from the weights
+    of another learner checkpoint of the same network shape (pretrained, e.g. on the
+    synthetic corpus), with a fresh optimiser and schedule: fine-tuning. ``calibrate``: fit the covariance
     calibration on ``val_scenes`` (their teacher labels, never ground truth) at the end.
     ``val_frames`` is the frame range of the validation sequences (default: ``frames``); a
     validation sequence may be a training sequence only with a disjoint range (e.g. train
@@ -346,7 +348,15 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
     # -------------------------------------------------------------- model
     torch.manual_seed(cfg.seed)
     model = CTCNet(mcfg)
-    if state is None:
+    if state is None and init is not None:
+        src = load_checkpoint(Path(init))
+        if src["model_config"] != to_dict(mcfg):
+            raise ConfigError(f"--init {init} has another network shape or input than preset {p.name!r} "
+                              f"(input {mcfg.input!r}): {src['preset']!r} with input {src['model_config'].get('input')!r}")
+        model.load_state_dict(src["model"])  # keeps the output scale its weights were trained with
+        log.info("fine-tuning %s (%s, %s, %d steps)", init, src["preset"], src["variant"],
+                 src["history"][-1]["steps"] if src.get("history") else 0)
+    elif state is None:
         if pretrained is not None:
             load_pretrained_vgg(model, Path(pretrained))
         model.output_scale.copy_(scale[1])
@@ -372,7 +382,8 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
             "scenes": list(scenes), "val_scenes": list(val_scenes), "frames": frames, "val_frames": vframes,
             "split": split,
             "train_sequences": sorted(train_names), "val_sequences": [d.name for d in val_data],
-            "pretrained": str(pretrained) if pretrained else None, "world_size": dd.world,
+            "pretrained": str(pretrained) if pretrained else None, "init": str(init) if init else None,
+            "world_size": dd.world,
             "git_revision": git_revision(),
         })
     if progress is None:

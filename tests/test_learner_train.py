@@ -629,3 +629,33 @@ def test_no_skill_warning(caplog) -> None:
     with caplog.at_level(logging.INFO, logger="learner.train"):
         _warn_if_no_skill({"train_se3_l2": 0.012, "train_zero_motion_se3_l2": 0.01})
     assert [r.levelname for r in caplog.records] == ["WARNING"] and "training" in caplog.text
+
+
+def test_init_fine_tunes_from_another_checkpoint(fixture_seq, tmp_path) -> None:
+    """``init``: a second fit starts from the first one's weights (its output scale kept)
+    with a fresh schedule; another network shape or input is refused."""
+    seq, teacher = fixture_seq
+    first = fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "a", teacher_root=teacher)
+    w0 = _state(first.checkpoint)
+    import learner.train as T
+
+    seen = {}
+    real = T.CTCNet.load_state_dict
+
+    def spy(self, sd, *a, **k):
+        seen["fc1"] = sd["fc1.weight"].clone()
+        return real(self, sd, *a, **k)
+
+    T.CTCNet.load_state_dict = spy
+    try:
+        second = fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "b", teacher_root=teacher,
+                     init=first.checkpoint)
+    finally:
+        T.CTCNet.load_state_dict = real
+    assert torch.equal(seen["fc1"], w0["fc1.weight"])
+    assert json.loads((tmp_path / "b" / "config.json").read_text())["init"] == str(first.checkpoint)
+    assert torch.equal(_state(second.checkpoint)["output_scale"], w0["output_scale"])
+    assert second.history[-1]["steps"] == 4
+    with pytest.raises(ConfigError, match="another network shape or input"):
+        fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "c", teacher_root=teacher,
+            init=first.checkpoint, input="rgbd")
