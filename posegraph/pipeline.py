@@ -29,7 +29,7 @@ def run(train: str, test: str, frames: Optional[str], steps: Optional[int],
     learner's MC-dropout covariances are calibrated on that scene's teacher labels (never
     on the test scene, never on ground truth)."""
     from learner.predict import predict
-    from learner.train import fit
+    from learner.train import CHECKPOINT, default_run_dir, fit
     from posegraph.optimize import optimize
     from teacher.generate import generate
 
@@ -37,8 +37,10 @@ def run(train: str, test: str, frames: Optional[str], steps: Optional[int],
         log.info("teacher generate %s", scene)
         generate(scene, None, "all", frames)
     log.info("learner fit %s (%s, %s)%s", train, preset, variant, f", calibrated on {val}" if val else "")
+    # a rerun continues (or, when finished, keeps) the run's checkpoint instead of refusing it
+    resume = (default_run_dir(train) / CHECKPOINT).is_file()
     res = fit([train], variant=variant, preset=preset, val_scenes=[val] if val else (), frames=frames,
-              steps=steps)
+              steps=steps, resume=resume)
     log.info("learner predict %s", test)
     predict(res.checkpoint, test, frames=frames)
     log.info("posegraph optimize %s", test)
