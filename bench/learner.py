@@ -3,6 +3,7 @@ MC-dropout prediction with K=10 >= 100 pairs/s). Random frames; no data needed.
 
     .venv/bin/python bench/learner.py                       # cpu preset, all cores
     .venv/bin/python bench/learner.py --threads 1 --steps 8 --json out.json
+    .venv/bin/python bench/learner.py --input flow           # with the optical-flow input
 
 Training runs the real training step of ``learner fit`` (:func:`learner.train._pairs_step`
 / :func:`learner.train._windows_step`: gathering the cached uint8 frames and labels, the
@@ -23,6 +24,7 @@ CPU figure holds, and ``threads x`` the CPU figure bounds what an idle machine g
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -37,17 +39,23 @@ import torch  # noqa: E402
 
 from learner import loss as L  # noqa: E402
 from learner.config import PRESETS, PredictConfig  # noqa: E402
-from learner.dataset import SequenceData  # noqa: E402
+from learner.dataset import Frames, SequenceData  # noqa: E402
 from learner.model import CTCNet  # noqa: E402
 from learner.predict import mc_edges  # noqa: E402
 from learner.train import _pair_batches, _pairs_step, _window_batches, _windows_step  # noqa: E402
 
 
-def fake_sequence(n: int, width: int, height: int, max_gap: int, seed: int = 0) -> SequenceData:
+def fake_sequence(n: int, width: int, height: int, max_gap: int, seed: int = 0, mode: str = "rgb") -> SequenceData:
     """``n`` random uint8 frames with small random labels of every gap and diagonal
-    covariances (1 cm / 0.5 deg), as :func:`learner.dataset.load_sequences` returns."""
+    covariances (1 cm / 0.5 deg), as :func:`learner.dataset.load_sequences` returns; for the
+    ``rgbd`` / ``flow`` inputs also random inverse depth and grey frames at twice the size
+    (the optical flow is computed per drawn pair, as in training)."""
     g = torch.Generator().manual_seed(seed)
-    frames = torch.randint(0, 256, (n, 3, height, width), dtype=torch.uint8, generator=g)
+    rgb = torch.randint(0, 256, (n, 3, height, width), dtype=torch.uint8, generator=g)
+    inv = torch.randint(20, 200, (n, 1, height, width), dtype=torch.uint8, generator=g) if mode != "rgb" else None
+    grey = (torch.randint(0, 256, (n, 2 * height, 2 * width), dtype=torch.uint8, generator=g).numpy()
+            if mode == "flow" else None)
+    frames = Frames(rgb, inv, grey, mode)
     labels = torch.randn(max_gap + 1, n, 6, generator=g) * 0.01
     mask = torch.ones(max_gap + 1, n, dtype=torch.bool)
     mask[0] = False
@@ -74,21 +82,24 @@ def main() -> None:
     ap.add_argument("--window", type=int, help="phase-2 window length (default: the preset's window_max)")
     ap.add_argument("--frames", type=int, default=200, help="frames of the random sequence")
     ap.add_argument("--samples", type=int, default=10, help="K, MC-dropout samples")
+    ap.add_argument("--input", choices=["rgb", "rgbd", "flow"], help="encoder input (default: the preset's)")
     ap.add_argument("--json", type=Path, help="also write the results here")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     p = PRESETS[args.preset]
+    if args.input:
+        p = dataclasses.replace(p, model=dataclasses.replace(p.model, input=args.input))
     m, t = p.model, p.train
     torch.manual_seed(0)
     net = CTCNet(m)
     with torch.no_grad():
         net.output_scale.fill_(0.01)
     opt = torch.optim.Adam(net.parameters(), lr=1e-4)
-    data = [fake_sequence(args.frames, m.width, m.height, t.max_gap)]
+    data = [fake_sequence(args.frames, m.width, m.height, t.max_gap, mode=m.input)]
     rng = np.random.default_rng(0)
     gen = torch.Generator().manual_seed(0)
     scale = torch.full((t.max_gap + 1, 6), 0.01)  # the losses' target scale (any value costs the same)
-    out: dict = {"preset": p.name, "threads": args.threads, "input": f"{m.width}x{m.height}",
+    out: dict = {"preset": p.name, "input": m.input, "threads": args.threads, "size": f"{m.width}x{m.height}",
                  "conv_widths": ",".join(map(str, m.conv_widths)), "batch_pairs": t.batch_pairs}
 
     def optimise(terms: L.LossTerms) -> None:
@@ -125,7 +136,7 @@ def main() -> None:
     net.eval()
     cfg = PredictConfig(samples=args.samples)
     frames = data[0].frames
-    mc_edges(net, frames[:20], uses_lstm=True, window=t.window_max, cfg=cfg)  # warm-up
+    mc_edges(net, frames.head(20), uses_lstm=True, window=t.window_max, cfg=cfg)  # warm-up
     t0, c0 = time.perf_counter(), time.process_time()
     edges = mc_edges(net, frames, uses_lstm=True, window=t.window_max, cfg=cfg)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
