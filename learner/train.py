@@ -36,6 +36,7 @@ import logging
 import math
 import os
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Sequence as TypingSequence
@@ -416,6 +417,7 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
         if any(len(b) < dd.world for _, b in plan):
             raise DataError(f"epoch {epoch + 1}: batches smaller than the {dd.world} processes")
         net.train()
+        t_epoch = time.perf_counter()
         sums: dict[str, dict[str, float]] = {}
         bar = tqdm(plan, desc=f"epoch {epoch + 1}/{cfg.epochs}" + (f" W={W}" if W else ""),
                    disable=not (progress and dd.main), leave=False)
@@ -444,7 +446,7 @@ def fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: str | Pres
             acc["steps"] += 1
             bar.set_postfix({k: f"{v:.3g}" for k, v in items.items()})
         entry: dict[str, Any] = {"epoch": epoch + 1, "steps": last, "phase": "+".join(sums), "window": W,
-                                 "lr": lr_at(cfg, last - 1)}
+                                 "lr": lr_at(cfg, last - 1), "train_seconds": round(time.perf_counter() - t_epoch, 2)}
         for phase, acc in sums.items():  # losses are normalised: 1.0 = zero motion on the labels
             entry.update({f"{phase}_{k}": acc[k] / acc["steps"] for k in ("loss", "ctc", "reg")})
         if dd.main:
