@@ -113,6 +113,7 @@ def main() -> None:
     ap.add_argument("--preset", default="cpu")
     ap.add_argument("--steps", type=int, help="optimiser steps per variant (default: the preset's)")
     ap.add_argument("--lr", type=float, help="peak learning rate (default: the preset's)")
+    ap.add_argument("--input", choices=["rgb", "rgbd", "flow"], help="encoder input (default: the preset's)")
     ap.add_argument("--val-scene", action="append", default=[], help="validation scene (repeatable; logged per epoch)")
     ap.add_argument("--val-frames", help="validation frame range (never the test range)")
     ap.add_argument("--samples", type=int, default=10)
@@ -140,7 +141,7 @@ def main() -> None:
         res = fit(args.scene, variant=v, preset=args.preset, frames=args.frames, out=run,
                   val_scenes=args.val_scene, val_frames=args.val_frames, calibrate=False,
                   resume=(run / "checkpoint.pt").is_file(), teacher_root=args.teacher, steps=args.steps,
-                  lr=args.lr, seed=args.seed, flip_prob=args.flip_prob, reverse_prob=args.reverse_prob)
+                  lr=args.lr, input=args.input, seed=args.seed, flip_prob=args.flip_prob, reverse_prob=args.reverse_prob)
         t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
         rep = predict(res.checkpoint, test_scene, frames=args.test_frames, out=run / "predict",
                       config=PredictConfig(samples=args.samples)).reports[0]
