@@ -304,7 +304,8 @@ def test_resume_reaches_the_same_state(fixture_seq, tmp_path) -> None:
     assert a.keys() == b.keys()
     for k in a:
         assert torch.equal(a[k], b[k]), k
-    assert straight.history == resumed.history
+    untimed = [[{k: v for k, v in h.items() if k != "train_seconds"} for h in r.history] for r in (straight, resumed)]
+    assert untimed[0] == untimed[1]
     # the resumed epoch trained: the weights moved on from the epoch-1 checkpoint
     assert not torch.equal(a["fc1.weight"], epoch1["model"]["fc1.weight"])
 
