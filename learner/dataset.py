@@ -21,7 +21,7 @@ import hashlib
 import json
 import logging
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -46,6 +46,10 @@ log = logging.getLogger(__name__)
 INPUTS: dict[str, int] = {"rgb": 6, "rgbd": 8, "flow": 9}
 #: one inverse-depth unit of the uint8 cache, 1/m (100 units = 1 m^-1; 255 = 0.39 m)
 INVDEPTH_UNIT = 0.01
+#: most pairs whose flow a sequence keeps in memory (float16: 48 KB a pair at 128x96, so
+#: about 1 GB); training draws the same pairs again and again (gaps 1..G of each frame, both
+#: directions), evaluation every epoch
+FLOW_CACHE_PAIRS = 20000
 
 
 def _dis() -> "cv2.DISOpticalFlow":
@@ -67,6 +71,9 @@ class Frames:
     invdepth: Optional[Tensor | NDArray[np.uint8]] = None
     grey2x: Optional[NDArray[np.uint8]] = None
     mode: str = "rgb"
+    flow_cache: dict = field(default_factory=dict, repr=False)
+    """Flows computed so far, (i, j) -> (2, H, W) float16, shared by :meth:`head` and
+    :meth:`to` views; at most :data:`FLOW_CACHE_PAIRS` (then it stops growing)."""
 
     def __post_init__(self) -> None:
         if self.mode not in INPUTS:
@@ -92,25 +99,36 @@ class Frames:
     def head(self, n: int) -> "Frames":
         """The first ``n`` frames."""
         return Frames(self.rgb[:n], None if self.invdepth is None else self.invdepth[:n],
-                      None if self.grey2x is None else self.grey2x[:n], self.mode)
+                      None if self.grey2x is None else self.grey2x[:n], self.mode, self.flow_cache)
 
     def to(self, device: torch.device) -> "Frames":
         """The cached tensors on ``device`` (the flow is computed on the CPU, then moved)."""
         def move(a):
             return None if a is None else torch.as_tensor(np.asarray(a) if not isinstance(a, Tensor) else a).to(device)
 
-        return Frames(move(self.rgb), move(self.invdepth), self.grey2x, self.mode)
+        return Frames(move(self.rgb), move(self.invdepth), self.grey2x, self.mode, self.flow_cache)
 
     def flow(self, i: NDArray[np.int64], j: NDArray[np.int64]) -> Tensor:
         """Optical flow (n, 2, H, W) float32 in pixels of the network's resolution, from frame
         ``i`` to frame ``j`` (where the content of a pixel of i lies in j), by DIS on the
-        grey frames at twice the resolution, then averaged down."""
+        grey frames at twice the resolution, then averaged down and rounded to float16;
+        kept in :attr:`flow_cache`."""
         H, W = self.rgb.shape[-2:]
-        dis = _dis()
+        dis = None
         out = np.empty((len(i), 2, H, W), np.float32)
-        for n, (a, b) in enumerate(zip(i, j)):
+        for n, (a, b) in enumerate(zip(i.tolist(), j.tolist())):
+            hit = self.flow_cache.get((a, b))
+            if hit is not None:
+                out[n] = hit
+                continue
+            dis = dis or _dis()
             f = dis.calc(np.asarray(self.grey2x[a]), np.asarray(self.grey2x[b]), None)
-            out[n] = cv2.resize(f, (W, H), interpolation=cv2.INTER_AREA).transpose(2, 0, 1) * 0.5
+            # rounded to float16 whether cached or not: a pair gives the same input every time
+            # (a resumed run, with an empty cache, trains on the same numbers)
+            half = (cv2.resize(f, (W, H), interpolation=cv2.INTER_AREA).transpose(2, 0, 1) * 0.5).astype(np.float16)
+            out[n] = half
+            if len(self.flow_cache) < FLOW_CACHE_PAIRS:
+                self.flow_cache[(a, b)] = half
         return torch.from_numpy(out)
 
     def pairs(self, i: Tensor, j: Tensor) -> Tensor:

@@ -660,3 +660,26 @@ def test_init_fine_tunes_from_another_checkpoint(fixture_seq, tmp_path) -> None:
     with pytest.raises(ConfigError, match="another network shape or input"):
         fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "c", teacher_root=teacher,
             init=first.checkpoint, input="rgbd")
+
+
+def test_flow_cache_gives_the_same_input_and_is_shared() -> None:
+    """A pair's flow is computed once: the second draw returns the same numbers from the
+    cache, which the :meth:`Frames.head` view shares; the cache stops at its bound."""
+    import learner.dataset as D
+
+    rng = np.random.default_rng(3)
+    grey = rng.integers(0, 256, (4, 48, 64)).astype(np.uint8)
+    f = D.Frames(torch.zeros(4, 3, 24, 32, dtype=torch.uint8), torch.zeros(4, 1, 24, 32, dtype=torch.uint8),
+                 grey, mode="flow")
+    i, j = np.array([0, 1]), np.array([1, 3])
+    first = f.flow(i, j)
+    assert set(f.flow_cache) == {(0, 1), (1, 3)}
+    assert torch.equal(f.head(2).flow(np.array([0]), np.array([1]))[0], first[0])
+    assert torch.equal(f.flow(i, j), first) and torch.equal(first, first.half().float())
+    old = D.FLOW_CACHE_PAIRS
+    try:
+        D.FLOW_CACHE_PAIRS = 2
+        f.flow(np.array([2]), np.array([0]))
+    finally:
+        D.FLOW_CACHE_PAIRS = old
+    assert len(f.flow_cache) == 2
