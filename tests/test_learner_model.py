@@ -17,13 +17,19 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _pairs(n: int, cfg) -> torch.Tensor:
+    """Random pair inputs with the channels of the config's input (6 rgb, 8 rgbd, 9 flow)."""
+    from learner.dataset import INPUTS
+
     g = torch.Generator().manual_seed(0)
-    return torch.randint(0, 256, (n, 6, cfg.height, cfg.width), dtype=torch.uint8, generator=g)
+    return torch.randint(0, 256, (n, INPUTS[cfg.input], cfg.height, cfg.width), dtype=torch.uint8, generator=g)
 
 
-@pytest.mark.parametrize("name", ["tiny", "cpu"])
+@pytest.mark.parametrize("name", ["tiny", "cpu", "rgbd"])
 def test_forward_shapes(name: str) -> None:
-    cfg = PRESETS[name].model
+    """Every preset's network, and each input's channel count (cpu: flow, 9; rgbd: 8)."""
+    import dataclasses
+
+    cfg = PRESETS[name].model if name in PRESETS else dataclasses.replace(PRESETS["tiny"].model, input=name)
     net = CTCNet(cfg)
     x = _pairs(6, cfg)
     xi_d, xi_s = net(x, torch.tensor([[0, 1, 2], [3, 4, 5]]))
