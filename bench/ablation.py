@@ -47,7 +47,7 @@ from data.formats import Trajectory, read_tum  # noqa: E402
 from data.io import write_json  # noqa: E402
 from data.metrics import BASELINE_KEYS, associate, ate_rmse, baseline_trajectories, trajectory_report  # noqa: E402
 from data.scenes import open_scene  # noqa: E402
-from learner.config import VARIANTS, PredictConfig  # noqa: E402
+from learner.config import INPUTS, VARIANTS, PredictConfig  # noqa: E402
 from learner.predict import predict  # noqa: E402
 from learner.train import fit  # noqa: E402
 
@@ -113,7 +113,7 @@ def main() -> None:
     ap.add_argument("--preset", default="cpu")
     ap.add_argument("--steps", type=int, help="optimiser steps per variant (default: the preset's)")
     ap.add_argument("--lr", type=float, help="peak learning rate (default: the preset's)")
-    ap.add_argument("--input", choices=["rgb", "rgbd", "flow"], help="encoder input (default: the preset's)")
+    ap.add_argument("--input", choices=list(INPUTS), help="encoder input (default: the preset's)")
     ap.add_argument("--val-scene", action="append", default=[], help="validation scene (repeatable; logged per epoch)")
     ap.add_argument("--val-frames", help="validation frame range (never the test range)")
     ap.add_argument("--samples", type=int, default=10)

@@ -38,7 +38,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from learner import loss as L  # noqa: E402
-from learner.config import PRESETS, PredictConfig  # noqa: E402
+from learner.config import INPUTS, PRESETS, PredictConfig  # noqa: E402
 from learner.dataset import Frames, SequenceData  # noqa: E402
 from learner.model import CTCNet  # noqa: E402
 from learner.predict import mc_edges  # noqa: E402
@@ -82,7 +82,7 @@ def main() -> None:
     ap.add_argument("--window", type=int, help="phase-2 window length (default: the preset's window_max)")
     ap.add_argument("--frames", type=int, default=200, help="frames of the random sequence")
     ap.add_argument("--samples", type=int, default=10, help="K, MC-dropout samples")
-    ap.add_argument("--input", choices=["rgb", "rgbd", "flow"], help="encoder input (default: the preset's)")
+    ap.add_argument("--input", choices=list(INPUTS), help="encoder input (default: the preset's)")
     ap.add_argument("--json", type=Path, help="also write the results here")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)

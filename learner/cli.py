@@ -15,7 +15,7 @@ from typing import Optional, Sequence
 
 from data.errors import VOError
 from data.io import setup_logging
-from learner.config import PRESETS, VARIANTS, PredictConfig
+from learner.config import INPUTS, PRESETS, VARIANTS, PredictConfig
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -43,7 +43,7 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--seed", type=int, help="random seed (overrides the preset)")
     f.add_argument("--flip-prob", type=float, help="left-right mirroring augmentation probability (overrides the preset)")
     f.add_argument("--reverse-prob", type=float, help="time-reversal augmentation probability (overrides the preset)")
-    f.add_argument("--input", choices=["rgb", "rgbd", "flow"],
+    f.add_argument("--input", choices=list(INPUTS),
                    help="encoder input: the paper's RGB pair, plus inverse depth, or plus optical flow and "
                         "inverse depth (default: the preset's)")
     f.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],

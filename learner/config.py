@@ -13,6 +13,10 @@ from typing import Any, Optional
 
 from data.errors import ConfigError
 
+#: encoder inputs (``ModelConfig.input``) and their channels: the paper's stacked RGB pair,
+#: plus both frames' inverse depth, plus the pair's optical flow (DIS) and the first frame's
+#: inverse depth
+INPUTS: dict[str, int] = {"rgb": 6, "rgbd": 8, "flow": 9}
 #: conv widths of the VGG-11 stack (the ``M`` max-pools sit after conv 1, 2, 4, 6 and 8)
 VGG11_WIDTHS: tuple[int, ...] = (64, 128, 256, 256, 512, 512, 512, 512)
 #: the VGG-11 layout: an int is a 3x3 conv (index into the widths), ``"M"`` a 2x2 max-pool
@@ -47,8 +51,8 @@ class ModelConfig:
     RGB-D as future work); see bench/README.md for what each brings."""
 
     def __post_init__(self) -> None:
-        if self.input not in ("rgb", "rgbd", "flow"):
-            raise ConfigError(f"input must be rgb, rgbd or flow, got {self.input!r}")
+        if self.input not in INPUTS:
+            raise ConfigError(f"input must be {', '.join(INPUTS)}, got {self.input!r}")
         if len(self.conv_widths) != 8 or len(self.strided_widths) != 2:
             raise ConfigError("conv_widths needs 8 entries and strided_widths 2")
         if min(self.width, self.height) < 32:

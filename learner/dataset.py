@@ -37,13 +37,11 @@ from data.formats import read_g2o
 from data.io import atomic_write
 from data.scenes import scene_slug
 from data.sequence import Sequence
+from learner.config import INPUTS
 
 log = logging.getLogger(__name__)
 
 
-#: network inputs: the paper's stacked RGB pair, plus both frames' inverse depth, plus the
-#: pair's optical flow (DIS) and the first frame's inverse depth
-INPUTS: dict[str, int] = {"rgb": 6, "rgbd": 8, "flow": 9}
 #: one inverse-depth unit of the uint8 cache, 1/m (100 units = 1 m^-1; 255 = 0.39 m)
 INVDEPTH_UNIT = 0.01
 #: most pairs whose flow a sequence keeps in memory (float16: 48 KB a pair at 128x96, so

@@ -262,8 +262,8 @@ def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split
         }
         err = d2 = None
         if gt is not None:
-            write_tum(out_dir / "groundtruth.tum", Trajectory(seq.times(), gt))
             gt_traj = Trajectory(seq.times(), gt)
+            write_tum(out_dir / "groundtruth.tum", gt_traj)
             report.update(trajectory_report(gt_traj, Trajectory(seq.times(), poses)))
             report["baselines"] = baseline_reports(gt_traj)
             log.info("%s: se(3) L2 %.5f, ATE %.4f m (zero motion %.5f / %.4f m, constant velocity %.5f / %.4f m)",

@@ -51,6 +51,7 @@ from tqdm import tqdm
 from data import geometry as geo
 from data.errors import ConfigError, DataError, VOError
 from data.io import atomic_write, ensure_dir, git_revision, write_json
+from data.metrics import relative_poses
 from data.scenes import open_scene, scene_slug
 from data.sequence import frame_ranges_overlap
 from learner import loss as L
@@ -605,7 +606,7 @@ class Evaluator:
             if n < 2:
                 break
             if use_gt:
-                ref = np.array([geo.se3_log(geo.relative_pose(d.gt[k], d.gt[k + 1])) for k in range(n - 1)])
+                ref = np.array([geo.se3_log(T) for T in relative_poses(d.gt[:n])])
             else:
                 ref = d.labels[1, : n - 1].double().numpy().copy()
                 ref[~d.mask[1, : n - 1].numpy()] = np.nan
