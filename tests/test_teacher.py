@@ -275,10 +275,10 @@ def test_chain_bridges_failed_gap1_edges():
     # edge 1->2 fails, 0->2 spans it; edge 3->4 fails with nothing spanning it
     edges = [_edge(0, 1, step), _edge(1, 2, None, ok=False), _edge(2, 3, step), _edge(3, 4, None, ok=False),
              _edge(0, 2, step @ step)]
-    poses, bridges = chain_trajectory(ids, edges, gaps=2)
+    poses, bridges = chain_trajectory(ids, edges)
     np.testing.assert_allclose(poses[2], step @ step, atol=1e-12)
     np.testing.assert_allclose(poses[4], np.linalg.matrix_power(step, 4), atol=1e-12)
-    assert [b["method"] for b in bridges] == ["edge 0->2", "constant velocity"]
+    assert bridges == [{"i": 1, "j": 2, "method": "edge 0->2"}, {"i": 3, "j": 4, "method": "constant velocity"}]
 
 
 def test_cli_generate_writes_every_output(tmp_path):
