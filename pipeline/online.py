@@ -31,11 +31,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import queue
 import sys
 import threading
 import time
 from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Optional, Sequence, TextIO
@@ -64,7 +64,8 @@ class OnlineConfig:
     progress_every_s: float = 0.5
     """Seconds between progress lines (redrawn in place on a terminal, logged otherwise)."""
     prefetch: int = 2
-    """Frames read and featurised ahead of the estimator by a helper thread (0: none)."""
+    """Frames read and prepared (teacher features, learner inputs) ahead of the estimator
+    by a helper thread (at least 1)."""
 
 
 # ----------------------------------------------------------------------------------
@@ -548,12 +549,14 @@ class _Progress:
         self.every, self.stream, self.tty = every_s, stream, stream.isatty()
         self.last = 0.0
 
-    def show(self, n: int, fps: float, lat_ms: float, p95_ms: float, edges: int, force: bool = False) -> None:
+    def show(self, n: int, fps: float, lat_s: list[float], edges: int) -> None:
         now = time.monotonic()
-        if not force and now - self.last < self.every:
+        if now - self.last < self.every:
             return
         self.last = now
-        line = f"online: {n} frames, {fps:.1f} fps, latency {lat_ms:.0f} ms (p95 {p95_ms:.0f} ms), {edges} edges"
+        recent = lat_s[-300:]  # the percentile of the last 10 s at 30 Hz
+        line = (f"online: {n} frames, {fps:.1f} fps, latency {1000 * lat_s[-1]:.0f} ms "
+                f"(p95 {1000 * float(np.percentile(recent, 95)):.0f} ms), {edges} edges")
         if self.tty:
             self.stream.write("\r" + line + "\x1b[K")
             self.stream.flush()
@@ -590,30 +593,44 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
         feats = teacher.features(frame)
         return frame, feats, (learner.inputs(frame) if learner is not None else None)
 
-    it = iter(source)
-    pool = ThreadPoolExecutor(1) if cfg.prefetch > 0 else None
-    pending: deque[tuple[float, Future]] = deque()
+    # A helper thread takes frames from the source (decoding them), stamps their arrival and
+    # prepares them (teacher features, learner inputs) up to cfg.prefetch frames ahead;
+    # this thread estimates edges, updates the graph and writes.
+    ahead: queue.Queue = queue.Queue(maxsize=max(cfg.prefetch, 1))
+    stop = threading.Event()
+
+    def produce() -> None:
+        try:
+            for k, frame in enumerate(source):
+                t_arr = time.perf_counter()  # the frame is here: its latency counts from now
+                item = (t_arr, *prepare(frame))
+                while not stop.is_set():
+                    try:
+                        ahead.put(item, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set() or (max_frames is not None and k + 1 >= max_frames):
+                    break
+            ahead.put(None)
+        except BaseException as exc:  # noqa: BLE001 - handed to the main thread
+            ahead.put(exc)
+
+    producer = threading.Thread(target=produce, name="vo-online-frames", daemon=True)
     interrupted = False
     t_start = time.perf_counter()
-    traj_path = out / TRAJECTORY
-    fh = open(traj_path, "w")
+    fh = open(out / TRAJECTORY, "w")
     fh.write("# timestamp tx ty tz qx qy qz qw  (T_world_cam, metres; each frame's estimate when it arrived)\n")
     n = 0
+    producer.start()
     try:
-        exhausted = False
         while True:
-            while not exhausted and len(pending) < max(cfg.prefetch, 1) and (max_frames is None or n + len(pending) < max_frames):
-                t_arr = time.perf_counter()
-                frame = next(it, None)
-                if frame is None:
-                    exhausted = True
-                    break
-                t_arr = time.perf_counter()  # the frame is here: latency counts from now
-                pending.append((t_arr, pool.submit(prepare, frame) if pool else _done(prepare(frame))))
-            if not pending:
+            item = ahead.get()
+            if item is None:
                 break
-            t_arr, fut = pending.popleft()
-            frame, feats, inputs = fut.result()
+            if isinstance(item, BaseException):
+                raise item
+            t_arr, frame, feats, inputs = item
             edges = teacher.add(frame, feats)
             t_edges += edges
             new = [Edge(e.i, e.j, e.T_i_j, e.cov, {"source": "teacher"}) for e in edges if e.ok]
@@ -630,19 +647,17 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
             n += 1
             lat.append(time.perf_counter() - t_arr)
             if bar is not None:
-                el = time.perf_counter() - t_start
-                bar.show(n, n / el, 1000 * lat[-1], 1000 * float(np.percentile(lat, 95)),
-                         len(t_edges) + len(l_edges))
+                bar.show(n, n / (time.perf_counter() - t_start), lat, len(t_edges) + len(l_edges))
     except KeyboardInterrupt:
         interrupted = True
+    finally:
+        stop.set()
         if isinstance(source, FollowFolder):
             source.stop.set()
-    finally:
         fh.close()
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
         if bar is not None:
             bar.close()
+        producer.join(timeout=5.0)
     seconds = time.perf_counter() - t_start
     if n == 0:
         raise DataError(f"{source.name}: no frame arrived")
@@ -650,12 +665,6 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     report = _finish(out, source, teacher, graph, t_edges, l_edges, gts, teacher_cfg, seconds, lat_ms, interrupted,
                      checkpoint)
     return OnlineResult(out, n, n / seconds, lat_ms, interrupted, report)
-
-
-def _done(value) -> Future:
-    f: Future = Future()
-    f.set_result(value)
-    return f
 
 
 def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: OnlineGraph, t_edges: list,
