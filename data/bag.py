@@ -245,7 +245,7 @@ class BagSequence(Sequence):
         path = Path(path)
         if not path.exists():
             raise DataError(f"ROS bag {path} not found")
-        self.path = path
+        self.path = self.root = path  # ``root``: what the learner's frame cache is keyed by, as for folders
         max_dt = tum.MAX_ASSOC_DT if max_dt is None else max_dt
         reader = _open_reader(path)
         try:
@@ -317,7 +317,11 @@ class BagSequence(Sequence):
             colour, depths = [], []
             for t, ty in sorted(types.items()):
                 if ty == COMPRESSED:
-                    (depths if "compresseddepth" in _first(reader, t).format.lower().replace(" ", "") else colour).append(t)
+                    # compressedDepth (PNG with a header) is not read; image_transport's
+                    # ``T/compressed`` beside a raw ``T`` is the same stream: the raw one is used
+                    if "compresseddepth" not in _first(reader, t).format.lower().replace(" ", "") and not (
+                            t.endswith("/compressed") and types.get(t[: -len("/compressed")]) == IMAGE):
+                        colour.append(t)
                 elif ty == IMAGE:
                     enc = str(_first(reader, t).encoding)
                     (depths if enc in DEPTH_ENCODINGS else colour if enc in COLOUR_ENCODINGS else []).append(t)

@@ -587,6 +587,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     l_edges: list[Edge] = []
     gts: list[Optional[NDArray]] = []
     lat: list[float] = []
+    work: list[float] = []  # prepare + estimate + update + write, without any wait in the queue
     bar = _Progress(cfg.progress_every_s) if progress else None
 
     def prepare(frame: Frame):
@@ -603,7 +604,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
         try:
             for k, frame in enumerate(source):
                 t_arr = time.perf_counter()  # the frame is here: its latency counts from now
-                item = (t_arr, *prepare(frame))
+                item = (t_arr, *prepare(frame), time.perf_counter() - t_arr)
                 while not stop.is_set():
                     try:
                         ahead.put(item, timeout=0.1)
@@ -630,7 +631,8 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
                 break
             if isinstance(item, BaseException):
                 raise item
-            t_arr, frame, feats, inputs = item
+            t_arr, frame, feats, inputs, t_prep = item
+            t_take = time.perf_counter()
             edges = teacher.add(frame, feats)
             t_edges += edges
             new = [Edge(e.i, e.j, e.T_i_j, e.cov, {"source": "teacher"}) for e in edges if e.ok]
@@ -646,6 +648,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
             gts.append(frame.T_world_cam)
             n += 1
             lat.append(time.perf_counter() - t_arr)
+            work.append(t_prep + time.perf_counter() - t_take)
             if bar is not None:
                 bar.show(n, n / (time.perf_counter() - t_start), lat, len(t_edges) + len(l_edges))
     except KeyboardInterrupt:
@@ -662,13 +665,14 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     if n == 0:
         raise DataError(f"{source.name}: no frame arrived")
     lat_ms = {f"p{q}": 1000 * float(np.percentile(lat, q)) for q in (50, 95, 99)} | {"max": 1000 * max(lat)}
-    report = _finish(out, source, teacher, graph, t_edges, l_edges, gts, teacher_cfg, seconds, lat_ms, interrupted,
-                     checkpoint)
+    work_ms = {f"p{q}": 1000 * float(np.percentile(work, q)) for q in (50, 95, 99)} | {"max": 1000 * max(work)}
+    report = _finish(out, source, teacher, graph, t_edges, l_edges, gts, teacher_cfg, seconds,
+                     {"latency_ms": lat_ms, "work_ms": work_ms}, interrupted, checkpoint)
     return OnlineResult(out, n, n / seconds, lat_ms, interrupted, report)
 
 
 def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: OnlineGraph, t_edges: list,
-            l_edges: list, gts: list, teacher_cfg, seconds: float, lat_ms: dict, interrupted: bool,
+            l_edges: list, gts: list, teacher_cfg, seconds: float, timing: dict, interrupted: bool,
             checkpoint: Optional[Path]) -> dict:
     """Write the final trajectory, the edge folders and report.json (all atomically)."""
     from data.formats import Edge, Trajectory, write_g2o, write_tum
@@ -697,7 +701,7 @@ def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: Onlin
                   {int(f): T for f, T in zip(ids, final)})
     report: dict = {
         "sequence": source.name, "frames": n, "seconds": seconds, "fps": n / seconds if seconds > 0 else None,
-        "latency_ms": lat_ms, "interrupted": interrupted,
+        **timing, "interrupted": interrupted,
         "teacher_edges": len(good), "teacher_failed_edges": len(t_edges) - len(good),
         "learner_edges": len(l_edges), "checkpoint": str(checkpoint) if checkpoint else None,
         "covariance_scales": graph.scale, "graph_reviews": graph.reviews, "final_polish": graph.polish,

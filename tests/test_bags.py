@@ -263,3 +263,13 @@ def test_posegraph_and_learner_clis_take_bag_scenes(tmp_path, tiny_seq, capsys):
     assert scenes_with_topics([str(p), "synthetic/lab"], args) == [f"{p}?rgb=/c", "synthetic/lab"]
     with pytest.raises(ConfigError):
         scenes_with_topics(["synthetic/lab"], args)
+
+
+def test_raw_topic_preferred_over_its_compressed_twin(tmp_path, tiny_seq):
+    """image_transport records ``T`` and ``T/compressed``: one stream, the raw one is read."""
+    both = tmp_path / "both"
+    _merge(both, [_write(tmp_path, tiny_seq, name="raw", ros2=True),
+                  _write(tmp_path, tiny_seq, name="jpg", ros2=True, compressed=True)])
+    seq = open_scene(str(both))[0]
+    assert seq.topics.rgb == "/camera/rgb/image_raw"
+    np.testing.assert_array_equal(seq.rgb(1), tiny_seq.rgb(1))
