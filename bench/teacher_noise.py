@@ -232,6 +232,10 @@ def run_sweep(args: argparse.Namespace) -> dict:
                     resume=ckpt.is_file(), teacher_root=Path(tdir), seed=args.seed, **extra)
                 row["fit_s"] = round(time.perf_counter() - t0, 1)
             row["steps"] = json.loads((ckpt.parent / "config.json").read_text())["train"]["steps"]
+            # the fit's own last evaluation on its training frames (no MC dropout): for ctc and
+            # lstm-unsup also the direct head, whose gap-1 estimate predict does not write
+            last = json.loads((ckpt.parent / "history.json").read_text())[-1]
+            row["train_eval"] = {k: last.get(f"train_{k}_se3_l2") for k in ("direct", "lstm")}
             for name, fr in ranges.items():
                 pdir = run / f"predict-{name}"
                 if not (pdir / "report.json").is_file():
@@ -269,6 +273,14 @@ def tables(res: dict) -> str:
                     q = row[name]
                     lines.append(f"| {row['variant']} | {tname} | {q['se3_l2_mean']:.5f} | **{q['vs_teacher']:.2f}** | "
                                  f"{q['se3_l2_mean'] / zm:.2f} | {1e3 * q['rpe_trans_rmse_m']:.2f} / {q['rpe_rot_rmse_deg']:.3f} |")
+        if name == "transductive":
+            direct = [f"{r['teacher']}/{r['variant']} {r['train_eval']['direct']:.5f} "
+                      f"({r['train_eval']['direct'] / res['teachers'][r['teacher']][name]['se3_l2_mean']:.2f}x its teacher)"
+                      for r in res["learners"].values() if r.get("train_eval", {}).get("direct") is not None
+                      and r["train_eval"].get("lstm") is not None]
+            if direct:
+                lines += ["", "Direct head of the LSTM variants on these frames (the fit's last evaluation, no MC "
+                          "dropout; the table's rows use the LSTM head at gap 1): " + "; ".join(direct)]
         lines += ["", "Crossover (learner error = teacher error): " +
                   "; ".join(f"{v}: {c}" for v, c in res.get("crossover", {}).get(name, {}).items()), ""]
     return "\n".join(lines) + "\n"
