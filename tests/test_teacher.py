@@ -57,6 +57,29 @@ def test_known_answer_noise_free_pairs(office_clean):
     assert errs[:, 1].max() < 0.05, errs
 
 
+def test_paper_preset_switches_off_refinement_and_dense_step(office_clean):
+    """The ``paper`` preset (ORB + PnP-RANSAC as ORB-SLAM's tracking) neither refines nor
+    aligns depth: the refinement's own settings (two-way, 3-D term, iterations) no longer
+    change its poses, no edge has a dense record, and its noise-free gap-1 poses are further
+    from the truth than the default teacher's (measured: median 2.6 against 0.4 mm) but
+    within 10 mm / 0.5 deg, with positive-definite covariances."""
+    from teacher.config import PAPER
+
+    assert not PAPER.refine and PAPER.dense_iters == 0
+    other = dataclasses.replace(PAPER, two_way=False, depth_weight=0.0, refine_iters=20, huber_px=3.0)
+    err_paper, err_default = [], []
+    for a in range(len(office_clean) - 1):
+        e, dt, dr = _pair_error(office_clean, a, a + 1, PAPER)
+        assert e.ok, e.status
+        assert "dense" not in e.info and np.all(np.linalg.eigvalsh(e.cov) > 0)
+        assert dt < 10e-3 and dr < 0.5, (a, dt, dr)
+        e2 = _pair_error(office_clean, a, a + 1, other)[0]
+        np.testing.assert_array_equal(e.T_i_j, e2.T_i_j)
+        err_paper.append(dt)
+        err_default.append(_pair_error(office_clean, a, a + 1, TeacherConfig())[1])
+    assert np.median(err_paper) > 2 * np.median(err_default), (err_paper, err_default)
+
+
 @pytest.mark.parametrize("sparse_only", [False, True])
 def test_dense_step_recovers_a_perturbed_pose(office_clean, sparse_only):
     """The dense depth alignment started 1 cm / 0.5 deg off the true pose of a noise-free
@@ -382,6 +405,18 @@ def test_cli_unwritable_output(tiny_copy, tmp_path, capsys):
 def test_cli_bad_frame_range(tiny_copy, tmp_path, capsys):
     assert cli.main(["generate", "--scene", str(tiny_copy), "--out", str(tmp_path / "o"), "--frames", "a:b"]) == 1
     assert "frame range" in _err(capsys)
+
+
+@pytest.mark.slow
+def test_cli_paper_preset(tmp_path):
+    out = tmp_path / "paper"
+    assert cli.main(["generate", "--scene", "synthetic/tiny", "--out", str(out), "--preset", "paper", "--frames", "0:6"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["frames"] == 6 and rep["edges"] + rep["failed_edges"] == 5 + 4 + 3 + 2 + 1
+    assert rep["dense_rejected_edges"] == 0 and rep["rpe_trans_rmse_m"] < 0.03
+    cfg = json.loads((out / "config.json").read_text())["teacher"]
+    assert cfg["refine"] is False and cfg["dense_iters"] == 0
+    assert not any("dense_fitness" in r for r in read_edges_csv(out / "edges.csv"))  # the dense step never ran
 
 
 @pytest.mark.slow
