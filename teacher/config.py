@@ -117,6 +117,49 @@ class TeacherConfig:
     """Dense step: a result farther than this from the sparse estimate (m) is rejected."""
     dense_max_shift_deg: float = 1.5
     """Dense step: a result rotated more than this from the sparse estimate is rejected."""
+    colour_camera: str = "auto"
+    """How colour pixels map onto the depth camera's (:class:`teacher.odometry.ColourCamera`):
+    ``registered`` (colour registered to depth, e.g. TUM RGB-D), ``kinect-v1`` (7-Scenes'
+    unregistered Kinect v1 colour camera, as fitted on the redkitchen sample for the synthetic
+    sensor model: focal 0.91x, shift (-3.5, -1) px, 1.6 cm baseline), or ``auto``: a synthetic
+    scene's own sensor model (its config.json; registered when noise-free), ``kinect-v1`` for
+    other 7-Scenes-layout folders, ``registered`` otherwise. Why: without it the colour
+    keypoints' bearings use the depth camera's matrix, and on synthetic/lab (validation) the
+    sparse rotations came out 13 % and translations 8 % too small (regression of the sparse
+    against the true gap-1 motions), which the dense blend only partly corrected."""
+    fallback_wide: bool = True
+    """Fallback 1, when every matching attempt above fails: match again without the ratio
+    test (which discards repetitive and low-contrast texture, where best and second-best
+    descriptors are close), cross-checked both ways - guided within ``fallback_radius_scale``
+    times ``search_radius_px`` when a motion prediction exists, then brute force over all
+    keypoints - and estimate from those (``path`` ``wide`` / ``crosscheck``)."""
+    fallback_radius_scale: float = 3.0
+    """Fallback 1: the guided search radius is this many times ``search_radius_px``."""
+    fallback_dense: bool = True
+    """Fallback 2, when no sparse estimate passes: the dense point-to-plane depth alignment
+    alone, started from the motion prediction (the constant-velocity guess at gap 1, the
+    chained gap-1 motion at longer gaps), ``path`` ``dense``; its covariance comes from the
+    point-to-plane residuals. Only when it fails too is the edge failed (a failed gap-1 edge
+    is bridged by a longer edge, else by constant velocity, and flagged in the report)."""
+    fallback_dense_iters: int = 20
+    """Fallback 2: most iterations of the dense alignment (it starts farther from the answer
+    than the refinement of a sparse estimate does)."""
+    fallback_max_sigma_m: float = 0.01
+    """Fallback 2: the dense result is rejected (``degenerate``) when its covariance leaves
+    a translation direction with a standard deviation above this (m): depth that does not
+    pin the motion down, e.g. one plane."""
+    fallback_max_sigma_deg: float = 0.5
+    """Fallback 2: ... or a rotation direction above this (degrees)."""
+    fallback_min_conditioning: float = 0.002
+    """Fallback 2: ... or when the smallest eigenvalue of the point-to-plane information
+    (rotations scaled by the median depth, so both are metres) is below this fraction of the
+    largest: one dominant plane leaves the slide along it nearly free, and the covariance
+    alone does not show it (thousands of pixels make every direction look well measured).
+    Chosen between the gap-1 pairs of synthetic/office (training scene; 0.013-0.023, every
+    20th pair) and a noisy plane at 2 m (0.0005)."""
+    dense_min_sigma_m: float = 0.0003
+    """Floor of the point-to-plane residual standard deviation in the dense fallback's
+    covariance (1 mm depth steps: 1/sqrt(12) mm)."""
     min_matches: int = 30
     """Fewer matches with valid depth than this: edge failed (``few_matches``)."""
     min_inliers: int = 25
