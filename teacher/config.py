@@ -141,6 +141,10 @@ class TeacherConfig:
     chained gap-1 motion at longer gaps), ``path`` ``dense``; its covariance comes from the
     point-to-plane residuals. Only when it fails too is the edge failed (a failed gap-1 edge
     is bridged by a longer edge, else by constant velocity, and flagged in the report)."""
+    fallback_rgbd: bool = True
+    """Fallback 2b, when the depth alignment alone fails too (e.g. two planes in view, which
+    it slides along): Open3D's hybrid RGB-D odometry (photometric + depth) from the same
+    prediction, ``path`` ``rgbd``; see :func:`teacher.odometry.rgbd_edge`."""
     fallback_dense_iters: int = 20
     """Fallback 2: most iterations of the dense alignment (it starts farther from the answer
     than the refinement of a sparse estimate does)."""

@@ -517,7 +517,14 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
             break
     best.info["path"] = best.info["source"] if best.ok else "none"
     if not best.ok and cfg.fallback_dense and fi.dense is not None and fj.dense is not None:
-        dense = dense_edge(i, j, fi.dense, fj.dense, cfg, dt, np.eye(4) if T_pred is None else T_pred)
+        T0 = np.eye(4) if T_pred is None else T_pred
+        if cfg.fallback_rgbd:
+            rgbd = rgbd_edge(i, j, fi, fj, intr, cfg, dt, T0)
+            rgbd.info["sparse_status"] = best.status
+            if rgbd.ok:
+                return rgbd
+            best.info["rgbd_fallback"] = rgbd.status
+        dense = dense_edge(i, j, fi.dense, fj.dense, cfg, dt, T0)
         dense.info["sparse_status"] = best.status
         if dense.ok:
             return dense
@@ -613,8 +620,11 @@ def dense_edge(i: int, j: int, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
     info = {"path": "dense", "dense": {"accepted": True, "iterations": it + 1, "fitness": fitness, "shift_m": 0.0,
                                        "shift_deg": 0.0, "stale_stream": False}}
     res = EdgeEstimate(i, j, "ok", T_i_j=T_d, info=info)
-    if not np.all(np.isfinite(T_d)) or fitness < cfg.dense_min_fitness or not converged:
-        res.status = "few_matches"
+    if not np.all(np.isfinite(T_d)) or fitness < cfg.dense_min_fitness:
+        res.status, res.info["path"] = "few_matches", "none"
+        return res
+    if not converged:  # still sliding after all iterations: what the depth leaves free
+        res.status, res.info["path"] = "degenerate", "none"
         return res
     cov, n_pairs, rmse = point_to_plane_covariance(T_d, di, dj, cfg)
     res.cov, res.matches = cov, n_pairs
@@ -632,6 +642,54 @@ def dense_edge(i: int, j: int, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
     if (ev[0].min() <= 0 or np.sqrt(ev[0].max()) > cfg.fallback_max_sigma_m
             or ev[1].min() <= 0 or np.degrees(np.sqrt(ev[1].max())) > cfg.fallback_max_sigma_deg
             or res.info["conditioning"] < cfg.fallback_min_conditioning):
+        res.status = "degenerate"
+    elif trans > cfg.max_speed * dt or rot > cfg.max_angular_speed_deg * dt:
+        res.status = "implausible_motion"
+    if not res.ok:
+        res.info["path"] = "none"
+    return res
+
+
+def _rgbd_image(f: FrameFeatures, s: int) -> o3d.t.geometry.RGBDImage:
+    """Open3D RGB-D image (intensity in [0, 1], depth in m) of every ``s``-th pixel of a frame."""
+    g = np.repeat(f.gray[::s, ::s, None].astype(np.float32) / 255.0, 3, axis=2)  # Open3D wants 3 channels
+    d = np.ascontiguousarray(f.depth[::s, ::s], dtype=np.float32)
+    return o3d.t.geometry.RGBDImage(o3d.t.geometry.Image(o3d.core.Tensor(g)), o3d.t.geometry.Image(o3d.core.Tensor(d)))
+
+
+def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics, cfg: TeacherConfig,
+              dt: float, T_init: NDArray) -> EdgeEstimate:
+    """Fallback 2b (``cfg.fallback_rgbd``), when the depth alone does not pin the motion down
+    (e.g. a bare wall and the ceiling, slid along their corner): Open3D's hybrid RGB-D
+    odometry (photometric and depth terms, coarse to fine at 1/2, 1/4 and 1/8 resolution),
+    started at ``T_init``, ``path`` ``rgbd``. Its covariance is the point-to-plane one of
+    :func:`point_to_plane_covariance` at the result: large along what the depth leaves free
+    (the colour term that fixed it is not counted, so it errs on the safe side). Failed
+    when too few pixels pair up, when that covariance cannot be formed, or when the motion
+    is implausibly fast."""
+    s = 2
+    K = np.array(intr.K, dtype=np.float64)
+    K[:2] /= s
+    crit = [o3d.t.pipelines.odometry.OdometryConvergenceCriteria(n) for n in (10, 5, 3)]
+    try:
+        out = o3d.t.pipelines.odometry.rgbd_odometry_multi_scale(
+            _rgbd_image(fj, s), _rgbd_image(fi, s), o3d.core.Tensor(K), o3d.core.Tensor(np.asarray(T_init, np.float64)),
+            1.0, cfg.depth_max, crit, o3d.t.pipelines.odometry.Method.Hybrid)
+    except RuntimeError as exc:
+        return EdgeEstimate(i, j, "degenerate" if "Singular" in str(exc) else "few_matches",
+                            info={"path": "none", "error": str(exc)[-200:]})
+    T = geo.orthonormalize(out.transformation.numpy())
+    fitness = float(out.fitness)
+    res = EdgeEstimate(i, j, "ok", T_i_j=T, info={"path": "rgbd", "dense": {
+        "accepted": True, "iterations": 0, "fitness": fitness, "shift_m": 0.0, "shift_deg": 0.0, "stale_stream": False}})
+    if not np.all(np.isfinite(T)) or fitness < cfg.dense_min_fitness:
+        res.status, res.info["path"] = "few_matches", "none"
+        return res
+    cov, n_pairs, rmse = point_to_plane_covariance(T, fi.dense, fj.dense, cfg)
+    trans, rot = float(np.linalg.norm(T[:3, 3])), geo.rotation_angle_deg(T)
+    res.cov, res.matches, res.inliers, res.inlier_ratio = cov, n_pairs, n_pairs, fitness
+    res.info.update(trans_m=trans, rot_deg=rot, rmse_m=rmse)
+    if cov is None or np.linalg.eigvalsh(cov).min() <= 0:
         res.status = "degenerate"
     elif trans > cfg.max_speed * dt or rot > cfg.max_angular_speed_deg * dt:
         res.status = "implausible_motion"
@@ -779,6 +837,6 @@ def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray
 
 
 __all__ = ["ColourCamera", "KINECT_V1_COLOUR", "FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "dense_refine", "match",
-           "match_wide", "dense_edge", "point_to_plane_covariance",
+           "match_wide", "dense_edge", "rgbd_edge", "point_to_plane_covariance",
            "image_keys", "stale_stream",
            "estimate_edge", "refine_two_way", "make_orb"]
