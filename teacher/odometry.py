@@ -584,14 +584,24 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     res.info["dense"] = {"accepted": bool(ok), "iterations": it + 1, "fitness": fitness, "rmse_m": rmse,
                          "shift_m": shift_m, "shift_deg": shift_deg}
     if ok:
-        res.T_i_j = res.T_i_j @ geo.se3_exp((cfg.dense_blend if blend is None else blend) * geo.se3_log(d))
+        x = geo.se3_log(d)
+        if blend is None and cfg.dense_fusion == "information" and res.cov is not None:
+            # weigh the two by their information: (S_s^-1 + S_d^-1)^-1 S_d^-1 x
+            cov_d, _, _ = point_to_plane_covariance(T_d, di, dj, cfg, stride=2)
+            if cov_d is not None:
+                info_s, info_d = np.linalg.inv(res.cov), np.linalg.inv(cov_d * cfg.dense_cov_scale)
+                step = np.linalg.solve(info_s + info_d, info_d @ x)
+                res.info["dense"]["weight"] = float(step @ x / max(x @ x, 1e-30))
+                res.T_i_j = res.T_i_j @ geo.se3_exp(step)
+                return
+        res.T_i_j = res.T_i_j @ geo.se3_exp((cfg.dense_blend if blend is None else blend) * x)
 
 
 def dense_edge(i: int, j: int, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig, dt: float,
                T_init: NDArray) -> EdgeEstimate:
-    """Fallback 2 (``cfg.fallback_dense``): ``T_i_j`` from the dense point-to-plane depth
-    alignment alone, started at ``T_init`` (the motion prediction), for a pair whose colour
-    gave no usable sparse estimate (``path`` ``dense``).
+    """Fallback 2, second step (``cfg.fallback_dense``), when :func:`rgbd_edge` fails too (or
+    is off): ``T_i_j`` from the dense point-to-plane depth alignment alone, started at
+    ``T_init`` (the motion prediction), ``path`` ``dense``.
 
     The same Open3D projective ICP kernel as :func:`dense_refine`, up to
     ``cfg.fallback_dense_iters`` iterations. The covariance is ``sigma^2 (J^T W J)^-1`` of
@@ -659,8 +669,9 @@ def _rgbd_image(f: FrameFeatures, s: int) -> o3d.t.geometry.RGBDImage:
 
 def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics, cfg: TeacherConfig,
               dt: float, T_init: NDArray) -> EdgeEstimate:
-    """Fallback 2b (``cfg.fallback_rgbd``), when the depth alone does not pin the motion down
-    (e.g. a bare wall and the ceiling, slid along their corner): Open3D's hybrid RGB-D
+    """Fallback 2, first step (``cfg.fallback_rgbd``), for a pair whose colour gave no usable
+    sparse estimate; it also holds where the depth alone does not pin the motion down (e.g.
+    a bare wall and the ceiling, slid along their corner): Open3D's hybrid RGB-D
     odometry (photometric and depth terms, coarse to fine at 1/2, 1/4 and 1/8 resolution),
     started at ``T_init``, ``path`` ``rgbd``. Its covariance is the point-to-plane one of
     :func:`point_to_plane_covariance` at the result: large along what the depth leaves free
@@ -698,8 +709,8 @@ def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     return res
 
 
-def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig
-                              ) -> tuple[Optional[NDArray], int, float]:
+def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
+                              stride: int = 1) -> tuple[Optional[NDArray], int, float]:
     """Covariance (6, 6), (v, w) order, right perturbation at ``T_i_j``, of the dense
     point-to-plane alignment of frame j's points to frame i's surface; also the number of
     pixel pairs and their RMS distance (m).
@@ -710,8 +721,10 @@ def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg:
     is ``[m^T, (q x m)^T]``. ``sigma^2`` is the Huber-weighted residual variance, floored at
     ``cfg.dense_min_sigma_m`` squared (two images of one repeated depth map agree exactly). The
     pixels' errors are correlated (smooth depth bias, correlated noise), so this is a lower
-    bound of the real uncertainty. None when fewer than 6 pairs or a singular system."""
-    q = dj.points.numpy().reshape(-1, 3)
+    bound of the real uncertainty. None when fewer than 6 pairs or a singular system.
+    ``stride``: use every ``stride``-th point of j in both axes (the covariance is then
+    scaled back to all of them)."""
+    q = dj.points.numpy()[::stride, ::stride].reshape(-1, 3)
     q = q[np.all(np.isfinite(q), axis=1)]
     R, t = T_i_j[:3, :3], T_i_j[:3, 3]
     X = q @ R.T + t
@@ -737,7 +750,7 @@ def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg:
     H = J.T @ (J * wts[:, None])
     sigma2 = max(float(np.sum(wts * r * r) / max(len(r) - 6, 1)), cfg.dense_min_sigma_m ** 2)
     try:
-        cov = sigma2 * np.linalg.inv(H)
+        cov = sigma2 * np.linalg.inv(H) / stride ** 2
     except np.linalg.LinAlgError:
         return None, len(q), float(np.sqrt(np.mean(r * r)))
     if not np.all(np.isfinite(cov)):

@@ -93,7 +93,7 @@ def test_dense_blend_moves_part_of_the_way(office_clean):
     T0 = geo.relative_pose(gt[2], gt[4]) @ geo.se3_exp([0.004, 0.0, -0.003, 0.0, 0.003, 0.0])
     out = {}
     for b in (1.0, 0.25):
-        cfg = dataclasses.replace(TeacherConfig(), dense_blend=b)
+        cfg = dataclasses.replace(TeacherConfig(), dense_fusion="blend", dense_blend=b)
         res = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy())
         dense_refine(res, dense_maps(seq.depth(2), seq.intrinsics.K, cfg), dense_maps(seq.depth(4), seq.intrinsics.K, cfg), cfg)
         assert res.info["dense"]["accepted"]
@@ -416,7 +416,8 @@ def test_edges_at_a_repeated_colour_image_follow_the_depth(tmp_path):
     gt, ids = seq.groundtruth(), list(seq.ids())
     errs = {}
     for on in (True, False):
-        run = run_sequence(seq, dataclasses.replace(TeacherConfig(), workers=1, dense_on_stale=on), progress=False)
+        run = run_sequence(seq, dataclasses.replace(TeacherConfig(), workers=1, dense_on_stale=on, dense_fusion="blend"),
+                           progress=False)
         stale = [e for e in run.edges if e.ok and e.info["dense"]["stale_stream"]]
         # flagged: exactly the edges with an end whose colour was repeated
         flagged = {(e.i, e.j) for e in stale}
@@ -438,9 +439,10 @@ def _features(seq, k, cfg, rgb=None, depth=None):
 
 
 def test_dense_fallback_tracks_a_pair_without_colour(office_clean):
-    """Flat grey colour images (no keypoints): every matching attempt fails, the dense
-    alignment alone, started from a constant-velocity guess 1 cm / 0.6 deg off, recovers the
-    pose (``path`` dense) with a positive-definite covariance that bounds its error."""
+    """Flat grey colour images (no keypoints): every matching attempt fails; Open3D's hybrid
+    RGB-D odometry (``path`` rgbd), or without it the depth alignment alone (``path`` dense),
+    started from a constant-velocity guess 1 cm / 0.6 deg off, recovers the pose with a
+    positive-definite covariance."""
     seq, cfg = office_clean, TeacherConfig()
     grey = np.full_like(seq.rgb(0), 128)
     fa, fb = _features(seq, 3, cfg, rgb=grey), _features(seq, 4, cfg, rgb=grey)
@@ -448,12 +450,15 @@ def test_dense_fallback_tracks_a_pair_without_colour(office_clean):
     gt = seq.groundtruth()
     T_true = geo.relative_pose(gt[3], gt[4])
     T_pred = T_true @ geo.se3_exp([0.006, -0.005, 0.006, 0.006, -0.005, 0.006])
-    e = estimate_edge(3, 4, fa, fb, seq.intrinsics, cfg, 1 / 30, T_pred=T_pred)
-    assert e.ok and e.info["path"] == "dense" and e.info["sparse_status"] == "few_matches", e.info
-    dt, dr = relative_pose_error(T_true, e.T_i_j)
-    assert dt < 1e-3 and dr < 0.05, (dt, dr)
-    assert np.all(np.linalg.eigvalsh(e.cov) > 0)
-    # without the fallback the edge fails
+    # bounds: the hybrid runs at half resolution (measured 1.09 mm / 0.074 deg), the depth
+    # alignment at the dense step's resolution
+    for path, c, bound in (("rgbd", cfg, (2e-3, 0.1)), ("dense", dataclasses.replace(cfg, fallback_rgbd=False), (1e-3, 0.05))):
+        e = estimate_edge(3, 4, fa, fb, seq.intrinsics, c, 1 / 30, T_pred=T_pred)
+        assert e.ok and e.info["path"] == path and e.info["sparse_status"] == "few_matches", e.info
+        dt, dr = relative_pose_error(T_true, e.T_i_j)
+        assert dt < bound[0] and dr < bound[1], (path, dt, dr)
+        assert np.all(np.linalg.eigvalsh(e.cov) > 0)
+    # without the fallbacks the edge fails
     off = estimate_edge(3, 4, fa, fb, seq.intrinsics, dataclasses.replace(cfg, fallback_dense=False), 1 / 30,
                         T_pred=T_pred)
     assert not off.ok and off.info["path"] == "none"
@@ -562,3 +567,31 @@ def test_stress_presets_render_their_stress():
     assert PRESETS["stress-blur"].sensor.motion_blur_exposure == 1.0
     assert PRESETS["stress-far"].view_distance_m[0] > 3.5
     assert {PRESETS[n].texture_style for n in STRESS} == {"default", "lowfreq", "repetitive", "textureless"}
+
+
+def test_information_fusion_weighs_by_covariance(office_clean):
+    """``dense_fusion = "information"``: a sparse estimate with a huge covariance gives way to
+    the dense alignment (as ``dense_blend = 1`` would), one with a tiny covariance stays put,
+    and one in between lands in between."""
+    from teacher.odometry import dense_maps, dense_refine
+
+    seq = office_clean
+    gt = seq.groundtruth()
+    T0 = geo.relative_pose(gt[2], gt[4]) @ geo.se3_exp([0.004, 0.0, -0.003, 0.0, 0.003, 0.0])
+    cfg = dataclasses.replace(TeacherConfig(), dense_fusion="information")
+    maps = dense_maps(seq.depth(2), seq.intrinsics.K, cfg), dense_maps(seq.depth(4), seq.intrinsics.K, cfg)
+    whole = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy())
+    dense_refine(whole, *maps, cfg, blend=1.0)
+    full = geo.se3_log(geo.inv_T(T0) @ whole.T_i_j)
+    from teacher.odometry import point_to_plane_covariance
+
+    equal = cfg.dense_cov_scale * point_to_plane_covariance(whole.T_i_j, *maps, cfg, stride=2)[0]
+    moved = {}
+    for name, cov in (("huge", np.eye(6) * 1e2), ("tiny", np.eye(6) * 1e-14), ("equal", equal)):
+        res = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy(), cov=cov)
+        dense_refine(res, *maps, cfg)
+        moved[name] = geo.se3_log(geo.inv_T(T0) @ res.T_i_j)
+    assert np.linalg.norm(full) > 4e-3
+    np.testing.assert_allclose(moved["huge"], full, atol=1e-6)
+    assert np.linalg.norm(moved["tiny"]) < 1e-5
+    np.testing.assert_allclose(moved["equal"], 0.5 * full, atol=1e-6)  # equal information: half way
