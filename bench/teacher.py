@@ -11,6 +11,7 @@ error, fps).
     .venv/bin/python bench/teacher.py           # every synthetic preset, stress scenes included,
                                                 # redkitchen and TUM fr1/xyz images; teacher + Open3D
     .venv/bin/python bench/teacher.py --scenes synthetic/lab --frames 0:300 --peers open3d cv2
+    .venv/bin/python bench/teacher.py --scenes synthetic/stress-far --synthetic-frames 60   # a 60-frame walk
 
 Results go to stdout (a Markdown table) and to ``--json`` if given.
 """
@@ -106,8 +107,18 @@ def run_opencv(seq) -> tuple[np.ndarray, float, int]:
     return _chain(rel), time.perf_counter() - t0, fails
 
 
-def bench_scene(spec: str, frames: str | None, peers: list[str]) -> list[dict]:
-    seq = open_scene(spec, frames=frames)[0]
+def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frames: int | None = None) -> list[dict]:
+    if synthetic_frames and spec.startswith("synthetic/"):  # a shorter walk of the preset (rendered anew)
+        from dataclasses import replace
+
+        from data.synthetic import synthetic_sequence
+        from data.synthetic.config import resolve_preset
+
+        name = spec.split("/", 1)[1]
+        seq = synthetic_sequence(name, config=replace(resolve_preset(name), frames=synthetic_frames))
+        seq = seq.select(*[int(v) if v else None for v in frames.split(":")]) if frames else seq
+    else:
+        seq = open_scene(spec, frames=frames)[0]
     gt = Trajectory(seq.times(), seq.groundtruth())
     rows = []
     # Each method runs as it is meant to be used: the teacher as `teacher generate` runs it
@@ -150,6 +161,8 @@ def main() -> None:
     ap.add_argument("--frames", default=None, help="frame range START:STOP of every scene")
     ap.add_argument("--peers", nargs="*", default=["open3d"], choices=["open3d", "cv2"],
                     help="methods run beside the teacher (default: Open3D's hybrid odometry)")
+    ap.add_argument("--synthetic-frames", type=int, default=None,
+                    help="render each synthetic preset with this many frames instead of its own (a shorter walk)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     results = []
@@ -157,7 +170,7 @@ def main() -> None:
         if not spec.startswith("synthetic/") and not Path(spec).exists():
             print(f"skipping {spec}: not found", file=sys.stderr)
             continue
-        results += bench_scene(spec, args.frames, args.peers)
+        results += bench_scene(spec, args.frames, args.peers, args.synthetic_frames)
         if args.json:  # after every scene, so a long run that is cut short keeps what it measured
             args.json.write_text(json.dumps(results, indent=2))
     print("| scene | frames | method | fps | fps / Open3D | gap-1 fails | CV bridges | RPE trans (mm) | RPE / Open3D "
