@@ -645,10 +645,7 @@ def dense_edge(i: int, j: int, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
         res.status = "degenerate"
         return res
     ev = np.linalg.eigvalsh(cov[:3, :3]), np.linalg.eigvalsh(cov[3:, 3:])
-    z = float(np.nanmedian(dj.points.numpy()[..., 2]))
-    S = np.diag([1.0, 1.0, 1.0, z, z, z])  # a rotation of 1 rad moves the points by ~z metres
-    info_ev = np.linalg.eigvalsh(S @ cov @ S)  # eigenvalues of the scaled covariance
-    res.info["conditioning"] = float(info_ev[0] / info_ev[-1]) if info_ev[-1] > 0 else 0.0
+    res.info["conditioning"] = _conditioning(cov, dj)
     if (ev[0].min() <= 0 or np.sqrt(ev[0].max()) > cfg.fallback_max_sigma_m
             or ev[1].min() <= 0 or np.degrees(np.sqrt(ev[1].max())) > cfg.fallback_max_sigma_deg
             or res.info["conditioning"] < cfg.fallback_min_conditioning):
@@ -658,6 +655,16 @@ def dense_edge(i: int, j: int, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
     if not res.ok:
         res.info["path"] = "none"
     return res
+
+
+def _conditioning(cov: NDArray, dj: DenseMaps) -> float:
+    """Smallest over largest eigenvalue of a dense covariance with rotations scaled by the
+    median depth of frame j (a rotation of 1 rad moves the points by ~z metres); small when
+    the depth leaves a direction nearly free (``cfg.fallback_min_conditioning``)."""
+    z = float(np.nanmedian(dj.points.numpy()[..., 2]))
+    S = np.diag([1.0, 1.0, 1.0, z, z, z])
+    ev = np.linalg.eigvalsh(S @ cov @ S)
+    return float(ev[0] / ev[-1]) if ev[-1] > 0 else 0.0
 
 
 def _rgbd_image(f: FrameFeatures, s: int) -> o3d.t.geometry.RGBDImage:
@@ -676,8 +683,9 @@ def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     started at ``T_init``, ``path`` ``rgbd``. Its covariance is the point-to-plane one of
     :func:`point_to_plane_covariance` at the result: large along what the depth leaves free
     (the colour term that fixed it is not counted, so it errs on the safe side). Failed
-    when too few pixels pair up, when that covariance cannot be formed, or when the motion
-    is implausibly fast."""
+    when too few pixels pair up, when that covariance cannot be formed or is as poorly
+    conditioned as one plane's (``cfg.fallback_min_conditioning``: a textured single plane
+    is refused too, conservatively), or when the motion is implausibly fast."""
     s = 2
     K = np.array(intr.K, dtype=np.float64)
     K[:2] /= s
@@ -700,8 +708,10 @@ def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     trans, rot = float(np.linalg.norm(T[:3, 3])), geo.rotation_angle_deg(T)
     res.cov, res.matches, res.inliers, res.inlier_ratio = cov, n_pairs, n_pairs, fitness
     res.info.update(trans_m=trans, rot_deg=rot, rmse_m=rmse)
-    if cov is None or np.linalg.eigvalsh(cov).min() <= 0:
-        res.status = "degenerate"
+    if cov is not None:
+        res.info["conditioning"] = _conditioning(cov, fj.dense)
+    if cov is None or np.linalg.eigvalsh(cov).min() <= 0 or res.info["conditioning"] < cfg.fallback_min_conditioning:
+        res.status = "degenerate"  # e.g. one plane of one colour: nothing pins the slide along it
     elif trans > cfg.max_speed * dt or rot > cfg.max_angular_speed_deg * dt:
         res.status = "implausible_motion"
     if not res.ok:

@@ -465,8 +465,9 @@ def test_dense_fallback_tracks_a_pair_without_colour(office_clean):
 
 
 def test_dense_fallback_rejects_a_single_plane(office_clean):
-    """One plane in view pins only 3 of 6 degrees of freedom: the dense fallback calls the
-    edge degenerate instead of returning an arbitrary slide along the plane."""
+    """One plane of one colour in view pins only 3 of 6 degrees of freedom: both dense
+    fallbacks (hybrid RGB-D, depth alone) call the edge degenerate instead of returning an
+    arbitrary slide along the plane."""
     seq, cfg = office_clean, TeacherConfig()
     grey = np.full_like(seq.rgb(0), 128)
     rng = np.random.default_rng(0)
@@ -474,7 +475,7 @@ def test_dense_fallback_rejects_a_single_plane(office_clean):
     fa = _features(seq, 0, cfg, rgb=grey, depth=plane[0])
     fb = _features(seq, 1, cfg, rgb=grey, depth=plane[1])
     e = estimate_edge(0, 1, fa, fb, seq.intrinsics, cfg, 1 / 30, T_pred=np.eye(4))
-    assert not e.ok and e.info["dense_fallback"] == "degenerate", (e.status, e.info)
+    assert not e.ok and e.info["rgbd_fallback"] == e.info["dense_fallback"] == "degenerate", (e.status, e.info)
 
 
 def test_wide_matching_finds_repeated_texture():
