@@ -8,10 +8,15 @@ teacher also its constant-velocity bridges, failed gap-1 edges and the paths tha
 gap-1 edges (see teacher/odometry.py's fallback chain), and its ratios to Open3D (gap-1
 error, fps).
 
+<<<<<<< HEAD
     .venv/bin/python bench/teacher.py           # every synthetic preset, stress scenes included,
                                                 # redkitchen and TUM fr1/xyz images; teacher + Open3D
     .venv/bin/python bench/teacher.py --scenes synthetic/lab --frames 0:300 --peers open3d cv2
     .venv/bin/python bench/teacher.py --scenes synthetic/stress-far --synthetic-frames 60   # a 60-frame walk
+=======
+    .venv/bin/python -m bench.teacher                       # redkitchen sample + synthetic/office
+    .venv/bin/python -m bench.teacher --scenes synthetic/lab --frames 0:300
+>>>>>>> main
 
 Results go to stdout (a Markdown table) and to ``--json`` if given.
 """
@@ -26,7 +31,6 @@ from collections import Counter
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 if __name__ == "__main__":  # as `teacher generate` does: its worker imports while this process does
     from teacher import processes
@@ -37,6 +41,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from data import geometry as geo  # noqa: E402
+from data.chain import chain_steps  # noqa: E402
 from data.formats import Trajectory  # noqa: E402
 from data.metrics import trajectory_report  # noqa: E402
 from data.scenes import open_scene  # noqa: E402
@@ -48,13 +53,6 @@ TUM_IMAGES = REPO.parent / "shared" / "data" / "tum" / "images" / "rgbd_dataset_
 SYNTHETIC = ["synthetic/office", "synthetic/lab", "synthetic/kitchen", "synthetic/stress-lowfreq",
              "synthetic/stress-repetitive", "synthetic/stress-far", "synthetic/stress-fast", "synthetic/stress-blur",
              "synthetic/stress-textureless"]
-
-
-def _chain(rel: list[np.ndarray]) -> np.ndarray:
-    poses = [np.eye(4)]
-    for T in rel:
-        poses.append(poses[-1] @ T)
-    return np.array(poses)
 
 
 def run_open3d(seq) -> tuple[np.ndarray, float, int]:
@@ -82,7 +80,7 @@ def run_open3d(seq) -> tuple[np.ndarray, float, int]:
         rel.append(geo.inv_T(np.asarray(T_t_s)))
         init = np.asarray(T_t_s)
         prev = cur
-    return _chain(rel), time.perf_counter() - t0, fails
+    return chain_steps(rel), time.perf_counter() - t0, fails
 
 
 def run_opencv(seq) -> tuple[np.ndarray, float, int]:
@@ -104,7 +102,7 @@ def run_opencv(seq) -> tuple[np.ndarray, float, int]:
             Rt = np.eye(4)
         rel.append(geo.inv_T(np.asarray(Rt, dtype=np.float64)))
         prev = cur
-    return _chain(rel), time.perf_counter() - t0, fails
+    return chain_steps(rel), time.perf_counter() - t0, fails
 
 
 def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frames: int | None = None) -> list[dict]:
