@@ -3,10 +3,20 @@
 
 For each scene: frames per second end to end (decode included; the teacher also
 estimates its gap 2..K edges, the peers only gap 1) and gap-1 RPE (trans, rot), ATE and
-the paper's se(3) L2 of the chained gap-1 trajectory, all metrics through evo.
+the paper's se(3) L2 of the chained gap-1 trajectory, all metrics through evo; for the
+teacher also its constant-velocity bridges, failed gap-1 edges and the paths that made its
+gap-1 edges (see teacher/odometry.py's fallback chain), and its ratios to Open3D (gap-1
+error, fps).
 
+<<<<<<< HEAD
+    .venv/bin/python bench/teacher.py           # every synthetic preset, stress scenes included,
+                                                # redkitchen and TUM fr1/xyz images; teacher + Open3D
+    .venv/bin/python bench/teacher.py --scenes synthetic/lab --frames 0:300 --peers open3d cv2
+    .venv/bin/python bench/teacher.py --scenes synthetic/stress-far --synthetic-frames 60   # a 60-frame walk
+=======
     .venv/bin/python -m bench.teacher                       # redkitchen sample + synthetic/office
     .venv/bin/python -m bench.teacher --scenes synthetic/lab --frames 0:300
+>>>>>>> main
 
 Results go to stdout (a Markdown table) and to ``--json`` if given.
 """
@@ -17,6 +27,7 @@ import argparse
 import json
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -38,6 +49,10 @@ from teacher.config import TeacherConfig  # noqa: E402
 from teacher.generate import run_sequence  # noqa: E402
 
 REDKITCHEN = REPO.parent / "shared" / "data" / "7scenes" / "redkitchen" / "seq-sample"
+TUM_IMAGES = REPO.parent / "shared" / "data" / "tum" / "images" / "rgbd_dataset_freiburg1_xyz"
+SYNTHETIC = ["synthetic/office", "synthetic/lab", "synthetic/kitchen", "synthetic/stress-lowfreq",
+             "synthetic/stress-repetitive", "synthetic/stress-far", "synthetic/stress-fast", "synthetic/stress-blur",
+             "synthetic/stress-textureless"]
 
 
 def run_open3d(seq) -> tuple[np.ndarray, float, int]:
@@ -90,8 +105,18 @@ def run_opencv(seq) -> tuple[np.ndarray, float, int]:
     return chain_steps(rel), time.perf_counter() - t0, fails
 
 
-def bench_scene(spec: str, frames: str | None) -> list[dict]:
-    seq = open_scene(spec, frames=frames)[0]
+def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frames: int | None = None) -> list[dict]:
+    if synthetic_frames and spec.startswith("synthetic/"):  # a shorter walk of the preset (rendered anew)
+        from dataclasses import replace
+
+        from data.synthetic import synthetic_sequence
+        from data.synthetic.config import resolve_preset
+
+        name = spec.split("/", 1)[1]
+        seq = synthetic_sequence(name, config=replace(resolve_preset(name), frames=synthetic_frames))
+        seq = seq.select(*[int(v) if v else None for v in frames.split(":")]) if frames else seq
+    else:
+        seq = open_scene(spec, frames=frames)[0]
     gt = Trajectory(seq.times(), seq.groundtruth())
     rows = []
     # Each method runs as it is meant to be used: the teacher as `teacher generate` runs it
@@ -100,28 +125,42 @@ def bench_scene(spec: str, frames: str | None) -> list[dict]:
     cv2.setNumThreads(1)
     run = run_sequence(seq, TeacherConfig(), progress=False)
     cv2.setNumThreads(2)
-    gap1_fail = sum(1 for e in run.edges if not e.ok and e.j == e.i + 1)
-    rows.append({"method": "this teacher (gaps 1-5)", "poses": run.poses, "seconds": run.seconds, "fails": gap1_fail})
-    poses, sec, fails = run_open3d(seq)
-    rows.append({"method": "Open3D hybrid (gap 1)", "poses": poses, "seconds": sec, "fails": fails})
-    poses, sec, fails = run_opencv(seq)
-    rows.append({"method": "cv2.Odometry RGB_DEPTH (gap 1)", "poses": poses, "seconds": sec, "fails": fails})
+    pos = {int(f): p for p, f in enumerate(seq.ids())}
+    gap1 = [e for e in run.edges if pos[e.j] - pos[e.i] == 1]
+    paths = Counter(e.info.get("path", "none") for e in gap1)
+    rows.append({"method": "this teacher (gaps 1-5)", "poses": run.poses, "seconds": run.seconds,
+                 "fails": sum(1 for e in gap1 if not e.ok),
+                 "cv_bridges": sum(1 for b in run.bridges if b["method"] == "constant velocity"),
+                 "gap1_paths": dict(sorted(paths.items()))})
+    if "open3d" in peers:
+        poses, sec, fails = run_open3d(seq)
+        rows.append({"method": "Open3D hybrid (gap 1)", "poses": poses, "seconds": sec, "fails": fails})
+    if "cv2" in peers:
+        poses, sec, fails = run_opencv(seq)
+        rows.append({"method": "cv2.Odometry RGB_DEPTH (gap 1)", "poses": poses, "seconds": sec, "fails": fails})
     out = []
     for r in rows:
         rep = trajectory_report(gt, Trajectory(seq.times(), r["poses"]))
+        extra = {k: r[k] for k in ("cv_bridges", "gap1_paths") if k in r}
         out.append({"scene": spec, "frames": len(seq), "method": r["method"], "fps": len(seq) / r["seconds"],
-                    "gap1_failures": r["fails"], **rep})
+                    "gap1_failures": r["fails"], **extra, **rep})
         print(f"{spec}: {out[-1]}", file=sys.stderr, flush=True)
-    base = out[1]["fps"]
-    for r in out:
-        r["fps_vs_open3d"] = r["fps"] / base
+    if "open3d" in peers:
+        base = out[1]
+        for r in out:
+            r["fps_vs_open3d"] = r["fps"] / base["fps"]
+            r["rpe_vs_open3d"] = r["rpe_trans_rmse_m"] / base["rpe_trans_rmse_m"]
     return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenes", nargs="+", default=[str(REDKITCHEN), "synthetic/office"])
+    ap.add_argument("--scenes", nargs="+", default=SYNTHETIC + [str(REDKITCHEN), str(TUM_IMAGES)])
     ap.add_argument("--frames", default=None, help="frame range START:STOP of every scene")
+    ap.add_argument("--peers", nargs="*", default=["open3d"], choices=["open3d", "cv2"],
+                    help="methods run beside the teacher (default: Open3D's hybrid odometry)")
+    ap.add_argument("--synthetic-frames", type=int, default=None,
+                    help="render each synthetic preset with this many frames instead of its own (a shorter walk)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     results = []
@@ -129,14 +168,19 @@ def main() -> None:
         if not spec.startswith("synthetic/") and not Path(spec).exists():
             print(f"skipping {spec}: not found", file=sys.stderr)
             continue
-        results += bench_scene(spec, args.frames)
-    print("| scene | frames | method | fps | fps / Open3D | gap-1 fails | RPE trans (mm) | RPE rot (deg) | ATE (mm) | se(3) L2 |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+        results += bench_scene(spec, args.frames, args.peers, args.synthetic_frames)
+        if args.json:  # after every scene, so a long run that is cut short keeps what it measured
+            args.json.write_text(json.dumps(results, indent=2))
+    print("| scene | frames | method | fps | fps / Open3D | gap-1 fails | CV bridges | RPE trans (mm) | RPE / Open3D "
+          "| RPE rot (deg) | ATE (mm) | se(3) L2 | teacher gap-1 paths |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in results:
         name = Path(r["scene"]).name if not r["scene"].startswith("synthetic/") else r["scene"]
-        print(f"| {name} | {r['frames']} | {r['method']} | {r['fps']:.1f} | {r['fps_vs_open3d']:.1f}x | {r['gap1_failures']} | "
-              f"{1000 * r['rpe_trans_rmse_m']:.2f} | {r['rpe_rot_rmse_deg']:.3f} | {1000 * r['ate_rmse_m']:.1f} | "
-              f"{r['se3_l2_mean']:.5f} |")
+        paths = " ".join(f"{k} {v}" for k, v in r.get("gap1_paths", {}).items())
+        print(f"| {name} | {r['frames']} | {r['method']} | {r['fps']:.1f} | {r.get('fps_vs_open3d', float('nan')):.1f}x | "
+              f"{r['gap1_failures']} | {r.get('cv_bridges', '')} | {1000 * r['rpe_trans_rmse_m']:.2f} | "
+              f"{r.get('rpe_vs_open3d', float('nan')):.2f} | {r['rpe_rot_rmse_deg']:.3f} | {1000 * r['ate_rmse_m']:.1f} | "
+              f"{r['se3_l2_mean']:.5f} | {paths} |")
     if args.json:
         args.json.write_text(json.dumps(results, indent=2))
 

@@ -260,8 +260,10 @@ def _pose_from_vals(vals: NDArray[np.float64], where: str) -> NDArray[np.float64
 # ----------------------------------------------------------------------------------
 EDGE_CSV_COLUMNS = [
     "i", "j", "t_i", "t_j", "status", "matches", "inliers", "inlier_ratio", "rmse_px",
-    "trans_m", "rot_deg", "dense_fitness", "dense_shift_m",
+    "trans_m", "rot_deg", "dense_fitness", "dense_shift_m", "path",
 ]
+#: edges.csv columns read as strings (every other column but the integer ones is a float)
+EDGE_CSV_STRINGS = ("status", "path")
 
 
 def write_edges_csv(path: Path, rows: Iterable[dict]) -> None:
@@ -280,7 +282,7 @@ def _fmt(v) -> str:
 
 
 def read_edges_csv(path: Path) -> list[dict]:
-    """Read ``edges.csv``; numeric columns are converted, ``status`` stays a string."""
+    """Read ``edges.csv``; numeric columns are converted, ``status`` and ``path`` stay strings."""
     path = Path(path)
     if not path.is_file():
         raise FormatError(f"missing edge table {path}")
@@ -291,7 +293,7 @@ def read_edges_csv(path: Path) -> list[dict]:
             raise FormatError(f"{path}: header must contain i, j and status")
         for lineno, r in enumerate(reader, 2):
             try:
-                row = {k: (v if k == "status" else (int(v) if k in ("i", "j", "matches", "inliers") else float(v)))
+                row = {k: (v if k in EDGE_CSV_STRINGS else (int(v) if k in ("i", "j", "matches", "inliers") else float(v)))
                        for k, v in r.items() if v != ""}
             except (TypeError, ValueError):
                 raise FormatError(f"{path}:{lineno}: malformed row") from None

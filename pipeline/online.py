@@ -184,10 +184,12 @@ class OnlineTeacher:
     constant velocity, its inliers extending feature tracks, longer edges from the tracks
     predicted by the chained gap-1 motion."""
 
-    def __init__(self, intr: Intrinsics, cfg) -> None:
+    def __init__(self, intr: Intrinsics, cfg, colour=None) -> None:
+        """``colour``: the colour camera model (``teacher.odometry.ColourCamera``; None:
+        colour registered to depth), as :func:`teacher.generate.colour_camera_for` picks it."""
         from teacher.odometry import make_orb
 
-        self.intr, self.cfg = intr, cfg
+        self.intr, self.cfg, self.colour = intr, cfg, colour
         self.orb = make_orb(cfg)
         self.window: deque[_WindowEntry] = deque()
         self.v_prev: Optional[NDArray[np.float64]] = None
@@ -199,7 +201,7 @@ class OnlineTeacher:
         """Per-frame work (safe to run in one helper thread ahead of :meth:`add`)."""
         from teacher.odometry import extract
 
-        return extract(frame.rgb, frame.depth, self.cfg, self.orb, self.intr.K)
+        return extract(frame.rgb, frame.depth, self.cfg, self.orb, self.intr.K, self.colour)
 
     def add(self, frame: Frame, fk) -> list:
         """The edges ending at ``frame`` (``EdgeEstimate``; failed ones included)."""
@@ -570,6 +572,17 @@ class _Progress:
             self.stream.flush()
 
 
+def _colour_camera(source: FrameSource, teacher_cfg):
+    """The teacher's colour camera model for ``source``, chosen as ``teacher generate`` does."""
+    from teacher.generate import colour_camera_for, colour_camera_of_folder
+
+    if isinstance(source, SequenceSource):
+        return colour_camera_for(source.seq, teacher_cfg)
+    if isinstance(source, FollowFolder) and teacher_cfg.colour_camera == "auto":
+        return colour_camera_of_folder(source.folder)
+    return colour_camera_for(None, teacher_cfg) if teacher_cfg.colour_camera != "auto" else None
+
+
 def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[Path] = None,
         predict_cfg=None, graph_cfg=None, cfg: OnlineConfig = OnlineConfig(), device: str = "cpu",
         max_frames: Optional[int] = None, progress: bool = True) -> OnlineResult:
@@ -581,7 +594,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
 
     teacher_cfg = teacher_cfg or TEACHER_DEFAULT
     out = ensure_dir(Path(out))
-    teacher = OnlineTeacher(source.intrinsics, teacher_cfg)
+    teacher = OnlineTeacher(source.intrinsics, teacher_cfg, _colour_camera(source, teacher_cfg))
     learner = OnlineLearner(checkpoint, predict_cfg, device) if checkpoint is not None else None
     graph = OnlineGraph(graph_cfg)
     t_edges: list = []

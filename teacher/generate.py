@@ -19,6 +19,7 @@ ground truth), report.json, config.json.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import sys
@@ -44,7 +45,8 @@ from data.scenes import open_scene, scene_slug
 from data.sequence import Sequence
 from teacher import processes
 from teacher.config import TeacherConfig
-from teacher.odometry import EdgeEstimate, FrameFeatures, estimate_edge, extract, image_keys, make_orb, stale_stream
+from teacher.odometry import (KINECT_V1_COLOUR, ColourCamera, EdgeEstimate, FrameFeatures, estimate_edge, extract,
+                              image_keys, make_orb, stale_stream)
 
 log = logging.getLogger(__name__)
 
@@ -177,9 +179,10 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     k_end = min(n, k1 + cfg.gaps)
     edges: list[EdgeEstimate] = []
     orb = make_orb(cfg)
+    colour = colour_camera_for(seq, cfg)
 
     def _extract(k: int) -> FrameFeatures:
-        return extract(seq.rgb(k), seq.depth(k), cfg, orb, intr.K)  # one thread uses this ORB
+        return extract(seq.rgb(k), seq.depth(k), cfg, orb, intr.K, colour)  # one thread uses this ORB
 
     # fingerprints of the frame before the chunk, to tell whether frame k0 repeats it
     prev_keys = image_keys(seq.rgb(k0 - 1), seq.depth(k0 - 1)) if k0 > 0 else None
@@ -228,6 +231,43 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     return edges
 
 
+def colour_camera_for(seq: Sequence, cfg: TeacherConfig) -> Optional[ColourCamera]:
+    """The colour camera model ``cfg.colour_camera`` names for ``seq`` (None: registered).
+
+    ``auto``: a synthetic scene (a 7-Scenes-layout folder whose parent holds the renderer's
+    ``config.json``) gets its own sensor model's ``rgb_*`` fields (registered when
+    noise-free); another 7-Scenes-layout folder the Kinect v1 fit; anything else (TUM RGB-D,
+    whose depth is registered to colour) none."""
+    from data.errors import ConfigError
+
+    if cfg.colour_camera == "registered":
+        return None
+    if cfg.colour_camera == "kinect-v1":
+        return KINECT_V1_COLOUR
+    if cfg.colour_camera != "auto":
+        raise ConfigError(f"colour_camera must be auto, registered or kinect-v1, got {cfg.colour_camera!r}")
+    from data.sevenscenes import SevenScenesSequence
+
+    if not isinstance(seq, SevenScenesSequence):
+        return None
+    return colour_camera_of_folder(Path(seq.root))
+
+
+def colour_camera_of_folder(seq_dir: Path) -> Optional[ColourCamera]:
+    """``auto``'s choice for a 7-Scenes-layout sequence folder (see :func:`colour_camera_for`)."""
+    rendered = Path(seq_dir).parent / "config.json"
+    if rendered.is_file():
+        try:
+            sensor = json.loads(rendered.read_text())["config"]["sensor"]
+            if sensor["noise_free"]:
+                return None
+            return ColourCamera(float(sensor["rgb_focal_scale"]), tuple(map(float, sensor["rgb_shift_px"])),
+                                float(sensor["rgb_baseline_m"]))
+        except (ValueError, KeyError, TypeError):
+            pass  # not a synthetic scene's config: a real 7-Scenes folder
+    return KINECT_V1_COLOUR
+
+
 def chain_trajectory(ids: NDArray[np.int64], edges: list[EdgeEstimate]) -> tuple[NDArray[np.float64], list[dict]]:
     """Chain the good edges into ``T_world_cam`` (frame 0 at the identity) with
     :func:`data.chain.chain_edges`: gap-1 edges first, a failed gap-1 edge bridged by the
@@ -245,7 +285,7 @@ def _edge_rows(edges: list[EdgeEstimate], ts: dict[int, float]) -> list[dict]:
         "matches": e.matches, "inliers": e.inliers, "inlier_ratio": float(e.inlier_ratio),
         "rmse_px": float(e.rmse_px), "trans_m": float(e.info.get("trans_m", float("nan"))),
         "rot_deg": float(e.info.get("rot_deg", float("nan"))),
-        **_dense_cells(e),
+        **_dense_cells(e), "path": e.info.get("path", "none"),
     } for e in edges]
 
 
@@ -289,6 +329,10 @@ def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
         "dense_rejected_edges": sum(1 for e in run.edges if "dense" in e.info and not e.info["dense"]["accepted"]),
         "stale_stream_edges": sum(1 for e in run.edges if e.info.get("dense", {}).get("stale_stream")),
         "bridges": run.bridges,
+        "constant_velocity_bridges": sum(1 for b in run.bridges if b["method"] == "constant velocity"),
+        "edge_paths": dict(sorted(Counter(e.info.get("path", "none") for e in run.edges).items())),
+        "gap1_edge_paths": dict(sorted(Counter(e.info.get("path", "none") for e in run.edges
+                                               if _gap(seq, e) == 1).items())),
         "fps": n / run.seconds if run.seconds > 0 else float("nan"),
         "seconds": run.seconds,
     }

@@ -59,6 +59,40 @@ class FrameFeatures:
         return self._tree
 
 
+@dataclass(frozen=True)
+class ColourCamera:
+    """How the colour camera's pixels map onto the depth camera's, for RGB-D sensors whose
+    colour is not registered to depth (Kinect v1 as recorded in 7-Scenes): the colour pixel
+    ``(u, v)`` sees the depth pixel
+    ``(cx + (u - cx - shift_x) / focal_scale + fx * baseline_m / z, cy + (v - cy - shift_y) / focal_scale)``,
+    z the depth there (the model of :class:`data.synthetic.config.SensorConfig`'s ``rgb_*``
+    fields). Keypoints are moved into depth-camera pixels with it, so their bearings use the
+    camera matrix their depth and the ground truth belong to; treated as depth-camera pixels
+    unmoved, a 0.91 focal scale makes every sparse rotation ~10 % too small."""
+
+    focal_scale: float
+    shift_px: tuple[float, float]
+    baseline_m: float
+
+    def to_depth_pixels(self, uv: NDArray, depth: NDArray[np.float32], K: NDArray) -> NDArray[np.float32]:
+        """(N, 2) colour pixels -> (N, 2) depth-camera pixels (the parallax term uses the depth
+        at the pixel without it, as the sensor model does; none where that depth is 0)."""
+        cx, cy = K[0, 2], K[1, 2]
+        x = cx + (uv[:, 0] - cx - self.shift_px[0]) / self.focal_scale
+        y = cy + (uv[:, 1] - cy - self.shift_px[1]) / self.focal_scale
+        if self.baseline_m:
+            h, w = depth.shape
+            z = depth[np.clip(np.rint(y).astype(np.int64), 0, h - 1), np.clip(np.rint(x).astype(np.int64), 0, w - 1)]
+            x = x + np.where(z > 0, K[0, 0] * self.baseline_m / np.maximum(z, 0.4), 0.0)
+        return np.stack([x, y], axis=1).astype(np.float32)
+
+
+#: the Kinect v1 colour camera of 7-Scenes, as fitted on the redkitchen sample for the
+#: synthetic sensor model (data/synthetic/config.py: ``rgb_focal_scale``, ``rgb_shift_px``,
+#: ``rgb_baseline_m``)
+KINECT_V1_COLOUR = ColourCamera(0.91, (-3.5, -1.0), 0.016)
+
+
 def make_orb(cfg: TeacherConfig) -> cv2.ORB:
     return cv2.ORB_create(nfeatures=cfg.n_features, scaleFactor=1.2, nlevels=cfg.orb_levels,
                           fastThreshold=cfg.fast_threshold, edgeThreshold=19, patchSize=19)
@@ -159,9 +193,12 @@ def stale_stream(prev: tuple[bytes, bytes], cur: tuple[bytes, bytes]) -> bool:
 
 
 def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConfig,
-            orb: Optional[cv2.ORB] = None, K: Optional[NDArray] = None) -> FrameFeatures:
+            orb: Optional[cv2.ORB] = None, K: Optional[NDArray] = None,
+            colour: Optional[ColourCamera] = None) -> FrameFeatures:
     """ORB keypoints and descriptors of one frame, with the depth at each keypoint; with the
-    camera matrix ``K`` and ``cfg.dense_iters > 0`` also the maps of the dense step."""
+    camera matrix ``K`` and ``cfg.dense_iters > 0`` also the maps of the dense step. With a
+    ``colour`` camera model (and ``K``), keypoints are moved into depth-camera pixels
+    (``uv`` is then in depth-camera pixels; None: colour registered to depth)."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     dense = dense_maps(depth, K, cfg) if K is not None and cfg.dense_iters > 0 else None
     orb = orb or make_orb(cfg)
@@ -171,6 +208,8 @@ def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConf
         return FrameFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8),
                              np.zeros(0, np.float32), gray, depth, dense, keys)
     uv = np.array([k.pt for k in kps], dtype=np.float32)
+    if colour is not None and K is not None:
+        uv = colour.to_depth_pixels(uv, depth, K)
     return FrameFeatures(uv, desc, depth_at(depth, uv, cfg), gray, depth, dense, keys)
 
 
@@ -213,6 +252,44 @@ def match(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
     back = np.full(len(fj.desc), -1, np.int64)
     back[cj2[first2]] = qi2[first2]
     ok &= back[best_j] == best_i
+    return np.stack([best_i[ok], best_j[ok]], axis=1)
+
+
+def match_wide(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
+               T_i_j_pred: Optional[NDArray] = None, K: Optional[NDArray] = None) -> NDArray[np.int64]:
+    """Fallback matching (``cfg.fallback_wide``): cross-checked nearest neighbours (each the
+    other's best) within ``cfg.max_hamming``, without the ratio test. With a motion prediction,
+    candidates lie within ``cfg.fallback_radius_scale * cfg.search_radius_px`` of the predicted
+    position; without one, all keypoints of frame j (OpenCV's brute-force cross-check).
+    Repeated or low-contrast texture gives close best and second-best distances, which the
+    ratio test discards; RANSAC then sorts the right matches from the wrong ones."""
+    src = np.flatnonzero(fi.z > 0)
+    if len(src) < 2 or len(fj.desc) < 2:
+        return np.zeros((0, 2), np.int64)
+    if T_i_j_pred is None:
+        ms = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(fi.desc[src], fj.desc)
+        p = np.array([(src[m.queryIdx], m.trainIdx) for m in ms if m.distance <= cfg.max_hamming],
+                     np.int64).reshape(-1, 2)
+        return p
+    P = _backproject(fi.uv[src], fi.z[src], K)
+    Tji = geo.inv_T(T_i_j_pred)
+    Y = P @ Tji[:3, :3].T + Tji[:3, 3]
+    src = src[Y[:, 2] > 1e-3]
+    pred = _project(Y[Y[:, 2] > 1e-3], K)
+    near = cKDTree(pred).sparse_distance_matrix(fj.tree(), cfg.fallback_radius_scale * cfg.search_radius_px,
+                                                output_type="ndarray")
+    if len(near) == 0:
+        return np.zeros((0, 2), np.int64)
+    qi, cj = src[near["i"]], near["j"].astype(np.int64)
+    d = np.bitwise_count(fi.desc64[qi] ^ fj.desc64[cj]).sum(axis=1, dtype=np.int64)
+    o = np.argsort((qi << 9) | d, kind="stable")  # best j of each i
+    first = np.flatnonzero(np.r_[True, qi[o][1:] != qi[o][:-1]])
+    best_i, best_j, best_d = qi[o][first], cj[o][first], d[o][first]
+    o2 = np.argsort((cj << 9) | d, kind="stable")  # best i of each j
+    first2 = np.flatnonzero(np.r_[True, cj[o2][1:] != cj[o2][:-1]])
+    back = np.full(len(fj.desc), -1, np.int64)
+    back[cj[o2][first2]] = qi[o2][first2]
+    ok = (best_d <= cfg.max_hamming) & (back[best_j] == best_i)
     return np.stack([best_i[ok], best_j[ok]], axis=1)
 
 
@@ -421,16 +498,37 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
     if T_pred is not None:
         attempts.append(("guided", None, T_pred))
     attempts.append(("exhaustive", None, None))
+    if cfg.fallback_wide:
+        if T_pred is not None:
+            attempts.append(("wide", None, T_pred))
+        attempts.append(("crosscheck", None, None))
     best: Optional[EdgeEstimate] = None
     for source, pairs, pred in attempts:
         if pairs is None:
-            pairs = match(fi, fj, cfg, pred, intr.K)
+            if source in ("wide", "crosscheck"):
+                pairs = match_wide(fi, fj, cfg, pred, intr.K)
+            else:
+                pairs = match(fi, fj, cfg, pred, intr.K)
         res = _estimate(i, j, fi, fj, intr, cfg, dt, pairs)
         res.info["source"] = source
         if best is None or res.inliers > best.inliers or res.ok:
             best = res
         if res.ok:
             break
+    best.info["path"] = best.info["source"] if best.ok else "none"
+    if not best.ok and cfg.fallback_dense and fi.dense is not None and fj.dense is not None:
+        T0 = np.eye(4) if T_pred is None else T_pred
+        if cfg.fallback_rgbd:
+            rgbd = rgbd_edge(i, j, fi, fj, intr, cfg, dt, T0)
+            rgbd.info["sparse_status"] = best.status
+            if rgbd.ok:
+                return rgbd
+            best.info["rgbd_fallback"] = rgbd.status
+        dense = dense_edge(i, j, fi.dense, fj.dense, cfg, dt, T0)
+        dense.info["sparse_status"] = best.status
+        if dense.ok:
+            return dense
+        best.info["dense_fallback"] = dense.status
     if best.ok and fi.dense is not None and fj.dense is not None:
         stale = fi.stale or fj.stale
         dense_refine(best, fi.dense, fj.dense, cfg, blend=1.0 if stale and cfg.dense_on_stale else None)
@@ -486,7 +584,188 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     res.info["dense"] = {"accepted": bool(ok), "iterations": it + 1, "fitness": fitness, "rmse_m": rmse,
                          "shift_m": shift_m, "shift_deg": shift_deg}
     if ok:
-        res.T_i_j = res.T_i_j @ geo.se3_exp((cfg.dense_blend if blend is None else blend) * geo.se3_log(d))
+        x = geo.se3_log(d)
+        if blend is None and cfg.dense_fusion == "information" and res.cov is not None:
+            # weigh the two by their information: (S_s^-1 + S_d^-1)^-1 S_d^-1 x
+            cov_d, _, _ = point_to_plane_covariance(T_d, di, dj, cfg, stride=2)
+            if cov_d is not None:
+                info_s, info_d = np.linalg.inv(res.cov), np.linalg.inv(cov_d * cfg.dense_cov_scale)
+                step = np.linalg.solve(info_s + info_d, info_d @ x)
+                res.info["dense"]["weight"] = float(step @ x / max(x @ x, 1e-30))
+                res.T_i_j = res.T_i_j @ geo.se3_exp(step)
+                return
+        res.T_i_j = res.T_i_j @ geo.se3_exp((cfg.dense_blend if blend is None else blend) * x)
+
+
+def dense_edge(i: int, j: int, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig, dt: float,
+               T_init: NDArray) -> EdgeEstimate:
+    """Fallback 2, second step (``cfg.fallback_dense``), when :func:`rgbd_edge` fails too (or
+    is off): ``T_i_j`` from the dense point-to-plane depth alignment alone, started at
+    ``T_init`` (the motion prediction), ``path`` ``dense``.
+
+    The same Open3D projective ICP kernel as :func:`dense_refine`, up to
+    ``cfg.fallback_dense_iters`` iterations. The covariance is ``sigma^2 (J^T W J)^-1`` of
+    the point-to-plane residuals at the result (:func:`point_to_plane_covariance`). Failed
+    (status ``few_matches`` / ``degenerate`` / ``implausible_motion``) when too few pixels
+    pair up, when the iteration has not settled, when the covariance leaves a direction
+    undetermined (``cfg.fallback_max_sigma_m`` / ``_deg``: e.g. a single plane in view) or
+    when the motion is implausibly fast."""
+    T = o3d.core.Tensor(np.asarray(T_init, np.float64))
+    fitness, converged, it = 0.0, False, 0
+    try:
+        for it in range(cfg.fallback_dense_iters):
+            step = o3d.t.pipelines.odometry.compute_odometry_result_point_to_plane(
+                dj.points, di.vertex, di.normal, di.K, T, cfg.dense_trunc_m, cfg.dense_huber_m)
+            T = step.transformation.matmul(T)
+            fitness = float(step.fitness)
+            delta = step.transformation.numpy()
+            if (np.linalg.norm(delta[:3, 3]) < cfg.dense_stop_m
+                    and geo.rotation_angle_deg(delta) < cfg.dense_stop_deg):
+                converged = True
+                break
+    except RuntimeError as exc:  # no pixel pairs up, or a singular system (e.g. an exact plane)
+        return EdgeEstimate(i, j, "degenerate" if "Singular" in str(exc) else "few_matches",
+                            info={"path": "none", "dense": {"accepted": False, "fitness": 0.0}})
+    T_d = geo.orthonormalize(T.numpy())
+    info = {"path": "dense", "dense": {"accepted": True, "iterations": it + 1, "fitness": fitness, "shift_m": 0.0,
+                                       "shift_deg": 0.0, "stale_stream": False}}
+    res = EdgeEstimate(i, j, "ok", T_i_j=T_d, info=info)
+    if not np.all(np.isfinite(T_d)) or fitness < cfg.dense_min_fitness:
+        res.status, res.info["path"] = "few_matches", "none"
+        return res
+    if not converged:  # still sliding after all iterations: what the depth leaves free
+        res.status, res.info["path"] = "degenerate", "none"
+        return res
+    cov, n_pairs, rmse = point_to_plane_covariance(T_d, di, dj, cfg)
+    res.cov, res.matches = cov, n_pairs
+    res.inliers, res.inlier_ratio = n_pairs, float(fitness)
+    trans, rot = float(np.linalg.norm(T_d[:3, 3])), geo.rotation_angle_deg(T_d)
+    res.info.update(trans_m=trans, rot_deg=rot, rmse_m=rmse)
+    if cov is None:
+        res.status = "degenerate"
+        return res
+    ev = np.linalg.eigvalsh(cov[:3, :3]), np.linalg.eigvalsh(cov[3:, 3:])
+    res.info["conditioning"] = _conditioning(cov, dj)
+    if (ev[0].min() <= 0 or np.sqrt(ev[0].max()) > cfg.fallback_max_sigma_m
+            or ev[1].min() <= 0 or np.degrees(np.sqrt(ev[1].max())) > cfg.fallback_max_sigma_deg
+            or res.info["conditioning"] < cfg.fallback_min_conditioning):
+        res.status = "degenerate"
+    elif trans > cfg.max_speed * dt or rot > cfg.max_angular_speed_deg * dt:
+        res.status = "implausible_motion"
+    if not res.ok:
+        res.info["path"] = "none"
+    return res
+
+
+def _conditioning(cov: NDArray, dj: DenseMaps) -> float:
+    """Smallest over largest eigenvalue of a dense covariance with rotations scaled by the
+    median depth of frame j (a rotation of 1 rad moves the points by ~z metres); small when
+    the depth leaves a direction nearly free (``cfg.fallback_min_conditioning``)."""
+    z = float(np.nanmedian(dj.points.numpy()[..., 2]))
+    S = np.diag([1.0, 1.0, 1.0, z, z, z])
+    ev = np.linalg.eigvalsh(S @ cov @ S)
+    return float(ev[0] / ev[-1]) if ev[-1] > 0 else 0.0
+
+
+def _rgbd_image(f: FrameFeatures, s: int) -> o3d.t.geometry.RGBDImage:
+    """Open3D RGB-D image (intensity in [0, 1], depth in m) of every ``s``-th pixel of a frame."""
+    g = np.repeat(f.gray[::s, ::s, None].astype(np.float32) / 255.0, 3, axis=2)  # Open3D wants 3 channels
+    d = np.ascontiguousarray(f.depth[::s, ::s], dtype=np.float32)
+    return o3d.t.geometry.RGBDImage(o3d.t.geometry.Image(o3d.core.Tensor(g)), o3d.t.geometry.Image(o3d.core.Tensor(d)))
+
+
+def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics, cfg: TeacherConfig,
+              dt: float, T_init: NDArray) -> EdgeEstimate:
+    """Fallback 2, first step (``cfg.fallback_rgbd``), for a pair whose colour gave no usable
+    sparse estimate; it also holds where the depth alone does not pin the motion down (e.g.
+    a bare wall and the ceiling, slid along their corner): Open3D's hybrid RGB-D
+    odometry (photometric and depth terms, coarse to fine at 1/2, 1/4 and 1/8 resolution),
+    started at ``T_init``, ``path`` ``rgbd``. Its covariance is the point-to-plane one of
+    :func:`point_to_plane_covariance` at the result: large along what the depth leaves free
+    (the colour term that fixed it is not counted, so it errs on the safe side). Failed
+    when too few pixels pair up, when that covariance cannot be formed or is as poorly
+    conditioned as one plane's (``cfg.fallback_min_conditioning``: a textured single plane
+    is refused too, conservatively), or when the motion is implausibly fast."""
+    s = 2
+    K = np.array(intr.K, dtype=np.float64)
+    K[:2] /= s
+    crit = [o3d.t.pipelines.odometry.OdometryConvergenceCriteria(n) for n in (10, 5, 3)]
+    try:
+        out = o3d.t.pipelines.odometry.rgbd_odometry_multi_scale(
+            _rgbd_image(fj, s), _rgbd_image(fi, s), o3d.core.Tensor(K), o3d.core.Tensor(np.asarray(T_init, np.float64)),
+            1.0, cfg.depth_max, crit, o3d.t.pipelines.odometry.Method.Hybrid)
+    except RuntimeError as exc:
+        return EdgeEstimate(i, j, "degenerate" if "Singular" in str(exc) else "few_matches",
+                            info={"path": "none", "error": str(exc)[-200:]})
+    T = geo.orthonormalize(out.transformation.numpy())
+    fitness = float(out.fitness)
+    res = EdgeEstimate(i, j, "ok", T_i_j=T, info={"path": "rgbd", "dense": {
+        "accepted": True, "iterations": 0, "fitness": fitness, "shift_m": 0.0, "shift_deg": 0.0, "stale_stream": False}})
+    if not np.all(np.isfinite(T)) or fitness < cfg.dense_min_fitness:
+        res.status, res.info["path"] = "few_matches", "none"
+        return res
+    cov, n_pairs, rmse = point_to_plane_covariance(T, fi.dense, fj.dense, cfg)
+    trans, rot = float(np.linalg.norm(T[:3, 3])), geo.rotation_angle_deg(T)
+    res.cov, res.matches, res.inliers, res.inlier_ratio = cov, n_pairs, n_pairs, fitness
+    res.info.update(trans_m=trans, rot_deg=rot, rmse_m=rmse)
+    if cov is not None:
+        res.info["conditioning"] = _conditioning(cov, fj.dense)
+    if cov is None or np.linalg.eigvalsh(cov).min() <= 0 or res.info["conditioning"] < cfg.fallback_min_conditioning:
+        res.status = "degenerate"  # e.g. one plane of one colour: nothing pins the slide along it
+    elif trans > cfg.max_speed * dt or rot > cfg.max_angular_speed_deg * dt:
+        res.status = "implausible_motion"
+    if not res.ok:
+        res.info["path"] = "none"
+    return res
+
+
+def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
+                              stride: int = 1) -> tuple[Optional[NDArray], int, float]:
+    """Covariance (6, 6), (v, w) order, right perturbation at ``T_i_j``, of the dense
+    point-to-plane alignment of frame j's points to frame i's surface; also the number of
+    pixel pairs and their RMS distance (m).
+
+    The pairs are formed as Open3D's projective kernel forms them (j's point moved into i,
+    projected with ``di.K``, paired with i's vertex at the rounded pixel, kept within
+    ``cfg.dense_trunc_m``). Residual ``r = n^T (T q - p)``; with ``m = R^T n`` its Jacobian
+    is ``[m^T, (q x m)^T]``. ``sigma^2`` is the Huber-weighted residual variance, floored at
+    ``cfg.dense_min_sigma_m`` squared (two images of one repeated depth map agree exactly). The
+    pixels' errors are correlated (smooth depth bias, correlated noise), so this is a lower
+    bound of the real uncertainty. None when fewer than 6 pairs or a singular system.
+    ``stride``: use every ``stride``-th point of j in both axes (the covariance is then
+    scaled back to all of them)."""
+    q = dj.points.numpy()[::stride, ::stride].reshape(-1, 3)
+    q = q[np.all(np.isfinite(q), axis=1)]
+    R, t = T_i_j[:3, :3], T_i_j[:3, 3]
+    X = q @ R.T + t
+    K = di.K.numpy()
+    vert, nrm = di.vertex.numpy(), di.normal.numpy()
+    h, w = vert.shape[:2]
+    front = X[:, 2] > 1e-6
+    u = np.full(len(X), -1, np.int64)
+    v = np.full(len(X), -1, np.int64)
+    u[front] = np.rint(K[0, 0] * X[front, 0] / X[front, 2] + K[0, 2]).astype(np.int64)
+    v[front] = np.rint(K[1, 1] * X[front, 1] / X[front, 2] + K[1, 2]).astype(np.int64)
+    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    q, X, u, v = q[inside], X[inside], u[inside], v[inside]
+    p, n = vert[v, u].astype(np.float64), nrm[v, u].astype(np.float64)
+    ok = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(n), axis=1) & (np.linalg.norm(X - p, axis=1) < cfg.dense_trunc_m)
+    q, X, p, n = q[ok], X[ok], p[ok], n[ok]
+    if len(q) < 6:
+        return None, len(q), float("nan")
+    r = np.einsum("ij,ij->i", n, X - p)
+    m = n @ R
+    J = np.concatenate([m, np.cross(q, m)], axis=1)
+    _, wts, _ = _huber(r, cfg.dense_huber_m)
+    H = J.T @ (J * wts[:, None])
+    sigma2 = max(float(np.sum(wts * r * r) / max(len(r) - 6, 1)), cfg.dense_min_sigma_m ** 2)
+    try:
+        cov = sigma2 * np.linalg.inv(H) / stride ** 2
+    except np.linalg.LinAlgError:
+        return None, len(q), float(np.sqrt(np.mean(r * r)))
+    if not np.all(np.isfinite(cov)):
+        return None, len(q), float(np.sqrt(np.mean(r * r)))
+    return 0.5 * (cov + cov.T), len(q), float(np.sqrt(np.mean(r * r)))
 
 
 def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
@@ -581,6 +860,7 @@ def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray
     return out
 
 
-__all__ = ["FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "dense_refine", "match",
+__all__ = ["ColourCamera", "KINECT_V1_COLOUR", "FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "dense_refine", "match",
+           "match_wide", "dense_edge", "rgbd_edge", "point_to_plane_covariance",
            "image_keys", "stale_stream",
            "estimate_edge", "refine_two_way", "make_orb"]

@@ -41,7 +41,7 @@ from data.io import ensure_dir, git_revision, write_json, write_text
 from data.sequence import Sequence
 from data.synthetic.config import (PRESETS, RENDER_VERSION, SceneConfig, SensorConfig, corpus_names, known_names,
                                    resolve_preset)
-from data.synthetic.layout import LAYOUTS, Scene
+from data.synthetic.layout import LAYOUTS, TEXTURE_STYLES, Scene, restyle
 from data.synthetic.renderer import ExactFrame, Renderer
 from data.synthetic.sensor import ColourSensor, NoiseBank, colour_camera_pad, depth_bias_field, depth_sensor, exposure_gains
 from data.synthetic.trajectory import make_trajectory, motion_stats
@@ -69,6 +69,8 @@ def scene_dir(name: str, config: SceneConfig, cache_dir: Optional[Path] = None) 
 def _check(config: SceneConfig) -> None:
     if config.layout not in LAYOUTS:
         raise ConfigError(f"unknown synthetic layout {config.layout!r} (known: {', '.join(sorted(LAYOUTS))})")
+    if config.texture_style not in TEXTURE_STYLES:
+        raise ConfigError(f"unknown texture style {config.texture_style!r} (known: {', '.join(TEXTURE_STYLES)})")
     if config.frames < 2:
         raise ConfigError(f"a synthetic scene needs at least 2 frames, got {config.frames}")
     if config.width < 16 or config.height < 16:
@@ -113,6 +115,7 @@ def build(config: SceneConfig) -> tuple[Scene, NDArray[np.float64]]:
     """The room and the poses ``T_world_cam`` (N, 4, 4) of ``config`` (deterministic)."""
     _check(config)
     scene = LAYOUTS[config.layout](np.random.default_rng([config.seed, 0]))
+    scene = restyle(scene, config.texture_style, np.random.default_rng([config.seed, 6]))
     poses = make_trajectory(config, scene, np.random.default_rng([config.seed, 1]))
     return scene, poses
 

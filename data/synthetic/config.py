@@ -174,13 +174,24 @@ class SceneConfig:
     """Amplitude of hand tremor in rotation, degrees."""
     sensor: SensorConfig = field(default_factory=SensorConfig)
     """Sensor model."""
+    texture_style: str = "default"
+    """Surface textures (:func:`~data.synthetic.layout.restyle`): ``default`` (the layout's
+    own), ``lowfreq`` (smooth low-frequency blobs), ``repetitive`` (one small motif tiled) or
+    ``textureless`` (plain paint on all but the small objects), each keeping a material's mean
+    colour."""
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
     def digest(self) -> str:
-        """Short hash of the config and renderer version (names the cache folder)."""
-        blob = json.dumps({"v": RENDER_VERSION, "cfg": self.to_dict()}, sort_keys=True)
+        """Short hash of the config and renderer version (names the cache folder). Fields
+        added after RENDER_VERSION 10 count only when they differ from their default, so
+        scenes rendered before they existed keep their cache folder."""
+        cfg = self.to_dict()
+        for name, default in _LATE_FIELDS.items():
+            if cfg.get(name) == default:
+                cfg.pop(name)
+        blob = json.dumps({"v": RENDER_VERSION, "cfg": cfg}, sort_keys=True)
         return hashlib.sha1(blob.encode()).hexdigest()[:8]
 
 
@@ -189,10 +200,23 @@ PRESETS: dict[str, SceneConfig] = {
     "kitchen": SceneConfig(layout="kitchen", seed=25, frames=300, mean_speed_mps=0.31),
     "lab": SceneConfig(layout="lab", seed=33, frames=300, mean_speed_mps=0.25),
     "tiny": SceneConfig(layout="office", seed=44, frames=20),
+    # stress scenes (issue 13): conditions that starve feature matching; the team's own
+    # scenes for checking the teacher never gets stranded, not a hold-out
+    "stress-lowfreq": SceneConfig(layout="office", seed=51, frames=300, texture_style="lowfreq"),
+    "stress-repetitive": SceneConfig(layout="office", seed=52, frames=300, texture_style="repetitive"),
+    "stress-far": SceneConfig(layout="lab", seed=53, frames=300, view_distance_m=(3.6, 5.0)),
+    "stress-fast": SceneConfig(layout="kitchen", seed=54, frames=300, mean_speed_mps=0.45, max_speed_mps=0.9,
+                               max_angular_dps=120.0, jitter_rot_deg=2.5, view_distance_m=(0.8, 1.8)),
+    "stress-blur": SceneConfig(layout="office", seed=55, frames=300, mean_speed_mps=0.4, max_speed_mps=0.7,
+                               max_angular_dps=60.0, sensor=SensorConfig(motion_blur_exposure=1.0)),
+    "stress-textureless": SceneConfig(layout="office", seed=56, frames=300, texture_style="textureless"),
 }
 """Named scenes for ``--scene synthetic/NAME``; ``NAME-clean`` is the noise-free variant."""
 
 CLEAN_SUFFIX = "-clean"
+
+#: SceneConfig fields added after RENDER_VERSION 10, with their defaults (see SceneConfig.digest)
+_LATE_FIELDS = {"texture_style": "default"}
 
 
 #: first seed of the training corpus rooms (the named scenes use seeds below 100)

@@ -8,6 +8,7 @@ enter, points worth looking at, and the rectangle the camera may move in.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable, Optional
 
@@ -372,3 +373,36 @@ def lab(rng: np.random.Generator) -> Scene:
 
 
 LAYOUTS: dict[str, Callable[[np.random.Generator], Scene]] = {"office": office, "kitchen": kitchen, "lab": lab}
+
+#: texture styles of :func:`restyle` (``SceneConfig.texture_style``)
+TEXTURE_STYLES = ("default", "lowfreq", "repetitive", "textureless")
+
+
+def restyle(scene: Scene, style: str, rng: np.random.Generator) -> Scene:
+    """``scene`` with every material's texture replaced, keeping its mean colour:
+
+    * ``default``: unchanged;
+    * ``lowfreq``: smooth low-frequency blobs (:func:`~data.synthetic.textures.tex_blobs`);
+    * ``repetitive``: one small motif tiled (:func:`~data.synthetic.textures.tex_repeat`);
+    * ``textureless``: plain paint (:func:`~data.synthetic.textures.tex_plain`) on every
+      surface but the small objects (materials ``obj*``): views of walls, floor and
+      furniture are stretches without texture, only shading and outlines.
+    """
+    if style == "default":
+        return scene
+    if style not in TEXTURE_STYLES:
+        raise ValueError(f"unknown texture style {style!r} (known: {', '.join(TEXTURE_STYLES)})")
+    mats = []
+    for m in scene.materials:
+        c = m.texture.reshape(-1, 3).mean(0).astype(np.float32)
+        dark, light = (0.55 * c).astype(np.float32), np.minimum(1.3 * c + 0.1, 1.0).astype(np.float32)
+        if style == "lowfreq":
+            tex = tx.tex_blobs(rng, dark, light)
+        elif style == "repetitive":
+            tex = tx.tex_repeat(rng, light, dark)
+        elif m.name.startswith("obj"):
+            tex = m.texture
+        else:
+            tex = tx.tex_plain(rng, c)
+        mats.append(Material(m.name, tex, m.scale_m))
+    return dataclasses.replace(scene, materials=mats)

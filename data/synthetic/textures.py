@@ -5,7 +5,9 @@ Every generator returns an (S, S, 3) float32 albedo in [0, 1] that tiles seamles
 
 * rich: ``noise`` (carpet, granite, concrete), ``wood``, ``tiles``, ``bricks``,
   ``clutter`` (shapes and text, like posters or a notice board), ``books``, ``panel``;
-* plain (few ORB corners): ``plain`` - a flat colour with faint large-scale shading.
+* plain (few ORB corners): ``plain`` - a flat colour with faint large-scale shading;
+* hard for feature matching (the stress scenes): ``blobs`` (smooth low-frequency shapes),
+  ``repeat`` (one small motif tiled).
 
 :class:`TextureAtlas` stacks the mip pyramids of all materials into one flat array and
 samples it bilinearly by (material, level, u, v) with numpy gathers.
@@ -172,6 +174,33 @@ def tex_panel(rng: np.random.Generator, bg: NDArray, size: int = TEX_SIZE) -> ND
         else:
             cv2.putText(img, _text(rng, 4), (x, y), cv2.FONT_HERSHEY_PLAIN, 1.0, (10, 10, 10), 1, cv2.LINE_AA)
     return img.astype(np.float32) / 255.0
+
+
+def tex_blobs(rng: np.random.Generator, c0: NDArray, c1: NDArray, size: int = TEX_SIZE) -> NDArray[np.float32]:
+    """Smooth low-frequency blobs (2-3 per tile side, soft edges) between two colours: shapes
+    a few decimetres across and no fine detail, so ORB finds few, poorly localised corners."""
+    a = 0.75 * periodic_noise(rng, size, 3) + 0.25 * periodic_noise(rng, size, 6)
+    a = (a - a.min()) / max(float(a.max() - a.min()), 1e-6)
+    a = a * a * (3 - 2 * a)  # smoothstep: broad areas of each colour
+    return _mix(a.astype(np.float32), c0, c1)
+
+
+def tex_repeat(rng: np.random.Generator, c0: NDArray, c1: NDArray, size: int = TEX_SIZE,
+               period: int = 8) -> NDArray[np.float32]:
+    """One small motif (a few shapes in a ``size / period`` cell) repeated ``period`` times
+    per side, as on wallpaper or tiles: every corner has many identical twins, so a
+    descriptor's best and second-best matches are equally good."""
+    cell = size // period
+    img = np.ascontiguousarray(np.tile(c0, (cell, cell, 1)) * 255).astype(np.uint8)
+    col = tuple(int(v) for v in np.asarray(c1) * 255)
+    for _ in range(3):
+        x, y = (int(v) for v in rng.integers(cell // 6, cell - cell // 6, 2))
+        if rng.random() < 0.5:
+            w, h = (int(v) for v in rng.integers(cell // 8, cell // 3, 2))
+            cv2.rectangle(img, (x - w // 2, y - h // 2), (x + w // 2, y + h // 2), col, -1, cv2.LINE_AA)
+        else:
+            cv2.circle(img, (x, y), int(rng.integers(cell // 10, cell // 5)), col, -1, cv2.LINE_AA)
+    return np.tile(img.astype(np.float32) / 255.0, (period, period, 1))
 
 
 def _blur_wrap(img: NDArray[np.float32], sigma: float) -> NDArray[np.float32]:
