@@ -39,6 +39,14 @@ def _parser() -> argparse.ArgumentParser:
                    help="use every source's covariances as given (no per-source scale from residuals)")
     o.add_argument("--marginals", action="store_true", default=None, help="write marginals.npz")
     o.add_argument("--no-plots", dest="plots", action="store_false", default=None)
+    o.add_argument("--teacher-calibration", type=Path,
+                   help="per-gap teacher covariance scales from `posegraph calibrate` (fitted on validation data)")
+    c = sub.add_parser("calibrate", help="fit per-gap covariance scales of teacher edges from their own "
+                                         "multi-gap consistency (no ground truth), on validation ranges")
+    c.add_argument("--teacher", type=Path, nargs="+", required=True,
+                   help="teacher output folder(s) of validation ranges or scenes (never the test data)")
+    c.add_argument("--out", type=Path, required=True, help="calibration JSON to write")
+    c.add_argument("--max-gap", type=int, help="use edges up to this gap (frame positions)")
     return p
 
 
@@ -46,13 +54,19 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = _parser().parse_args(argv)
     setup_logging(args.verbose)
     try:
+        if args.command == "calibrate":
+            from posegraph.calibration import calibrate_teacher
+
+            res = calibrate_teacher(args.teacher, args.out, max_gap=args.max_gap)
+            print(", ".join(f"gap {g}: x{v:.3g}" for g, v in sorted(res.scales.items())), "->", args.out)
+            return 0
         from posegraph.optimize import optimize
 
         fields = {f.name for f in dataclasses.fields(PRESETS[args.preset])}
         changes = {k: v for k, v in vars(args).items() if k in fields and v is not None}
         cfg = dataclasses.replace(PRESETS[args.preset], **changes)
         outs = optimize(scene=args.scene, teacher=args.teacher, learner=args.learner, edges=args.edges,
-                        out=args.out, cfg=cfg, split=args.split)
+                        out=args.out, cfg=cfg, split=args.split, teacher_calibration=args.teacher_calibration)
     except VOError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
