@@ -47,6 +47,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="teacher output folder(s) of validation ranges or scenes (never the test data)")
     c.add_argument("--out", type=Path, required=True, help="calibration JSON to write")
     c.add_argument("--max-gap", type=int, help="use edges up to this gap (frame positions)")
+    c.add_argument("--method", choices=["consistency", "groundtruth"], default="consistency",
+                   help="consistency: from the multi-gap edges alone (no ground truth); groundtruth: NEES against "
+                        "each folder's groundtruth.tum (synthetic validation scenes with exact ground truth)")
     return p
 
 
@@ -57,7 +60,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if args.command == "calibrate":
             from posegraph.calibration import calibrate_teacher
 
-            res = calibrate_teacher(args.teacher, args.out, max_gap=args.max_gap)
+            res = calibrate_teacher(args.teacher, args.out, max_gap=args.max_gap, method=args.method)
             print(", ".join(f"gap {g}: x{v:.3g}" for g, v in sorted(res.scales.items())), "->", args.out)
             return 0
         from posegraph.optimize import optimize

@@ -193,15 +193,12 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
     initial, init_how = _initial(srcs, used, frames, edges + bridges, cfg)
     result = pg.solve(frames.ids, edges + bridges, initial, cfg, fixed_sources=fixed + ["bridge"])
 
-    teacher_graph = None
-    if "teacher" in srcs and srcs["teacher"].edges:
-        if used == ["teacher"]:
-            teacher_graph, t_bridges = result, bridges
-        else:
-            t_edges = srcs["teacher"].edges
-            t_bridges = pg.bridge_edges(frames.ids, t_edges, guide, cfg.bridge_cov())
-            t_init, _ = _initial(srcs, ["teacher"], frames, t_edges + t_bridges, cfg)
-            teacher_graph = pg.solve(frames.ids, t_edges + t_bridges, t_init, cfg, fixed_sources=fixed + ["bridge"])
+    teacher_graph = None  # the control; with the teacher's edges alone in the graph, the fused row is it
+    if "teacher" in srcs and srcs["teacher"].edges and used != ["teacher"]:
+        t_edges = srcs["teacher"].edges
+        t_bridges = pg.bridge_edges(frames.ids, t_edges, guide, cfg.bridge_cov())
+        t_init, _ = _initial(srcs, ["teacher"], frames, t_edges + t_bridges, cfg)
+        teacher_graph = pg.solve(frames.ids, t_edges + t_bridges, t_init, cfg, fixed_sources=fixed + ["bridge"])
 
     rows: dict[str, NDArray[np.float64]] = {}
     blocks: dict[str, dict] = {}
