@@ -26,6 +26,9 @@ def _parser() -> argparse.ArgumentParser:
     o.add_argument("--out", type=Path, help="output folder (default runs/<scene-slug>/posegraph)")
     o.add_argument("--preset", choices=sorted(PRESETS), default="default")
     o.add_argument("--use", dest="sources", choices=["auto", "teacher", "learner", "fused"], help="edge sources in the graph")
+    o.add_argument("--learner-edges", dest="learner_edges", choices=["bridge", "all"],
+                   help="bridge (default): learner edges only where the teacher's edges leave frames apart; "
+                        "all: every edge, weighed by its covariance")
     o.add_argument("--init", choices=["auto", "teacher", "learner", "chain"], help="initial values")
     o.add_argument("--solver", choices=SOLVERS)
     o.add_argument("--kernel", choices=KERNELS)

@@ -291,6 +291,11 @@ def _component_labels(n: int, pos: NDArray[np.int64]) -> NDArray[np.int64]:
     return connected_components(adj, directed=False)[1]
 
 
+def component_labels(frame_ids: NDArray[np.int64], edges: Sequence[Edge]) -> NDArray[np.int64]:
+    """(N,) connected-component label of every frame of the sorted ``frame_ids``."""
+    return _component_labels(len(frame_ids), edge_arrays(np.asarray(frame_ids, dtype=np.int64), edges).pos)
+
+
 def components(frame_ids: NDArray[np.int64], edges: Sequence[Edge]) -> list[list[int]]:
     """Connected components (lists of frame ids, sorted by first id); ``frame_ids`` sorted."""
     frame_ids = np.asarray(frame_ids, dtype=np.int64)
@@ -849,5 +854,5 @@ def marginal_covariances(graph, result, frame_ids: NDArray[np.int64]) -> NDArray
 
 
 __all__ = ["EdgeArrays", "GraphError", "OutlierRecord", "SolveResult", "bridge_edges", "build_graph", "chain_poses", "joining_edges",
-           "check_connected", "check_determinate", "components", "edge_arrays", "edge_residuals",
+           "check_connected", "check_determinate", "component_labels", "components", "edge_arrays", "edge_residuals",
            "marginal_covariances", "solve", "validate_edges", "whitened_residuals"]

@@ -164,8 +164,14 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
         srcs["teacher"].edges = teacher_scales.apply(frames.ids, raw_teacher)
         fixed.append("teacher")
     gates = {n: _skill_gate(srcs[n], frames, cfg) for n in used}
-    graph_edges = {n: _gated_edges(srcs[n], frames, gates[n], cfg,
-                                   [e for m in used if m != n and not gates[m] for e in srcs[m].edges]) for n in used}
+    if cfg.learner_edges == "bridge" and "teacher" in used and len(used) > 1:
+        graph_edges = {n: srcs[n].edges if n == "teacher" else _crossing_edges(srcs[n], frames, gates[n],
+                                                                                srcs["teacher"].edges)
+                       for n in used}
+    else:
+        graph_edges = {n: _gated_edges(srcs[n], frames, gates[n], cfg,
+                                       [e for m in used if m != n and not gates[m] for e in srcs[m].edges])
+                       for n in used}
     fixed += [f"{n}:unskilled" for n in used]
     edges = [e for n in used for e in graph_edges[n]]
     if not edges:
@@ -312,6 +318,23 @@ def _gated_edges(src: Source, frames: Frames, gate: Optional[dict], cfg: PoseGra
     gate["bridging_edges"] = len(joined)
     return kept + [dataclasses.replace(e, cov=np.asarray(e.cov) * cfg.unskilled_scale,
                                        extra={**e.extra, "source": f"{src.name}:unskilled"}) for e in joined]
+
+
+def _crossing_edges(src: Source, frames: Frames, gate: Optional[dict], teacher_edges: Sequence) -> list:
+    """``learner_edges = "bridge"``: the edges of ``src`` between frames that the teacher's
+    edges leave in different components (the only relative poses the teacher lacks); none
+    at gaps the skill gate found no better than zero motion (there the teacher's constant-
+    velocity bridge is used instead)."""
+    pos = {int(k): p for p, k in enumerate(frames.ids)}
+    labels = pg.component_labels(frames.ids, teacher_edges)
+    gated = set(gate["gated_gaps"]) if gate else set()
+    out = [e for e in src.edges
+           if labels[pos[e.i]] != labels[pos[e.j]] and abs(pos[e.j] - pos[e.i]) not in gated]
+    if gate is not None:
+        gate["bridging_edges"] = len(out)
+    log.info("%s: %d of %d edges join frames the teacher's edges leave apart (learner_edges = bridge)", src.name,
+             len(out), len(src.edges))
+    return out
 
 
 def _guide_poses(srcs: dict[str, Source], used: list[str], frames: Frames) -> Optional[NDArray[np.float64]]:

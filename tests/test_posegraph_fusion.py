@@ -163,7 +163,7 @@ def test_learner_no_better_than_zero_motion_weighs_nothing(tmp_path):
 
         edges, _ = read_g2o(f)
         write_g2o(f, [dataclasses.replace(e, T_i_j=e.T_i_j @ geo.se3_exp([0.01, 0, 0, 0, 0, 0])) for e in edges])
-    cfg = dataclasses.replace(DEFAULT, plots=False)
+    cfg = dataclasses.replace(DEFAULT, plots=False, learner_edges="all")
     rep = _report(optimize(teacher=t, learner=l, out=tmp_path / "gated", cfg=cfg)[0])
     assert rep["skill_gate"]["learner"]["gated_gaps"] == [1]  # gap 2's ratio is 0.99
     gated_both = tmp_path / "learner" / "report.json"
@@ -182,12 +182,31 @@ def test_learner_no_better_than_zero_motion_weighs_nothing(tmp_path):
     assert np.abs(free[:, 1:4] - gated[:, 1:4]).max() > 2e-3
 
 
-def test_learner_bridges_a_stretch_where_the_teacher_failed(tmp_path):
+def test_by_default_learner_edges_only_bridge(tmp_path):
+    """learner_edges = "bridge" (default): a skilled but biased learner leaves the teacher
+    graph as it is where the teacher's edges connect every frame; with "all" it pulls it."""
+    t, l, _ = _folders(tmp_path, ratio=0.5)
+    from data.formats import read_g2o, write_g2o
+
+    edges, _ = read_g2o(l / "edges.g2o")
+    write_g2o(l / "edges.g2o", [dataclasses.replace(e, T_i_j=e.T_i_j @ geo.se3_exp([0.01, 0, 0, 0, 0, 0]))
+                                for e in edges])
+    cfg = dataclasses.replace(DEFAULT, plots=False)
+    rows = _report(optimize(teacher=t, learner=l, out=tmp_path / "b", cfg=cfg)[0])["rows"]
+    assert rows["fused"]["ate_rmse_m"] == pytest.approx(rows["teacher_graph"]["ate_rmse_m"], abs=1e-9)
+    rows = _report(optimize(teacher=t, learner=l, out=tmp_path / "a",
+                            cfg=dataclasses.replace(cfg, learner_edges="all"))[0])["rows"]
+    assert rows["fused"]["ate_rmse_m"] > rows["teacher_graph"]["ate_rmse_m"] + 1e-4
+
+
+@pytest.mark.parametrize("mode", ["bridge", "all"])
+def test_learner_bridges_a_stretch_where_the_teacher_failed(tmp_path, mode):
     """Every teacher edge touching frames 60-90 is gone: the teacher graph crosses that
     second at constant velocity (a bridge edge), the fused graph on the learner's edges;
     fused ATE is well below the teacher graph's and equals it nowhere near."""
     t, l, gt = _folders(tmp_path, n=180, ratio=0.5, drop=(60, 90))
-    rep = _report(optimize(teacher=t, learner=l, out=tmp_path / "pg", cfg=dataclasses.replace(DEFAULT, plots=False))[0])
+    cfg = dataclasses.replace(DEFAULT, plots=False, learner_edges=mode)
+    rep = _report(optimize(teacher=t, learner=l, out=tmp_path / "pg", cfg=cfg)[0])
     rows = rep["rows"]
     assert rep["bridges"] == {"fused": 0, "teacher_graph": 30}  # frames 61-89 have no edge at all
     assert rows["fused"]["ate_rmse_m"] < 0.3 * rows["teacher_graph"]["ate_rmse_m"], (
