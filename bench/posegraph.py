@@ -145,7 +145,7 @@ def drop_stretch(teacher: Path, out: Path, a: int, b: int) -> Path:
     return out
 
 
-def run_case(spec: str, out: Path) -> dict:
+def run_case(spec: str, out: Path, learner_edges: str = "bridge") -> dict:
     """One fusion case (see module doc): the report's rows and the fused-vs-teacher-graph check."""
     from posegraph.optimize import optimize
 
@@ -157,15 +157,19 @@ def run_case(spec: str, out: Path) -> dict:
     if len(parts) > 4 and parts[4]:
         a, b = (int(x) for x in parts[4].split("-"))
         teacher = drop_stretch(teacher, out / name / "teacher_hole", a, b)
+    from posegraph.config import DEFAULT
+
     t0 = time.perf_counter()
-    o = optimize(teacher=teacher, learner=learner, out=out / name / "posegraph", teacher_calibration=cal)[0]
+    cfg = dataclasses.replace(DEFAULT, learner_edges=learner_edges, plots=False)
+    o = optimize(teacher=teacher, learner=learner, out=out / name / f"posegraph-{learner_edges}", cfg=cfg,
+                 teacher_calibration=cal)[0]
     rep = json.loads((o / "report.json").read_text())
     rows = rep["rows"]
     tg, fu = rows.get("teacher_graph"), rows["fused"]
     check = None
     if tg and tg["ate_rmse_m"] is not None:
         check = {k: fu[k] <= tg[k] * (1 + 1e-9) for k in ("ate_rmse_m", "rpe_1s_trans_m", "rpe_1s_rot_deg")}
-    return {"case": name, "spec": spec, "report": str(o / "report.json"), "time_s": round(time.perf_counter() - t0, 1),
+    return {"case": name, "spec": spec, "learner_edges": learner_edges, "report": str(o / "report.json"), "time_s": round(time.perf_counter() - t0, 1),
             "rows": rows, "skill_gate": rep.get("skill_gate"), "bridges": rep.get("bridges"),
             "covariance_scales": rep.get("covariance_scales"), "fused_le_teacher_graph": check}
 
@@ -175,7 +179,7 @@ def _mm(x) -> str:
 
 
 def print_case(r: dict) -> None:
-    print(f"\n### {r['case']} ({r['spec']})\n")
+    print(f"\n### {r['case']}, learner_edges = {r['learner_edges']} ({r['spec']})\n")
     print("| row | ATE mm | RPE1 mm / deg | RPE 1s mm / deg | se(3) L2 | NEES/6 (edges vs GT) |")
     print("|---|---|---|---|---|---|")
     for b in r["rows"].values():
@@ -200,13 +204,16 @@ def main() -> None:
     p.add_argument("--case", action="append", default=[],
                    help="fusion case NAME:TEACHER:LEARNER[:TEACHER_CALIBRATION[:A-B]] (repeatable; no timing run)")
     p.add_argument("--out", type=Path, default=Path("/tmp/bench_fusion"), help="fusion outputs")
+    p.add_argument("--learner-edges", nargs="+", default=["bridge"], choices=["bridge", "all"],
+                   help="posegraph learner_edges setting(s) each case runs with")
     args = p.parse_args()
     if args.case:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         results = []
         for spec in args.case:
-            results.append(run_case(spec, args.out))
-            print_case(results[-1])
+            for mode in args.learner_edges:
+                results.append(run_case(spec, args.out, mode))
+                print_case(results[-1])
         (args.out / "fusion.json").write_text(json.dumps(results, indent=1))
         return
     if args.one:

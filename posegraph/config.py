@@ -140,21 +140,21 @@ class PoseGraphConfig:
     fused ATE 177.5 mm against the teacher graph's 43.3, bench/README.md "Fusion that
     never hurts"). Without teacher edges in the graph, every edge is used."""
 
-    unskilled_scale: float = 1e6
+    unskilled_scale: float = 1e4
     """Covariance scale of a source's edges at a gap where its validation skill (see
     :attr:`posegraph.sources.Source.skill`: its se(3) L2 error on validation pairs over
     zero motion's) is 1 or more: a learner no better than a camera that never moves then
     weighs so little that the fused result is the teacher graph's. Such edges form the
     source ``<name>:unskilled``, which keeps this scale (no per-source calibration)."""
 
-    bridge_sigma_trans_m: float = 0.5
+    bridge_sigma_trans_m: float = 0.05
     """Standard deviation (m, per axis) of a bridge edge, added between consecutive frames
     where the graph's edges leave it disconnected (a stretch where every edge of the
     teacher failed): the relative pose of the chained trajectory there (the teacher's
     constant-velocity bridge) or zero motion. The only constraint across the gap, so the
     value barely moves the estimate; it keeps the graph determinate."""
 
-    bridge_sigma_rot_deg: float = 20.0
+    bridge_sigma_rot_deg: float = 3.0
     """Standard deviation (deg, per axis) of a bridge edge (see ``bridge_sigma_trans_m``)."""
 
     outlier_action: str = "remove"

@@ -1,5 +1,7 @@
-"""The comparison table: teacher (chained), learner (chained), fused (graph), and, with
-ground truth, the trivial baselines zero motion and constant velocity.
+"""The comparison table: teacher (chained), teacher graph (the teacher's own edges of every
+gap, optimised without the learner: the control for the fused row), learner (chained),
+fused (graph), and, with ground truth, the trivial baselines zero motion and constant
+velocity. ``report.md`` explains every column (:data:`COLUMN_NOTES`).
 
 Per row (``report.json`` ``rows.<name>``): the standard keys of
 :func:`data.metrics.trajectory_report` (``ate_rmse_m``, ``rpe_trans_rmse_m``,
@@ -14,7 +16,7 @@ Per row (``report.json`` ``rows.<name>``): the standard keys of
 * for a source's edges with ground truth (``calibration``): mean NEES
   ``d^T C^-1 d`` with ``d = log(inv(T_meas) @ T_gt)`` (expected 6), its ratio to 6, and
   the fraction of edges inside the 1-sigma (68.27 %) and 2-sigma (95.45 %) chi-square
-  regions of 6 dof.
+  regions of 6 dof (:mod:`data.uncertainty`).
 
 With ground truth, two more rows follow (:func:`baseline_blocks`): ``zero_motion`` and
 ``constant_velocity``, the trajectories of :func:`data.metrics.baseline_trajectories` (a
