@@ -298,15 +298,40 @@ def residuals(mean: NDArray[np.float64], T_ref: NDArray[np.float64]) -> NDArray[
     return np.array([geo.se3_log(geo.inv_T(geo.se3_exp(m)) @ T) for m, T in zip(mean, T_ref)]).reshape(-1, 6)
 
 
-def skill_figures(l2: NDArray[np.float64], l2_zero: NDArray[np.float64], gaps: NDArray[np.int64]) -> dict[str, Any]:
+def constant_velocity_l2(i: NDArray[np.int64], j: NDArray[np.int64], log_t: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(E,) se(3) L2 distance of a constant-velocity guess to the teacher's label of each
+    pair ``(i, j)`` (positions): ``(j - i)`` times the teacher's previous step ``i-1 -> i``
+    (the bridge the teacher itself uses over failed edges); NaN where that step has no label."""
+    step = {int(a): log_t[n] for n, (a, b) in enumerate(zip(i, j)) if b - a == 1}
+    out = np.full(len(i), np.nan)
+    for n, (a, b) in enumerate(zip(i, j)):
+        prev = step.get(int(a) - 1)
+        if prev is not None:
+            out[n] = float(np.linalg.norm(log_t[n] - (b - a) * prev))
+    return out
+
+
+def skill_figures(l2: NDArray[np.float64], l2_zero: NDArray[np.float64], gaps: NDArray[np.int64],
+                  l2_cv: Optional[NDArray[np.float64]] = None) -> dict[str, Any]:
     """``validation.skill`` of calibration.json: the mean se(3) L2 distance (E,) of the
     learner's edges to the teacher's labels and of zero motion (the identity) to them, their
     ratio (below 1: the learner predicts the labels better than a camera that never moves),
-    overall and per gap. The pose graph weighs a learner with ``ratio >= 1`` as nothing."""
+    overall and per gap; with ``l2_cv`` (E,) also ``ratio_cv`` against the constant-velocity
+    guess of :func:`constant_velocity_l2` (on the pairs that have it). The pose graph weighs
+    a learner with ``ratio >= 1`` as nothing, and lets it bridge a failed teacher stretch
+    only where ``ratio_cv < 1``."""
+    l2_cv = np.full(len(l2), np.nan) if l2_cv is None else np.asarray(l2_cv)
+
     def one(m: NDArray[np.bool_]) -> dict[str, Any]:
         a, z = float(np.mean(l2[m])), float(np.mean(l2_zero[m]))
-        return {"pairs": int(m.sum()), "se3_l2_mean": a, "zero_motion_se3_l2_mean": z,
-                "ratio": a / z if z > 0 else float("inf")}
+        out = {"pairs": int(m.sum()), "se3_l2_mean": a, "zero_motion_se3_l2_mean": z,
+               "ratio": a / z if z > 0 else float("inf")}
+        c = m & np.isfinite(l2_cv)
+        if c.any():
+            cv = float(np.mean(l2_cv[c]))
+            out.update({"constant_velocity_se3_l2_mean": cv,
+                        "ratio_cv": float(np.mean(l2[c])) / cv if cv > 0 else float("inf")})
+        return out
 
     gaps = np.asarray(gaps)
     return {"reference": "teacher", **one(np.ones(len(l2), dtype=bool)),
@@ -353,7 +378,7 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
     train_seqs = _training_sequences(checkpoint)
     if progress is None:
         progress = sys.stderr.isatty()
-    covs, res, tcovs, heads, gaps, used, l2, l2_zero = [], [], [], [], [], [], [], []
+    covs, res, tcovs, heads, gaps, used, l2, l2_zero, l2_cv = [], [], [], [], [], [], [], [], []
     for spec in scenes:
         seqs = open_scene(spec, split=split, frames=frames)
         g2os = find_teacher_edges(spec, seqs, split, frames, teacher_root)
@@ -373,6 +398,7 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
             log_t = np.array([geo.se3_log(T) for T in T_t]).reshape(-1, 6)
             l2.append(np.linalg.norm(log_t - edges.mean[idx], axis=1))
             l2_zero.append(np.linalg.norm(log_t, axis=1))
+            l2_cv.append(constant_velocity_l2(edges.i[idx], edges.j[idx], log_t))
             tcovs.append(C_t)
             heads += [edges.head[e] for e in idx]
             gaps.append(edges.j[idx] - edges.i[idx])
@@ -394,7 +420,8 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
     after_cov = cal.apply(cov, heads, gap)
     info["validation"] = {"before": nees_stats(mahalanobis2(r, cov + extra)),
                           "after": nees_stats(mahalanobis2(r, after_cov + extra)),
-                          "skill": skill_figures(np.concatenate(l2), np.concatenate(l2_zero), gap)}
+                          "skill": skill_figures(np.concatenate(l2), np.concatenate(l2_zero), gap,
+                                                 np.concatenate(l2_cv))}
     path = checkpoint.parent / CALIBRATION_FILE
     report = cal.to_dict()
     write_json(path, report)

@@ -292,11 +292,14 @@ def _skill_gate(src: Source, frames: Frames, cfg: PoseGraphConfig) -> Optional[d
     gaps = sorted({abs(pos[e.j] - pos[e.i]) for e in src.edges})
     ratio = {g: float((by_gap.get(str(g)) or src.skill)["ratio"]) for g in gaps}
     gated = [g for g in gaps if ratio[g] >= 1.0]
+    ratio_cv = {g: (by_gap.get(str(g)) or src.skill).get("ratio_cv") for g in gaps}
+    no_cv = [g for g in gaps if ratio_cv[g] is not None and ratio_cv[g] >= 1.0 and g not in gated]
     if gated:
         log.warning("%s: no better than zero motion on its validation pairs at gap(s) %s (se(3) L2 ratio %s); "
                     "those edges weigh %.0e times less", src.name, gated,
                     ", ".join(f"{ratio[g]:.2f}" for g in gated), cfg.unskilled_scale)
     return {"ratio": src.skill["ratio"], "ratio_by_gap": {str(g): ratio[g] for g in gaps}, "gated_gaps": gated,
+            "ratio_cv_by_gap": {str(g): ratio_cv[g] for g in gaps}, "no_better_than_cv": no_cv,
             "scale": cfg.unskilled_scale, "reference": src.skill.get("reference"), "from": src.skill.get("from")}
 
 
@@ -324,10 +327,12 @@ def _crossing_edges(src: Source, frames: Frames, gate: Optional[dict], teacher_e
     """``learner_edges = "bridge"``: the edges of ``src`` between frames that the teacher's
     edges leave in different components (the only relative poses the teacher lacks); none
     at gaps the skill gate found no better than zero motion (there the teacher's constant-
-    velocity bridge is used instead)."""
+    velocity bridge is used instead), nor at gaps whose validation ``ratio_cv`` (against the
+    constant-velocity guess from the teacher's previous step) is 1 or more: the teacher's
+    bridge is the better guess there."""
     pos = {int(k): p for p, k in enumerate(frames.ids)}
     labels = pg.component_labels(frames.ids, teacher_edges)
-    gated = set(gate["gated_gaps"]) if gate else set()
+    gated = set(gate["gated_gaps"] + gate["no_better_than_cv"]) if gate else set()
     out = [e for e in src.edges
            if labels[pos[e.i]] != labels[pos[e.j]] and abs(pos[e.j] - pos[e.i]) not in gated]
     if gate is not None:

@@ -221,11 +221,17 @@ def report_markdown(report: dict) -> str:
     gates = report.get("skill_gate") or {}
     if gates:
         lines += ["", "## Validation skill (se(3) L2 over zero motion's, on validation pairs)", "",
-                  "| source | ratio | per gap | gaps weighed as nothing | reference |", "|---|---|---|---|---|"]
+                  "| source | ratio | per gap | per gap, over constant velocity's | gaps weighed as nothing | "
+                  "gaps that never bridge (no better than constant velocity) | reference |",
+                  "|---|---|---|---|---|---|---|"]
         for n, g in gates.items():
             per = ", ".join(f"{k}: {v:.2f}" for k, v in g["ratio_by_gap"].items())
-            lines.append(f"| {n} | {g['ratio']:.3f} | {per} | {', '.join(map(str, g['gated_gaps'])) or 'none'} "
-                         f"(covariance x {g['scale']:.0e}) | {g.get('reference') or '-'} |")
+            cv = ", ".join(f"{k}: {'-' if v is None else format(v, '.2f')}" for k, v in
+                           (g.get("ratio_cv_by_gap") or {}).items())
+            lines.append(f"| {n} | {g['ratio']:.3f} | {per} | {cv or '-'} | "
+                         f"{', '.join(map(str, g['gated_gaps'])) or 'none'} | "
+                         f"{', '.join(map(str, g.get('no_better_than_cv') or [])) or 'none'} | "
+                         f"{g.get('reference') or '-'} |")
     tc = report.get("teacher_calibration")
     if tc:
         lines += ["", f"Teacher covariances scaled per gap (fitted on validation data, no ground truth: "

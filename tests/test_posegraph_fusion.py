@@ -99,7 +99,7 @@ def test_bridge_edges_join_components_along_time():
 
 
 def _folders(tmp_path: Path, n: int = 120, ratio: float | None = None, drop: tuple[int, int] | None = None,
-             learner_sigma: float = 0.006, seed: int = 3) -> tuple[Path, Path, np.ndarray]:
+             learner_sigma: float = 0.006, seed: int = 3, ratio_cv: float | None = None) -> tuple[Path, Path, np.ndarray]:
     """A teacher folder (gaps 1-3, correct covariances, optionally without any edge that
     touches frames ``drop``; its trajectory bridges that stretch at constant velocity) and a
     learner folder (gaps 1-2, noisier, correct covariances) whose report points to a
@@ -133,6 +133,11 @@ def _folders(tmp_path: Path, n: int = 120, ratio: float | None = None, drop: tup
         cal.write_text(json.dumps({"format": 1, "validation": {"skill": {
             "reference": "teacher", "pairs": 100, "ratio": ratio,
             "by_gap": {"1": {"ratio": ratio}, "2": {"ratio": ratio * 0.9}}}}}))
+        if ratio_cv is not None:
+            d = json.loads(cal.read_text())
+            for g in d["validation"]["skill"]["by_gap"].values():
+                g["ratio_cv"] = ratio_cv
+            cal.write_text(json.dumps(d))
         (l_dir / "report.json").write_text(json.dumps({"calibration": str(cal)}))
     return t_dir, l_dir, gt
 
@@ -212,6 +217,16 @@ def test_learner_bridges_a_stretch_where_the_teacher_failed(tmp_path, mode):
     assert rows["fused"]["ate_rmse_m"] < 0.3 * rows["teacher_graph"]["ate_rmse_m"], (
         rows["fused"]["ate_rmse_m"], rows["teacher_graph"]["ate_rmse_m"])
     assert rows["fused"]["rpe_1s_trans_m"] < 0.5 * rows["teacher_graph"]["rpe_1s_trans_m"]
+
+
+def test_learner_no_better_than_constant_velocity_does_not_bridge(tmp_path):
+    """The same hole, but the learner's validation edges were no closer to the teacher's
+    labels than the constant-velocity guess: the fused graph keeps the teacher's bridge."""
+    t, l, gt = _folders(tmp_path, n=180, ratio=0.5, drop=(60, 90), ratio_cv=1.2)
+    rep = _report(optimize(teacher=t, learner=l, out=tmp_path / "pg", cfg=dataclasses.replace(DEFAULT, plots=False))[0])
+    assert rep["skill_gate"]["learner"]["no_better_than_cv"] == [1, 2]
+    assert rep["bridges"] == {"fused": 30, "teacher_graph": 30}
+    assert rep["rows"]["fused"]["ate_rmse_m"] == pytest.approx(rep["rows"]["teacher_graph"]["ate_rmse_m"], abs=1e-9)
 
 
 def test_cli_calibrate_then_optimize_with_teacher_calibration(tmp_path, capsys):
