@@ -293,7 +293,7 @@ def calibrate_teacher(teachers: Sequence[Path], out: Path, max_gap: Optional[int
                         "edges": {str(g): len(x) for g, x in by.items()}})
             continue
         init = poses_for_frames(src.trajectory, frames)
-        bridges = pg.bridge_edges(frames.ids, edges, init, cfg.bridge_cov())
+        bridges = pg.bridge_edges(frames.ids, edges, init, pg.bridge_cov(frames.ids, edges, cfg.bridge_sigma_factor))
         if bridges:
             log.warning("%s: %d bridge edge(s) join a disconnected teacher graph (not calibrated)", f, len(bridges))
         fit = fit_gap_scales(frames.ids, edges + bridges, init, cfg)

@@ -383,6 +383,17 @@ def bridge_edges(frame_ids: NDArray[np.int64], edges: Sequence[Edge], poses: Opt
     return out
 
 
+def bridge_cov(frame_ids: NDArray[np.int64], edges: Sequence[Edge], factor: float) -> NDArray[np.float64]:
+    """(6, 6) diagonal covariance ``factor^2`` times the median diagonal of the
+    smallest-gap ``edges`` (a bridge edge's; identity-sized 1e-4 without edges)."""
+    if not edges:
+        return np.eye(6) * 1e-4 * factor**2
+    a = edge_arrays(np.asarray(frame_ids, dtype=np.int64), edges)
+    gap = a.gap if (a.pos >= 0).all() else np.ones(len(edges), np.int64)
+    d = np.median(np.diagonal(a.cov[gap == gap.min()], axis1=1, axis2=2), axis=0)
+    return np.diag(d * factor**2)
+
+
 def joining_edges(frame_ids: NDArray[np.int64], edges: Sequence[Edge], candidates: Sequence[Edge]) -> list[Edge]:
     """Those of ``candidates`` (taken in order) that join components of the graph of
     ``edges``; ``[]`` when it is connected."""
@@ -853,6 +864,6 @@ def marginal_covariances(graph, result, frame_ids: NDArray[np.int64]) -> NDArray
         raise _indeterminant(exc) from None
 
 
-__all__ = ["EdgeArrays", "GraphError", "OutlierRecord", "SolveResult", "bridge_edges", "build_graph", "chain_poses", "joining_edges",
+__all__ = ["EdgeArrays", "GraphError", "OutlierRecord", "SolveResult", "bridge_cov", "bridge_edges", "build_graph", "chain_poses", "joining_edges",
            "check_connected", "check_determinate", "component_labels", "components", "edge_arrays", "edge_residuals",
            "marginal_covariances", "solve", "validate_edges", "whitened_residuals"]

@@ -191,7 +191,7 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
         gt_from = f"scene {scene}" if gt is not None else None
 
     guide = _guide_poses(srcs, used, frames)
-    bridges = pg.bridge_edges(frames.ids, edges, guide, cfg.bridge_cov())
+    bridges = pg.bridge_edges(frames.ids, edges, guide, _bridge_cov(edges, frames, cfg))
     if bridges:
         log.warning("the graph's edges leave it disconnected: %d bridge edge(s) from %s (%s)", len(bridges),
                     "the chained trajectory" if guide is not None else "zero motion",
@@ -202,7 +202,7 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
     teacher_graph = None  # the control; with the teacher's edges alone in the graph, the fused row is it
     if "teacher" in srcs and srcs["teacher"].edges and used != ["teacher"]:
         t_edges = srcs["teacher"].edges
-        t_bridges = pg.bridge_edges(frames.ids, t_edges, guide, cfg.bridge_cov())
+        t_bridges = pg.bridge_edges(frames.ids, t_edges, guide, _bridge_cov(t_edges, frames, cfg))
         t_init, _ = _initial(srcs, ["teacher"], frames, t_edges + t_bridges, cfg)
         teacher_graph = pg.solve(frames.ids, t_edges + t_bridges, t_init, cfg, fixed_sources=fixed + ["bridge"])
 
@@ -340,6 +340,12 @@ def _crossing_edges(src: Source, frames: Frames, gate: Optional[dict], teacher_e
     log.info("%s: %d of %d edges join frames the teacher's edges leave apart (learner_edges = bridge)", src.name,
              len(out), len(src.edges))
     return out
+
+
+def _bridge_cov(edges: Sequence, frames: Frames, cfg: PoseGraphConfig) -> NDArray[np.float64]:
+    """(6, 6) covariance of a bridge edge: ``cfg.bridge_sigma_factor`` squared times the
+    median diagonal of the smallest-gap edges of ``edges``."""
+    return pg.bridge_cov(frames.ids, edges, cfg.bridge_sigma_factor)
 
 
 def _guide_poses(srcs: dict[str, Source], used: list[str], frames: Frames) -> Optional[NDArray[np.float64]]:

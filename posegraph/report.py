@@ -215,9 +215,8 @@ def report_markdown(report: dict) -> str:
     br = report.get("bridges") or {}
     if br.get("fused") or br.get("teacher_graph"):
         lines += ["", f"Bridge edges (where the graph's edges left it disconnected; the chained trajectory's step "
-                  f"or zero motion, sigma {report['config']['bridge_sigma_trans_m']} m / "
-                  f"{report['config']['bridge_sigma_rot_deg']} deg): fused {br.get('fused') or 0}, "
-                  f"teacher graph {br.get('teacher_graph') or 0}."]
+                  f"or zero motion, sigma {report['config']['bridge_sigma_factor']}x the graph's typical edge): "
+                  f"fused {br.get('fused') or 0}, teacher graph {br.get('teacher_graph') or 0}."]
     gates = report.get("skill_gate") or {}
     if gates:
         lines += ["", "## Validation skill (se(3) L2 over zero motion's, on validation pairs)", "",

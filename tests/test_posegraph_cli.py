@@ -214,7 +214,8 @@ def test_bad_input_is_one_clear_error(case, dirs, tmp_path, capsys):
 def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
     """Learner covariances 1000x too small: report.json/report.md give its estimated
     scale and the teacher's edges survive the outlier pass; ``--no-calibrate`` keeps
-    the covariances as given (and loses the learner's edges)."""
+    the covariances as given (and loses the learner's edges). With ``--learner-edges all``:
+    by default learner edges only bridge where the teacher's edges leave frames apart."""
     from data.formats import read_g2o, write_g2o
 
     t, l = dirs
@@ -223,7 +224,8 @@ def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
         e.cov = e.cov / 1000.0
     write_g2o(l / "edges.g2o", edges)
     out = tmp_path / "out"
-    rc, err = _run(["optimize", "--teacher", str(t), "--learner", str(l), "--out", str(out), "--no-plots"], capsys)
+    rc, err = _run(["optimize", "--teacher", str(t), "--learner", str(l), "--out", str(out), "--no-plots",
+                    "--learner-edges", "all"], capsys)
     assert rc == 0, err
     rep = json.loads((out / "report.json").read_text())
     assert 300 < rep["covariance_scales"]["learner"] < 3000, rep["covariance_scales"]
@@ -233,7 +235,7 @@ def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
     assert rep["rows"]["learner"]["calibration"]["nees_over_dof"] > 300  # the raw covariances, vs GT
     assert "Covariance scale per source" in (out / "report.md").read_text()
     rc, err = _run(["optimize", "--teacher", str(t), "--learner", str(l), "--out", str(tmp_path / "raw"),
-                    "--no-plots", "--no-calibrate"], capsys)
+                    "--no-plots", "--no-calibrate", "--learner-edges", "all"], capsys)
     raw = json.loads((tmp_path / "raw" / "report.json").read_text())
     assert rc == 0 and raw["covariance_calibration"] is None and raw["covariance_scales"]["learner"] == 1.0
     # as given, nearly every learner edge is an outlier; calibrated, nearly none is

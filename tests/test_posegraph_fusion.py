@@ -90,12 +90,12 @@ def test_bridge_edges_join_components_along_time():
     edges = [e for e in syn.make_edges(gt, [1, 2], syn.diag_cov(0.01, 0.01)) if not (10 <= e.i < 15 or 10 < e.j <= 15)]
     ids = np.arange(30)
     assert len(components(ids, edges)) > 1
-    br = bridge_edges(ids, edges, gt, DEFAULT.bridge_cov())
+    br = bridge_edges(ids, edges, gt, np.eye(6) * 1e-2)
     assert len(components(ids, edges + br)) == 1
     assert all(b.j == b.i + 1 and b.extra["source"] == "bridge" for b in br)
     assert np.allclose(br[0].T_i_j, geo.relative_pose(gt[br[0].i], gt[br[0].j]))
-    assert bridge_edges(ids, edges + br, gt, DEFAULT.bridge_cov()) == []
-    assert np.allclose(bridge_edges(ids, edges, None, DEFAULT.bridge_cov())[0].T_i_j, np.eye(4))  # zero motion
+    assert bridge_edges(ids, edges + br, gt, np.eye(6) * 1e-2) == []
+    assert np.allclose(bridge_edges(ids, edges, None, np.eye(6) * 1e-2)[0].T_i_j, np.eye(4))  # zero motion
 
 
 def _folders(tmp_path: Path, n: int = 120, ratio: float | None = None, drop: tuple[int, int] | None = None,
