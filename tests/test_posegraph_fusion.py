@@ -14,7 +14,6 @@ import pytest
 from data import geometry as geo
 from data.errors import FormatError
 from data.formats import Edge, Trajectory
-from data.metrics import ate_rmse
 from data.uncertainty import CHI2_6_1SIGMA, CHI2_6_2SIGMA, CHI2_6_MEDIAN, mahalanobis2, nees_stats
 from posegraph import synthetic as syn
 from posegraph.calibration import GapScales, fit_gap_scales, read_gap_scales
