@@ -78,7 +78,7 @@ def git_revision() -> str:
 
 
 #: the packages whose loggers the command-line tools show at INFO
-PACKAGES = ("data", "teacher", "learner", "posegraph")
+PACKAGES = ("data", "teacher", "learner", "posegraph", "pipeline")
 
 
 def setup_logging(verbose: bool = False, fmt: str = "%(levelname)s %(name)s: %(message)s") -> None:

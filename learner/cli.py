@@ -15,6 +15,7 @@ from typing import Optional, Sequence
 
 from data.errors import VOError
 from data.io import setup_logging
+from data.scenes import add_topic_options, scene_with_topics, scenes_with_topics
 from learner.config import INPUTS, PRESETS, VARIANTS, PredictConfig
 
 
@@ -58,6 +59,7 @@ def _parser() -> argparse.ArgumentParser:
                         "default runs/<scene-slug>/teacher, generated when missing")
     f.add_argument("--no-calibration", dest="calibrate", action="store_false",
                    help="do not fit calibration.json on the --val-scene sequences after training")
+    add_topic_options(f)
 
     c = sub.add_parser("calibrate", help="fit calibration.json (MC-dropout covariances vs teacher labels) "
                                          "of a checkpoint on a validation scene")
@@ -73,6 +75,7 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--drop", type=float, default=PredictConfig.drop, help="MC-dropout drop ratio")
     c.add_argument("--max-gap", type=int, default=PredictConfig.max_gap, help="longest direct edge gap")
     c.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
+    add_topic_options(c)
 
     p = sub.add_parser("predict", help="MC-dropout edges, trajectory and report")
     p.add_argument("--checkpoint", type=Path, required=True)
@@ -87,6 +90,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
     p.add_argument("--no-calibration", dest="calibration", action="store_false",
                    help="ignore the calibration.json beside the checkpoint")
+    add_topic_options(p)
     return ap
 
 
@@ -94,6 +98,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = _parser().parse_args(argv)
     setup_logging(args.verbose)
     try:
+        # the bag topic options apply to the bag scenes among --scene / --val-scene
+        if isinstance(args.scene, list):
+            scenes = scenes_with_topics(args.scene + getattr(args, "val_scene", []), args)
+            args.scene, args.val_scene = scenes[:len(args.scene)], scenes[len(args.scene):]
+        else:
+            args.scene = scene_with_topics(args.scene, args)
         if args.cmd == "fit":
             from learner.train import fit
 

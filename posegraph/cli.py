@@ -10,6 +10,7 @@ from typing import Optional, Sequence
 
 from data.errors import VOError
 from data.io import setup_logging
+from data.scenes import add_topic_options, scene_with_topics
 from posegraph.config import KERNELS, OUTLIER_ACTIONS, PRESETS, SOLVERS
 
 
@@ -42,6 +43,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="use every source's covariances as given (no per-source scale from residuals)")
     o.add_argument("--marginals", action="store_true", default=None, help="write marginals.npz")
     o.add_argument("--no-plots", dest="plots", action="store_false", default=None)
+    add_topic_options(o)
     o.add_argument("--teacher-calibration", type=Path,
                    help="per-gap teacher covariance scales from `posegraph calibrate` (fitted on validation data)")
     c = sub.add_parser("calibrate", help="fit per-gap covariance scales of teacher edges from their own "
@@ -68,6 +70,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return 0
         from posegraph.optimize import optimize
 
+        args.scene = scene_with_topics(args.scene, args)
         fields = {f.name for f in dataclasses.fields(PRESETS[args.preset])}
         changes = {k: v for k, v in vars(args).items() if k in fields and v is not None}
         cfg = dataclasses.replace(PRESETS[args.preset], **changes)

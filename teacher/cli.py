@@ -10,6 +10,7 @@ from typing import Optional, Sequence
 
 from data.errors import VOError
 from data.io import setup_logging
+from data.scenes import add_topic_options, scene_with_topics
 from teacher import processes
 from teacher.config import PRESETS
 
@@ -18,7 +19,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="teacher", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
     g = sub.add_parser("generate", help="estimate relative-pose labels for a scene")
-    g.add_argument("--scene", required=True, help="sequence/scene folder (7-Scenes, TUM) or synthetic/NAME")
+    g.add_argument("--scene", required=True, help="sequence/scene folder (7-Scenes, TUM), ROS bag, or synthetic/NAME")
     g.add_argument("--out", type=Path, default=None, help="output folder (default runs/<scene>/teacher)")
     g.add_argument("--gaps", type=int, default=None, help="largest frame gap K of the edges (default 5)")
     g.add_argument("--frames", default=None, help="frame range START:STOP[:STEP] of each sequence")
@@ -27,6 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--workers", type=int, default=None, help="worker processes (default 2)")
     g.add_argument("--overwrite", action="store_true", help="redo sequences whose outputs exist")
     g.add_argument("-v", "--verbose", action="store_true")
+    add_topic_options(g)
     return p
 
 
@@ -43,6 +45,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     from teacher.generate import generate
 
     try:
+        args.scene = scene_with_topics(args.scene, args)
         generate(args.scene, args.out, args.split, args.frames, cfg, args.overwrite)
     except VOError as exc:
         print(f"error: {exc}", file=sys.stderr)

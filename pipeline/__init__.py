@@ -1,0 +1,1 @@
+"""End-to-end pipelines over the stages: the online (frame-by-frame) mode."""
