@@ -33,7 +33,6 @@ multiplied by in the graph, estimated from residuals without ground truth.
 
 from __future__ import annotations
 
-import math
 from typing import Optional, Sequence
 
 import numpy as np
@@ -42,6 +41,7 @@ from numpy.typing import NDArray
 from data import geometry as geo
 from data import metrics
 from data.formats import Edge, Trajectory
+from data.io import json_safe as _f  # JSON-safe number (NaN -> None)
 from data.uncertainty import mahalanobis2, nees_stats
 
 ROW_LABELS = {"teacher": "teacher (chained)", "teacher_graph": "teacher graph (teacher edges only)",
@@ -52,14 +52,6 @@ BASELINE_HOW = {"zero motion": "baseline: every pose is the first ground-truth p
                 "constant velocity": "baseline: each step repeats the previous ground-truth step (first step zero)"}
 RPE_GAPS = (1, 2, 3)
 METRIC_KEYS = ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "se3_l2_mean")
-
-
-def _f(x: Optional[float]) -> Optional[float]:
-    """JSON-safe float (NaN -> None)."""
-    if x is None:
-        return None
-    x = float(x)
-    return x if math.isfinite(x) else None
 
 
 def frames_per_second_gap(times: NDArray[np.float64]) -> int:

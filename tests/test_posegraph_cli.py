@@ -243,6 +243,7 @@ def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
     assert sum(o["source"] == "learner" for o in rep["outliers"]) <= 4
 
 
+@pytest.mark.slow
 def test_pipeline_end_to_end_on_tiny_scenes(tmp_path, monkeypatch, capsys):
     """`python -m posegraph.pipeline` with tiny presets: every stage runs, the learner is
     calibrated on the validation scene, and the printed table has the three rows and the
