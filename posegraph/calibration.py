@@ -40,6 +40,7 @@ from typing import Any, Optional, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from data import geometry as geo
 from data.errors import FormatError
 from data.formats import Edge
 from posegraph import graph as pg
@@ -202,7 +203,7 @@ def fit_gap_scales(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial:
         covs = a.cov * s_e[:, None, None]
         scaled = [dataclasses.replace(e, cov=c) for e, c in zip(edges, covs)]
         poses = pg.solve(frame_ids, scaled, poses, solve_cfg).poses
-        r2 = pg.edge_residuals(poses, a.pos, pg._orthonormalize_batch(a.T), np.linalg.inv(covs)) ** 2
+        r2 = pg.edge_residuals(poses, a.pos, geo.orthonormalize(a.T), np.linalg.inv(covs)) ** 2
         rho = np.zeros(len(edges))
         for lo in range(0, len(frame_ids) - 1, BLOCK_FRAMES):
             hi = min(lo + BLOCK_FRAMES, len(frame_ids) - 1)
