@@ -21,6 +21,17 @@ Target: 10k poses / 50k edges, LM in under 5 s.
 
     .venv/bin/python -m bench.posegraph                 # 1k, 10k, 50k; ISAM2 up to 10k
     .venv/bin/python -m bench.posegraph --sizes 1000 --isam2-max 1000
+
+Fusion (``--case``, issue 12): ``posegraph optimize`` on teacher + learner folders of a test
+range, one table per case with every row of the report (teacher chained, teacher graph,
+learner chained, fused, zero motion, constant velocity) and the check "fused <= teacher
+graph" on ATE and 1 s RPE. A case is ``NAME:TEACHER:LEARNER[:TEACHER_CALIBRATION[:A-B]]``;
+``A-B`` drops every teacher edge that touches a frame strictly between positions A and B
+(a stretch where the teacher failed; its trajectory bridges it at constant velocity):
+
+    .venv/bin/python -m bench.posegraph --out /tmp/fusion \
+        --case kitchen:runs/synthetic-kitchen/teacher:runs/synthetic-kitchen/learner:cal.json \
+        --case kitchen-hole:runs/synthetic-kitchen/teacher:runs/synthetic-kitchen/learner:cal.json:120-160
 """
 
 from __future__ import annotations
@@ -28,6 +39,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
 import resource
 import subprocess
 import sys
@@ -102,6 +114,84 @@ def run_one(n: int, gaps: int, solver: str, seed: int = 0, marginals: bool = Fal
             "outliers": len(res.outliers), "end_error_m": round(drift, 4)}
 
 
+def drop_stretch(teacher: Path, out: Path, a: int, b: int) -> Path:
+    """Copy of the teacher folder without the edges that touch frame positions a < p < b;
+    its trajectory.tum is re-chained from the remaining gap-1 edges, repeating the last
+    step over the hole (constant velocity, as the teacher bridges failed edges)."""
+    import shutil
+
+    from data.formats import Trajectory, read_g2o, read_tum, write_g2o, write_tum
+    from posegraph.sources import load_dir, resolve_frames
+
+    src = load_dir(teacher, "teacher")
+    frames = resolve_frames([src])
+    pos = {int(k): p for p, k in enumerate(frames.ids)}
+    edges, _ = read_g2o(teacher / "edges.g2o")
+    kept = [e for e in edges if not any(a < pos[k] < b for k in (e.i, e.j))]
+    out.mkdir(parents=True, exist_ok=True)
+    write_g2o(out / "edges.g2o", kept)
+    for f in ("edges.csv", "groundtruth.tum"):
+        if (teacher / f).is_file():
+            shutil.copy(teacher / f, out / f)
+    step = {pos[e.i]: e.T_i_j for e in kept if pos[e.j] == pos[e.i] + 1}
+    traj = read_tum(teacher / "trajectory.tum")
+    poses, last = [traj.poses[0]], np.eye(4)
+    for p in range(len(frames.ids) - 1):
+        last = step.get(p, last)
+        poses.append(poses[-1] @ last)
+    write_tum(out / "trajectory.tum", Trajectory(frames.times, np.array(poses)))
+    return out
+
+
+def run_case(spec: str, out: Path, learner_edges: str = "bridge") -> dict:
+    """One fusion case (see module doc): the report's rows and the fused-vs-teacher-graph check."""
+    from posegraph.optimize import optimize
+
+    parts = spec.split(":")
+    if len(parts) < 3:
+        raise SystemExit(f"--case needs NAME:TEACHER:LEARNER[:CALIBRATION[:A-B]], got {spec!r}")
+    name, teacher, learner = parts[0], Path(parts[1]), Path(parts[2])
+    cal = Path(parts[3]) if len(parts) > 3 and parts[3] else None
+    if len(parts) > 4 and parts[4]:
+        a, b = (int(x) for x in parts[4].split("-"))
+        teacher = drop_stretch(teacher, out / name / "teacher_hole", a, b)
+    from posegraph.config import DEFAULT
+
+    t0 = time.perf_counter()
+    cfg = dataclasses.replace(DEFAULT, learner_edges=learner_edges, plots=False)
+    o = optimize(teacher=teacher, learner=learner, out=out / name / f"posegraph-{learner_edges}", cfg=cfg,
+                 teacher_calibration=cal)[0]
+    rep = json.loads((o / "report.json").read_text())
+    rows = rep["rows"]
+    tg, fu = rows.get("teacher_graph"), rows["fused"]
+    check = None
+    if tg and tg["ate_rmse_m"] is not None:
+        check = {k: fu[k] <= tg[k] * (1 + 1e-9) for k in ("ate_rmse_m", "rpe_1s_trans_m", "rpe_1s_rot_deg")}
+    return {"case": name, "spec": spec, "learner_edges": learner_edges, "report": str(o / "report.json"), "time_s": round(time.perf_counter() - t0, 1),
+            "rows": rows, "skill_gate": rep.get("skill_gate"), "bridges": rep.get("bridges"),
+            "covariance_scales": rep.get("covariance_scales"), "fused_le_teacher_graph": check}
+
+
+def _mm(x) -> str:
+    return "-" if x is None else f"{1000 * x:.1f}"
+
+
+def print_case(r: dict) -> None:
+    print(f"\n### {r['case']}, learner_edges = {r['learner_edges']} ({r['spec']})\n")
+    print("| row | ATE mm | RPE1 mm / deg | RPE 1s mm / deg | se(3) L2 | NEES/6 (edges vs GT) |")
+    print("|---|---|---|---|---|---|")
+    for b in r["rows"].values():
+        nees = (b.get("calibration") or {}).get("nees_over_dof")
+        rot1 = "-" if b["rpe_g1_rot_deg"] is None else f"{b['rpe_g1_rot_deg']:.3f}"
+        rots = "-" if b["rpe_1s_rot_deg"] is None else f"{b['rpe_1s_rot_deg']:.2f}"
+        se3 = "-" if b["se3_l2_mean"] is None else f"{b['se3_l2_mean']:.4f}"
+        print(f"| {b['label']} | {_mm(b['ate_rmse_m'])} | {_mm(b['rpe_g1_trans_m'])} / {rot1} | "
+              f"{_mm(b['rpe_1s_trans_m'])} / {rots} | {se3} | {'-' if nees is None else f'{nees:.2f}'} |")
+    gate = {n: (g["ratio"], g["gated_gaps"]) for n, g in (r["skill_gate"] or {}).items()}
+    print(f"\nskill gate {gate}, bridges {r['bridges']}, graph scales {r['covariance_scales']}, "
+          f"fused <= teacher graph: {r['fused_le_teacher_graph']}", flush=True)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 50000])
@@ -109,7 +199,21 @@ def main() -> None:
     p.add_argument("--isam2-max", type=int, default=10000, help="largest size also run with ISAM2")
     p.add_argument("--marginals", action="store_true", help="full solve() also computes every marginal")
     p.add_argument("--one", nargs=2, metavar=("N", "SOLVER"), help=argparse.SUPPRESS)
+    p.add_argument("--case", action="append", default=[],
+                   help="fusion case NAME:TEACHER:LEARNER[:TEACHER_CALIBRATION[:A-B]] (repeatable; no timing run)")
+    p.add_argument("--out", type=Path, default=Path("/tmp/bench_fusion"), help="fusion outputs")
+    p.add_argument("--learner-edges", nargs="+", default=["bridge"], choices=["bridge", "all"],
+                   help="posegraph learner_edges setting(s) each case runs with")
     args = p.parse_args()
+    if args.case:
+        logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+        results = []
+        for spec in args.case:
+            for mode in args.learner_edges:
+                results.append(run_case(spec, args.out, mode))
+                print_case(results[-1])
+        (args.out / "fusion.json").write_text(json.dumps(results, indent=1))
+        return
     if args.one:
         print(json.dumps(run_one(int(args.one[0]), args.gaps, args.one[1], marginals=args.marginals)))
         return

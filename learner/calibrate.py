@@ -46,38 +46,19 @@ from data.formats import read_g2o
 from data.io import git_revision, write_json
 from data.scenes import open_scene
 from data.sequence import frame_ranges_overlap
+from data.uncertainty import CHI2_6_1SIGMA, CHI2_6_2SIGMA, mahalanobis2, nees_stats  # noqa: F401
 from learner.config import CalibrationConfig, PredictConfig, check_variant, to_dict
 
 log = logging.getLogger(__name__)
 
 CALIBRATION_FILE = "calibration.json"
 CALIBRATION_FORMAT = 1
-#: chi-square quantiles (6 dof) of the 1-sigma and 2-sigma probability masses
-CHI2_6_1SIGMA = float(chi2.ppf(0.6827, 6))
-CHI2_6_2SIGMA = float(chi2.ppf(0.9545, 6))
 #: median of chi-square with 1 dof (robust start of the scale)
 _CHI2_1_MEDIAN = float(chi2.ppf(0.5, 1))
 
-
-# ----------------------------------------------------------------------------------
-# uncertainty figures
-# ----------------------------------------------------------------------------------
-def mahalanobis2(r: NDArray[np.float64], cov: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Squared Mahalanobis distances (E,) of residuals (E, 6) under covariances (E, 6, 6)."""
-    r = np.asarray(r, dtype=np.float64)
-    if len(r) == 0:
-        return np.zeros(0)
-    return np.einsum("ei,ei->e", r, np.linalg.solve(cov, r[..., None])[..., 0])
-
-
-def nees_stats(d2: NDArray[np.float64]) -> dict[str, Optional[float]]:
-    """Mean NEES (6 when consistent), its ratio to 6 and the 1/2-sigma coverage of 6-dof
-    squared Mahalanobis distances ``d2`` (E,) (68.27 % / 95.45 % when calibrated)."""
-    if len(d2) == 0:
-        return {"nees_mean": None, "nees_over_dof": None, "coverage_1sigma": None, "coverage_2sigma": None}
-    return {"nees_mean": float(np.mean(d2)), "nees_over_dof": float(np.mean(d2) / 6.0),
-            "coverage_1sigma": float(np.mean(d2 <= CHI2_6_1SIGMA)),
-            "coverage_2sigma": float(np.mean(d2 <= CHI2_6_2SIGMA))}
+# NEES and coverage (mahalanobis2, nees_stats, the chi-square bounds) come from
+# data.uncertainty, the one implementation the pose graph's report uses too; imported above
+# under their old names for learner.predict and the tests.
 
 
 # ----------------------------------------------------------------------------------
@@ -317,6 +298,46 @@ def residuals(mean: NDArray[np.float64], T_ref: NDArray[np.float64]) -> NDArray[
     return np.array([geo.se3_log(geo.inv_T(geo.se3_exp(m)) @ T) for m, T in zip(mean, T_ref)]).reshape(-1, 6)
 
 
+def constant_velocity_l2(i: NDArray[np.int64], j: NDArray[np.int64], log_t: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(E,) se(3) L2 distance of a constant-velocity guess to the teacher's label of each
+    pair ``(i, j)`` (positions): ``(j - i)`` times the teacher's previous step ``i-1 -> i``
+    (the bridge the teacher itself uses over failed edges); NaN where that step has no label."""
+    step = {int(a): log_t[n] for n, (a, b) in enumerate(zip(i, j)) if b - a == 1}
+    out = np.full(len(i), np.nan)
+    for n, (a, b) in enumerate(zip(i, j)):
+        prev = step.get(int(a) - 1)
+        if prev is not None:
+            out[n] = float(np.linalg.norm(log_t[n] - (b - a) * prev))
+    return out
+
+
+def skill_figures(l2: NDArray[np.float64], l2_zero: NDArray[np.float64], gaps: NDArray[np.int64],
+                  l2_cv: Optional[NDArray[np.float64]] = None) -> dict[str, Any]:
+    """``validation.skill`` of calibration.json: the mean se(3) L2 distance (E,) of the
+    learner's edges to the teacher's labels and of zero motion (the identity) to them, their
+    ratio (below 1: the learner predicts the labels better than a camera that never moves),
+    overall and per gap; with ``l2_cv`` (E,) also ``ratio_cv`` against the constant-velocity
+    guess of :func:`constant_velocity_l2` (on the pairs that have it). The pose graph weighs
+    a learner with ``ratio >= 1`` as nothing, and lets it bridge a failed teacher stretch
+    only where ``ratio_cv < 1``."""
+    l2_cv = np.full(len(l2), np.nan) if l2_cv is None else np.asarray(l2_cv)
+
+    def one(m: NDArray[np.bool_]) -> dict[str, Any]:
+        a, z = float(np.mean(l2[m])), float(np.mean(l2_zero[m]))
+        out = {"pairs": int(m.sum()), "se3_l2_mean": a, "zero_motion_se3_l2_mean": z,
+               "ratio": a / z if z > 0 else float("inf")}
+        c = m & np.isfinite(l2_cv)
+        if c.any():
+            cv = float(np.mean(l2_cv[c]))
+            out.update({"constant_velocity_se3_l2_mean": cv,
+                        "ratio_cv": float(np.mean(l2[c])) / cv if cv > 0 else float("inf")})
+        return out
+
+    gaps = np.asarray(gaps)
+    return {"reference": "teacher", **one(np.ones(len(l2), dtype=bool)),
+            "by_gap": {str(int(g)): one(gaps == g) for g in sorted(set(gaps.tolist()))}}
+
+
 # ----------------------------------------------------------------------------------
 # the stage
 # ----------------------------------------------------------------------------------
@@ -357,7 +378,7 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
     train_seqs = _training_sequences(checkpoint)
     if progress is None:
         progress = sys.stderr.isatty()
-    covs, res, tcovs, heads, gaps, used = [], [], [], [], [], []
+    covs, res, tcovs, heads, gaps, used, l2, l2_zero, l2_cv = [], [], [], [], [], [], [], [], []
     for spec in scenes:
         seqs = open_scene(spec, split=split, frames=frames)
         g2os = find_teacher_edges(spec, seqs, split, frames, teacher_root)
@@ -374,6 +395,10 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
             log.info("%s: %d of %d edges have teacher labels", seq.name, len(idx), len(edges.i))
             covs.append(edges.cov[idx])
             res.append(residuals(edges.mean[idx], T_t))
+            log_t = np.array([geo.se3_log(T) for T in T_t]).reshape(-1, 6)
+            l2.append(np.linalg.norm(log_t - edges.mean[idx], axis=1))
+            l2_zero.append(np.linalg.norm(log_t, axis=1))
+            l2_cv.append(constant_velocity_l2(edges.i[idx], edges.j[idx], log_t))
             tcovs.append(C_t)
             heads += [edges.head[e] for e in idx]
             gaps.append(edges.j[idx] - edges.i[idx])
@@ -394,14 +419,17 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
     extra = tcov if cal_config.teacher_variance else 0.0
     after_cov = cal.apply(cov, heads, gap)
     info["validation"] = {"before": nees_stats(mahalanobis2(r, cov + extra)),
-                          "after": nees_stats(mahalanobis2(r, after_cov + extra))}
+                          "after": nees_stats(mahalanobis2(r, after_cov + extra)),
+                          "skill": skill_figures(np.concatenate(l2), np.concatenate(l2_zero), gap,
+                                                 np.concatenate(l2_cv))}
     path = checkpoint.parent / CALIBRATION_FILE
     report = cal.to_dict()
     write_json(path, report)
     v = info["validation"]
     log.info("calibration of %s on %d validation pairs: 1-sigma coverage %.3f -> %.3f, 2-sigma %.3f -> %.3f "
-             "(against teacher labels) -> %s", checkpoint, len(r), v["before"]["coverage_1sigma"],
-             v["after"]["coverage_1sigma"], v["before"]["coverage_2sigma"], v["after"]["coverage_2sigma"], path)
+             "(against teacher labels), se(3) L2 %.3gx zero motion's -> %s", checkpoint, len(r),
+             v["before"]["coverage_1sigma"], v["after"]["coverage_1sigma"], v["before"]["coverage_2sigma"],
+             v["after"]["coverage_2sigma"], v["skill"]["ratio"], path)
     return CalibrationResult(path, cal, report)
 
 

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from data import geometry as geo
+from data import uncertainty
 from data.chain import UnionFind, chain_edges
 from data.errors import VOError
 from data.formats import Edge
@@ -224,6 +225,11 @@ def _component_labels(n: int, pos: NDArray[np.int64]) -> NDArray[np.int64]:
     return connected_components(adj, directed=False)[1]
 
 
+def component_labels(frame_ids: NDArray[np.int64], edges: Sequence[Edge]) -> NDArray[np.int64]:
+    """(N,) connected-component label of every frame of the sorted ``frame_ids``."""
+    return _component_labels(len(frame_ids), edge_arrays(np.asarray(frame_ids, dtype=np.int64), edges).pos)
+
+
 def components(frame_ids: NDArray[np.int64], edges: Sequence[Edge]) -> list[list[int]]:
     """Connected components (lists of frame ids, sorted by first id); ``frame_ids`` sorted."""
     frame_ids = np.asarray(frame_ids, dtype=np.int64)
@@ -265,6 +271,57 @@ def chain_poses(frame_ids: NDArray[np.int64], edges: Sequence[Edge],
     if not chained.reached.all():
         check_connected(frame_ids, edges, a)
     return chained.poses
+
+
+def bridge_edges(frame_ids: NDArray[np.int64], edges: Sequence[Edge], poses: Optional[NDArray[np.float64]],
+                 cov: NDArray[np.float64]) -> list[Edge]:
+    """Edges that join the components of a disconnected graph, ``[]`` when it is connected.
+
+    Each joins consecutive frames (positions ``p``, ``p + 1`` of the sorted ``frame_ids``)
+    that lie in different components, earliest first, until one component is left. The
+    measurement is the relative pose of ``poses`` (N, 4, 4) there (a source's chained
+    trajectory, e.g. the teacher's constant-velocity bridge over failed edges), or the
+    identity (zero motion) without poses; ``cov`` (6, 6) is large, since the bridge is a
+    guess. The edges carry ``extra["source"] = "bridge"``."""
+    frame_ids = np.asarray(frame_ids, dtype=np.int64)
+    labels = _component_labels(len(frame_ids), edge_arrays(frame_ids, edges).pos)
+    uf = UnionFind(len(frame_ids))
+    first: dict[int, int] = {}
+    for p, lab in enumerate(labels.tolist()):
+        uf.union(first.setdefault(lab, p), p)
+    out = []
+    for p in range(len(frame_ids) - 1):
+        if uf.union(p, p + 1):
+            T = np.eye(4) if poses is None else geo.relative_pose(poses[p], poses[p + 1])
+            out.append(Edge(int(frame_ids[p]), int(frame_ids[p + 1]), T, np.array(cov, dtype=np.float64),
+                            {"source": "bridge"}))
+    return out
+
+
+def bridge_cov(frame_ids: NDArray[np.int64], edges: Sequence[Edge], factor: float) -> NDArray[np.float64]:
+    """(6, 6) diagonal covariance ``factor^2`` times the median diagonal of the
+    smallest-gap ``edges`` (a bridge edge's; identity-sized 1e-4 without edges)."""
+    if not edges:
+        return np.eye(6) * 1e-4 * factor**2
+    a = edge_arrays(np.asarray(frame_ids, dtype=np.int64), edges)
+    gap = a.gap if (a.pos >= 0).all() else np.ones(len(edges), np.int64)
+    d = np.median(np.diagonal(a.cov[gap == gap.min()], axis1=1, axis2=2), axis=0)
+    return np.diag(d * factor**2)
+
+
+def joining_edges(frame_ids: NDArray[np.int64], edges: Sequence[Edge], candidates: Sequence[Edge]) -> list[Edge]:
+    """Those of ``candidates`` (taken in order) that join components of the graph of
+    ``edges``; ``[]`` when it is connected."""
+    frame_ids = np.asarray(frame_ids, dtype=np.int64)
+    labels = _component_labels(len(frame_ids), edge_arrays(frame_ids, edges).pos)
+    if len(np.unique(labels)) == 1 or not candidates:
+        return []
+    uf = UnionFind(len(frame_ids))
+    first: dict[int, int] = {}
+    for p, lab in enumerate(labels.tolist()):
+        uf.union(first.setdefault(lab, p), p)
+    pos = edge_arrays(frame_ids, candidates).pos
+    return [e for e, (p, q) in zip(candidates, pos.tolist()) if uf.union(p, q)]
 
 
 # ----------------------------------------------------------------------------------
@@ -569,8 +626,8 @@ class _Problem:
         return edge_residuals(poses, self.a.pos, self.T, self.info / scale[:, None, None])
 
 
-#: Median of the chi-square distribution with 6 degrees of freedom.
-CHI2_6_MEDIAN = 5.348120627447122
+#: Median of the chi-square distribution with 6 degrees of freedom (5.348).
+CHI2_6_MEDIAN = uncertainty.CHI2_6_MEDIAN
 
 
 def _scale_factors(res: NDArray[np.float64], src: NDArray[np.int64], est: NDArray[np.bool_], n_src: int,
@@ -590,7 +647,7 @@ def _scale_factors(res: NDArray[np.float64], src: NDArray[np.int64], est: NDArra
 
 
 def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional[NDArray[np.float64]] = None,
-          cfg: PoseGraphConfig = DEFAULT) -> SolveResult:
+          cfg: PoseGraphConfig = DEFAULT, fixed_sources: Sequence[str] = ()) -> SolveResult:
     """Optimise the pose graph.
 
     Args:
@@ -598,6 +655,8 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional
         edges: relative-pose edges; ``edge.extra["source"]`` names their origin.
         initial: (N, 4, 4) initial ``T_world_cam`` (default: :func:`chain_poses`).
         cfg: solver, kernel and outlier settings.
+        fixed_sources: sources whose covariances were already calibrated on validation
+            data (or deliberately set): they keep scale 1 in the per-source calibration.
 
     Steps: validate; reject by covariance size; first (robust) solve; with
     ``cfg.calibrate``, estimate one covariance scale per source from the whitened
@@ -658,6 +717,7 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional
         for it in range(cfg.calibration_iterations + 1):
             factor, counts = _scale_factors(prob.residuals(poses, src_scale[src]), src, est, len(names),
                                             calib["redundancy"], cfg)
+            factor[[k for k, n in enumerate(names) if n in fixed_sources]] = 1.0
             new = np.clip(src_scale * factor, *cfg.calibration_scale_range)
             calib["sources"] = {n: {"edges": int(counts[k]), "scale": float(src_scale[k]),
                                     "residual_factor": float(factor[k])} for k, n in enumerate(names)}
@@ -719,6 +779,6 @@ def marginal_covariances(graph, result, frame_ids: NDArray[np.int64]) -> NDArray
         raise _indeterminant(exc) from None
 
 
-__all__ = ["EdgeArrays", "GraphError", "OutlierRecord", "SolveResult", "build_graph", "chain_poses",
-           "check_connected", "check_determinate", "components", "edge_arrays", "edge_residuals",
+__all__ = ["EdgeArrays", "GraphError", "OutlierRecord", "SolveResult", "bridge_cov", "bridge_edges", "build_graph", "chain_poses", "joining_edges",
+           "check_connected", "check_determinate", "component_labels", "components", "edge_arrays", "edge_residuals",
            "marginal_covariances", "solve", "validate_edges", "whitened_residuals"]

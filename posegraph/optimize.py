@@ -10,6 +10,7 @@ atomically.
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import logging
@@ -25,6 +26,7 @@ from data.formats import Trajectory, write_tum
 from data.io import atomic_write, ensure_dir, git_revision, write_json, write_text
 from posegraph import graph as pg
 from posegraph import report as rep
+from posegraph.calibration import GapScales, read_gap_scales
 from posegraph.config import DEFAULT, PoseGraphConfig
 from posegraph.sources import (Frames, Source, find_sequence_dirs, load_dir, load_edges_file, poses_for_frames,
                                resolve_frames)
@@ -56,12 +58,18 @@ def default_dirs(scene: str) -> tuple[Path, Path, Path]:
 
 def optimize(scene: Optional[str] = None, teacher: Optional[Path] = None, learner: Optional[Path] = None,
              edges: Sequence[Path] = (), out: Optional[Path] = None, cfg: PoseGraphConfig = DEFAULT,
-             split: str = "all") -> list[Path]:
+             split: str = "all", teacher_calibration: Optional[Path] = None) -> list[Path]:
     """Run the stage; return the output folders (one per sequence).
 
     With only ``scene``, the teacher/learner folders default to ``runs/<slug>/...``
     (each used if it exists). ``edges`` files are used instead of folders.
+    ``teacher_calibration``: a per-gap covariance calibration of the teacher's edges
+    (``posegraph calibrate``, fitted on validation data) applied before the graph.
     """
+    scales = None
+    if teacher_calibration is not None:
+        scales = read_gap_scales(Path(teacher_calibration))
+        scales.info["path"] = str(teacher_calibration)
     teacher = Path(teacher) if teacher else None
     learner = Path(learner) if learner else None
     if scene and not (teacher or learner or edges):
@@ -110,7 +118,7 @@ def optimize(scene: Optional[str] = None, teacher: Optional[Path] = None, learne
     results = []
     for name, srcs in jobs:
         results.append(optimize_sequence(srcs, out / name if name else out, cfg, scene=scene, split=split,
-                                         seq_name=name))
+                                         seq_name=name, teacher_scales=scales))
     for r in results:  # write only after every sequence succeeded
         write_outputs(r, cfg)
     return [r.out for r in results]
@@ -135,8 +143,13 @@ def _scene_groundtruth(scene: str, split: str, seq_name: str, frames: Frames) ->
 
 
 def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig = DEFAULT,
-                      scene: Optional[str] = None, split: str = "all", seq_name: str = "") -> SequenceOutput:
-    """Solve one sequence and build its outputs in memory (nothing is written)."""
+                      scene: Optional[str] = None, split: str = "all", seq_name: str = "",
+                      teacher_scales: Optional[GapScales] = None) -> SequenceOutput:
+    """Solve one sequence and build its outputs in memory (nothing is written).
+
+    ``teacher_scales``: per-gap covariance scales of the teacher's edges fitted on
+    validation data (:mod:`posegraph.calibration`); the teacher then keeps them in the
+    graph (no per-source rescaling)."""
     used = _graph_sources(srcs, cfg)
     frames = resolve_frames(list(srcs.values()), cfg.fps)
     pos = {int(k): p for p, k in enumerate(frames.ids)}
@@ -144,7 +157,23 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
         pg.validate_edges(frames.ids, s.edges)  # unknown frames, bad covariances
         if cfg.max_gap is not None:
             s.edges = [e for e in s.edges if abs(pos[e.j] - pos[e.i]) <= cfg.max_gap]
-    edges = [e for n in used for e in srcs[n].edges]
+    raw_teacher = None
+    fixed: list[str] = []
+    if teacher_scales is not None and "teacher" in srcs:
+        raw_teacher = srcs["teacher"].edges
+        srcs["teacher"].edges = teacher_scales.apply(frames.ids, raw_teacher)
+        fixed.append("teacher")
+    gates = {n: _skill_gate(srcs[n], frames, cfg) for n in used}
+    if cfg.learner_edges == "bridge" and "teacher" in used and len(used) > 1:
+        graph_edges = {n: srcs[n].edges if n == "teacher" else _crossing_edges(srcs[n], frames, gates[n],
+                                                                                srcs["teacher"].edges)
+                       for n in used}
+    else:
+        graph_edges = {n: _gated_edges(srcs[n], frames, gates[n], cfg,
+                                       [e for m in used if m != n and not gates[m] for e in srcs[m].edges])
+                       for n in used}
+    fixed += [f"{n}:unskilled" for n in used]
+    edges = [e for n in used for e in graph_edges[n]]
     if not edges:
         raise DataError("no edges left for the pose graph")
 
@@ -161,8 +190,21 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
         gt = _scene_groundtruth(scene, split, seq_name, frames)
         gt_from = f"scene {scene}" if gt is not None else None
 
-    initial, init_how = _initial(srcs, used, frames, edges, cfg)
-    result = pg.solve(frames.ids, edges, initial, cfg)
+    guide = _guide_poses(srcs, used, frames)
+    bridges = pg.bridge_edges(frames.ids, edges, guide, _bridge_cov(edges, frames, cfg))
+    if bridges:
+        log.warning("the graph's edges leave it disconnected: %d bridge edge(s) from %s (%s)", len(bridges),
+                    "the chained trajectory" if guide is not None else "zero motion",
+                    ", ".join(f"{b.i}->{b.j}" for b in bridges[:5]) + (" ..." if len(bridges) > 5 else ""))
+    initial, init_how = _initial(srcs, used, frames, edges + bridges, cfg)
+    result = pg.solve(frames.ids, edges + bridges, initial, cfg, fixed_sources=fixed + ["bridge"])
+
+    teacher_graph = None  # the control; with the teacher's edges alone in the graph, the fused row is it
+    if "teacher" in srcs and srcs["teacher"].edges and used != ["teacher"]:
+        t_edges = srcs["teacher"].edges
+        t_bridges = pg.bridge_edges(frames.ids, t_edges, guide, _bridge_cov(t_edges, frames, cfg))
+        t_init, _ = _initial(srcs, ["teacher"], frames, t_edges + t_bridges, cfg)
+        teacher_graph = pg.solve(frames.ids, t_edges + t_bridges, t_init, cfg, fixed_sources=fixed + ["bridge"])
 
     rows: dict[str, NDArray[np.float64]] = {}
     blocks: dict[str, dict] = {}
@@ -178,9 +220,18 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
                 continue
         rows[n] = traj
         blocks[n] = rep.row_block(n, traj, frames.ids, frames.times, gt, s.edges, s.edges, how)
+        if n == "teacher" and raw_teacher is not None:
+            blocks[n]["calibration_raw"] = rep.calibration(raw_teacher, frames.ids, gt)
+        if n == "teacher" and teacher_graph is not None:
+            rows["teacher_graph"] = teacher_graph.poses
+            blocks["teacher_graph"] = rep.row_block(
+                "teacher_graph", teacher_graph.poses, frames.ids, frames.times, gt, s.edges, None,
+                f"{cfg.solver} over the teacher's edges alone" + (f" and {len(t_bridges)} bridge edge(s)"
+                                                                   if t_bridges else ""))
     rows["fused"] = result.poses
     blocks["fused"] = rep.row_block("fused", result.poses, frames.ids, frames.times, gt, edges, None,
-                                    f"{cfg.solver} over {'+'.join(used)} edges")
+                                    f"{cfg.solver} over {'+'.join(used)} edges"
+                                    + (f" and {len(bridges)} bridge edge(s)" if bridges else ""))
     blocks.update(rep.baseline_blocks(frames.ids, frames.times, gt))  # absent without ground truth
 
     report = {
@@ -199,6 +250,11 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
         "initial_values": init_how,
         "edges_total": len(edges),
         "edges_per_source": {n: len(srcs[n].edges) for n in used},
+        "bridges": {"fused": len(bridges), "teacher_graph": len(t_bridges) if teacher_graph is not None else None},
+        "teacher_calibration": None if teacher_scales is None else {
+            "scales": {str(g): v for g, v in sorted(teacher_scales.scales.items())},
+            "from": teacher_scales.info.get("path")},
+        "skill_gate": {n: g for n, g in gates.items() if g is not None},
         "rows": blocks,
         "covariance_scales": result.source_scales,
         "covariance_calibration": result.calibration,
@@ -214,13 +270,94 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
         from posegraph.plots import make_plots  # matplotlib only when figures are wanted
 
         pngs = make_plots(
-            frames.times, rows, gt, frames.ids, edges, result.residuals, ~result.used)
+            frames.times, rows, gt, frames.ids, edges + bridges, result.residuals, ~result.used)
     marg = None
     if result.marginals is not None:
         buf = io.BytesIO()
         np.savez_compressed(buf, frame_ids=frames.ids, timestamps=frames.times, cov=result.marginals)
         marg = buf.getvalue()
     return SequenceOutput(out, Trajectory(frames.times, result.poses), report, md, pngs, marg)
+
+
+def _skill_gate(src: Source, frames: Frames, cfg: PoseGraphConfig) -> Optional[dict]:
+    """Which gaps of ``src`` weigh as nothing: those whose validation skill ratio (per gap
+    when the skill has ``by_gap``, else overall) is 1 or more. ``None`` without a skill."""
+    if src.skill is None:
+        if src.name != "teacher":
+            log.warning("%s: no validation skill (no calibration.json with validation.skill); its edges are used "
+                        "as given", src.name)
+        return None
+    pos = {int(k): p for p, k in enumerate(frames.ids)}
+    by_gap = src.skill.get("by_gap") or {}
+    gaps = sorted({abs(pos[e.j] - pos[e.i]) for e in src.edges})
+    ratio = {g: float((by_gap.get(str(g)) or src.skill)["ratio"]) for g in gaps}
+    gated = [g for g in gaps if ratio[g] >= 1.0]
+    ratio_cv = {g: (by_gap.get(str(g)) or src.skill).get("ratio_cv") for g in gaps}
+    no_cv = [g for g in gaps if ratio_cv[g] is not None and ratio_cv[g] >= 1.0 and g not in gated]
+    if gated:
+        log.warning("%s: no better than zero motion on its validation pairs at gap(s) %s (se(3) L2 ratio %s); "
+                    "those edges weigh %.0e times less", src.name, gated,
+                    ", ".join(f"{ratio[g]:.2f}" for g in gated), cfg.unskilled_scale)
+    return {"ratio": src.skill["ratio"], "ratio_by_gap": {str(g): ratio[g] for g in gaps}, "gated_gaps": gated,
+            "ratio_cv_by_gap": {str(g): ratio_cv[g] for g in gaps}, "no_better_than_cv": no_cv,
+            "scale": cfg.unskilled_scale, "reference": src.skill.get("reference"), "from": src.skill.get("from")}
+
+
+def _gated_edges(src: Source, frames: Frames, gate: Optional[dict], cfg: PoseGraphConfig,
+                 others: Sequence = ()) -> list:
+    """``src``'s edges for the graph. Edges at gated gaps (no better than zero motion on
+    validation) weigh as nothing: they are left out, except those that join components the
+    graph's other edges (``others`` and the source's ungated edges) leave apart - a stretch
+    where the teacher failed - which stay, smallest gap first, with covariance times
+    ``cfg.unskilled_scale`` and the source name ``<name>:unskilled``. So where the teacher
+    graph is connected, the fused graph is exactly the teacher graph."""
+    if not gate or not gate["gated_gaps"]:
+        return src.edges
+    pos = {int(k): p for p, k in enumerate(frames.ids)}
+    gated = set(gate["gated_gaps"])
+    kept = [e for e in src.edges if abs(pos[e.j] - pos[e.i]) not in gated]
+    weak = sorted((e for e in src.edges if abs(pos[e.j] - pos[e.i]) in gated), key=lambda e: abs(pos[e.j] - pos[e.i]))
+    joined = pg.joining_edges(frames.ids, list(others) + kept, weak)
+    gate["bridging_edges"] = len(joined)
+    return kept + [dataclasses.replace(e, cov=np.asarray(e.cov) * cfg.unskilled_scale,
+                                       extra={**e.extra, "source": f"{src.name}:unskilled"}) for e in joined]
+
+
+def _crossing_edges(src: Source, frames: Frames, gate: Optional[dict], teacher_edges: Sequence) -> list:
+    """``learner_edges = "bridge"``: the edges of ``src`` between frames that the teacher's
+    edges leave in different components (the only relative poses the teacher lacks); none
+    at gaps the skill gate found no better than zero motion (there the teacher's constant-
+    velocity bridge is used instead), nor at gaps whose validation ``ratio_cv`` (against the
+    constant-velocity guess from the teacher's previous step) is 1 or more: the teacher's
+    bridge is the better guess there."""
+    pos = {int(k): p for p, k in enumerate(frames.ids)}
+    labels = pg.component_labels(frames.ids, teacher_edges)
+    gated = set(gate["gated_gaps"] + gate["no_better_than_cv"]) if gate else set()
+    out = [e for e in src.edges
+           if labels[pos[e.i]] != labels[pos[e.j]] and abs(pos[e.j] - pos[e.i]) not in gated]
+    if gate is not None:
+        gate["bridging_edges"] = len(out)
+    log.info("%s: %d of %d edges join frames the teacher's edges leave apart (learner_edges = bridge)", src.name,
+             len(out), len(src.edges))
+    return out
+
+
+def _bridge_cov(edges: Sequence, frames: Frames, cfg: PoseGraphConfig) -> NDArray[np.float64]:
+    """(6, 6) covariance of a bridge edge: ``cfg.bridge_sigma_factor`` squared times the
+    median diagonal of the smallest-gap edges of ``edges``."""
+    return pg.bridge_cov(frames.ids, edges, cfg.bridge_sigma_factor)
+
+
+def _guide_poses(srcs: dict[str, Source], used: list[str], frames: Frames) -> Optional[NDArray[np.float64]]:
+    """Poses whose steps bridge a disconnected graph: the teacher's chained trajectory
+    (constant velocity over its failed stretches) if it covers every frame, else the first
+    used source's that does, else ``None`` (zero-motion bridges)."""
+    for n in ["teacher"] + used:
+        if n in srcs:
+            traj = poses_for_frames(srcs[n].trajectory, frames)
+            if traj is not None:
+                return traj
+    return None
 
 
 def _graph_sources(srcs: dict[str, Source], cfg: PoseGraphConfig) -> list[str]:

@@ -1,5 +1,7 @@
-"""The comparison table: teacher (chained), learner (chained), fused (graph), and, with
-ground truth, the trivial baselines zero motion and constant velocity.
+"""The comparison table: teacher (chained), teacher graph (the teacher's own edges of every
+gap, optimised without the learner: the control for the fused row), learner (chained),
+fused (graph), and, with ground truth, the trivial baselines zero motion and constant
+velocity. ``report.md`` explains every column (:data:`COLUMN_NOTES`).
 
 Per row (``report.json`` ``rows.<name>``): the standard keys of
 :func:`data.metrics.trajectory_report` (``ate_rmse_m``, ``rpe_trans_rmse_m``,
@@ -14,7 +16,7 @@ Per row (``report.json`` ``rows.<name>``): the standard keys of
 * for a source's edges with ground truth (``calibration``): mean NEES
   ``d^T C^-1 d`` with ``d = log(inv(T_meas) @ T_gt)`` (expected 6), its ratio to 6, and
   the fraction of edges inside the 1-sigma (68.27 %) and 2-sigma (95.45 %) chi-square
-  regions of 6 dof.
+  regions of 6 dof (:mod:`data.uncertainty`).
 
 With ground truth, two more rows follow (:func:`baseline_blocks`): ``zero_motion`` and
 ``constant_velocity``, the trajectories of :func:`data.metrics.baseline_trajectories` (a
@@ -40,16 +42,15 @@ from data import geometry as geo
 from data import metrics
 from data.formats import Edge, Trajectory
 from data.io import json_safe as _f  # JSON-safe number (NaN -> None)
+from data.uncertainty import mahalanobis2, nees_stats
 
-ROW_LABELS = {"teacher": "teacher (chained)", "learner": "learner (chained)", "fused": "fused (graph)",
+ROW_LABELS = {"teacher": "teacher (chained)", "teacher_graph": "teacher graph (teacher edges only)",
+              "learner": "learner (chained)", "fused": "fused (graph)",
               "zero_motion": "zero motion", "constant_velocity": "constant velocity"}
 BASELINE_KEYS = metrics.BASELINE_KEYS  # ``rows`` key of each trivial baseline
 BASELINE_HOW = {"zero motion": "baseline: every pose is the first ground-truth pose",
                 "constant velocity": "baseline: each step repeats the previous ground-truth step (first step zero)"}
 RPE_GAPS = (1, 2, 3)
-#: chi-square (6 dof) quantiles of the 1-sigma and 2-sigma probability masses.
-CHI2_6_1SIGMA = 7.0405
-CHI2_6_2SIGMA = 11.3139
 METRIC_KEYS = ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "se3_l2_mean")
 
 
@@ -111,24 +112,18 @@ def nees(edges: Sequence[Edge], frame_ids: NDArray[np.int64], gt_poses: NDArray[
     """(E,) normalised estimation error squared of each edge against ground truth:
     ``d^T C^-1 d`` with ``d = log(inv(T_meas) @ T_gt)`` (project order, right perturbation)."""
     pos = {int(k): p for p, k in enumerate(frame_ids)}
-    out = np.empty(len(edges))
-    for n, e in enumerate(edges):
-        T_gt = geo.relative_pose(gt_poses[pos[e.i]], gt_poses[pos[e.j]])
-        d = geo.se3_log(geo.inv_T(e.T_i_j) @ T_gt)
-        out[n] = float(d @ np.linalg.solve(e.cov, d))
-    return out
+    d = [geo.se3_log(geo.inv_T(e.T_i_j) @ geo.relative_pose(gt_poses[pos[e.i]], gt_poses[pos[e.j]])) for e in edges]
+    return mahalanobis2(np.array(d).reshape(-1, 6), np.array([e.cov for e in edges]).reshape(-1, 6, 6))
 
 
 def calibration(edges: Sequence[Edge], frame_ids: NDArray[np.int64],
                 gt_poses: Optional[NDArray[np.float64]]) -> dict[str, Optional[float]]:
-    """Covariance calibration of a source's edges (NEES, 1-sigma / 2-sigma coverage)."""
+    """Covariance calibration of a source's edges (NEES, 1-sigma / 2-sigma coverage, from
+    :func:`data.uncertainty.nees_stats`)."""
     if gt_poses is None or not edges:
-        return {"nees_mean": None, "nees_over_dof": None, "coverage_1sigma": None, "coverage_2sigma": None,
-                "calibration_n": 0}
+        return {**nees_stats(np.zeros(0)), "calibration_n": 0}
     v = nees(edges, frame_ids, gt_poses)
-    return {"nees_mean": _f(np.mean(v)), "nees_over_dof": _f(np.mean(v) / 6.0),
-            "coverage_1sigma": _f(np.mean(v <= CHI2_6_1SIGMA)), "coverage_2sigma": _f(np.mean(v <= CHI2_6_2SIGMA)),
-            "calibration_n": len(v)}
+    return {k: _f(x) for k, x in nees_stats(v).items()} | {"calibration_n": len(v)}
 
 
 def row_block(name: str, poses: NDArray[np.float64], frame_ids: NDArray[np.int64], times: NDArray[np.float64],
@@ -163,6 +158,21 @@ def baseline_blocks(frame_ids: NDArray[np.int64], times: NDArray[np.float64],
     return out
 
 
+#: report.md's explanation of every column of the table.
+COLUMN_NOTES = [
+    "Columns: **ATE m** - absolute trajectory error, RMSE of the positions after an SE(3) Umeyama "
+    "alignment (no scale) to the ground truth (evo APE). **RPEk m / deg** - relative pose error "
+    "over k frames, RMSE of the translation (m) and rotation angle (deg) of `inv(T_gt_rel) @ T_est_rel` "
+    "(evo RPE, every frame pair k apart). **RPE 1s** - the same over the frame gap closest to one "
+    "second (the drift a second of motion accumulates). **se(3) L2** - the paper's local metric, "
+    "mean of `||log(T_gt_rel) - log(T_est_rel)||` over gap-1 pairs (v, w order). **comp. m / deg** "
+    "- composition consistency, needs no ground truth: RMSE disagreement between the row's "
+    "trajectory and the direct gap > 1 edges of its source(s) (a chained row: its composed gap-1 "
+    "edges against its own longer edges; the graph rows: the optimised poses against the longer "
+    "edges they were fitted to). `-`: not defined for the row (no ground truth, no longer edges).",
+]
+
+
 def _cell(v, fmt: str) -> str:
     return "-" if v is None else format(v, fmt)
 
@@ -187,15 +197,44 @@ def report_markdown(report: dict) -> str:
         cells += [_cell(b["rpe_1s_trans_m"], ".4f"), _cell(b["rpe_1s_rot_deg"], ".3f"), _cell(b["se3_l2_mean"], ".4f"),
                   _cell(b["composition_trans_rmse_m"], ".4f"), _cell(b["composition_rot_rmse_deg"], ".3f")]
         lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", *COLUMN_NOTES]
     if any(k in rows for k in BASELINE_KEYS.values()):
         lines += ["", "Baselines from the ground truth: zero motion (the camera never moves) and constant "
                   "velocity (each step repeats the previous true step, the first step is zero)."]
+    if "teacher_graph" in rows and "fused" in rows and report.get("graph_sources") != ["teacher"]:
+        lines += ["", "The teacher graph is the control for the fused row: the same solver over the teacher's "
+                  "own edges (all its gaps), no learner. Fusion helps where the fused row is below it."]
+    br = report.get("bridges") or {}
+    if br.get("fused") or br.get("teacher_graph"):
+        lines += ["", f"Bridge edges (where the graph's edges left it disconnected; the chained trajectory's step "
+                  f"or zero motion, sigma {report['config']['bridge_sigma_factor']}x the graph's typical edge): "
+                  f"fused {br.get('fused') or 0}, teacher graph {br.get('teacher_graph') or 0}."]
+    gates = report.get("skill_gate") or {}
+    if gates:
+        lines += ["", "## Validation skill (se(3) L2 over zero motion's, on validation pairs)", "",
+                  "| source | ratio | per gap | per gap, over constant velocity's | gaps weighed as nothing | "
+                  "gaps that never bridge (no better than constant velocity) | reference |",
+                  "|---|---|---|---|---|---|---|"]
+        for n, g in gates.items():
+            per = ", ".join(f"{k}: {v:.2f}" for k, v in g["ratio_by_gap"].items())
+            cv = ", ".join(f"{k}: {'-' if v is None else format(v, '.2f')}" for k, v in
+                           (g.get("ratio_cv_by_gap") or {}).items())
+            lines.append(f"| {n} | {g['ratio']:.3f} | {per} | {cv or '-'} | "
+                         f"{', '.join(map(str, g['gated_gaps'])) or 'none'} | "
+                         f"{', '.join(map(str, g.get('no_better_than_cv') or [])) or 'none'} | "
+                         f"{g.get('reference') or '-'} |")
+    tc = report.get("teacher_calibration")
+    if tc:
+        lines += ["", f"Teacher covariances scaled per gap (fitted on validation data, no ground truth: "
+                  f"{tc.get('from') or '-'}): " + ", ".join(f"gap {g}: x{v:.3g}" for g, v in tc["scales"].items())
+                  + "; the graph keeps them."]
     cal = [(n, b["calibration"]) for n, b in rows.items() if "calibration" in b]
     if cal:
         lines += ["", "## Covariance calibration (edges vs ground truth)", "",
                   "| source | edges | mean NEES (6 ideal) | NEES/6 | 1-sigma coverage (68.3 %) | 2-sigma coverage (95.4 %) |",
                   "|---|---|---|---|---|---|"]
-        for n, c in cal:
+        for n, c in cal + [(f"{n} (raw, before the per-gap scales)", b["calibration_raw"])
+                           for n, b in rows.items() if "calibration_raw" in b]:
             lines.append(f"| {n} | {c['calibration_n']} | {_cell(c['nees_mean'], '.3f')} | "
                          f"{_cell(c['nees_over_dof'], '.3f')} | {_cell(c['coverage_1sigma'], '.3f')} | "
                          f"{_cell(c['coverage_2sigma'], '.3f')} |")

@@ -9,6 +9,7 @@ timestamps are known, otherwise by order when the row count equals the frame cou
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +27,7 @@ EDGES_FILE = "edges.g2o"
 EDGES_CSV = "edges.csv"
 TRAJECTORY_FILE = "trajectory.tum"
 GROUNDTRUTH_FILE = "groundtruth.tum"
+REPORT_FILE = "report.json"
 #: Timestamps closer than this (s) are the same frame.
 TIME_TOL = 1e-4
 
@@ -44,6 +46,12 @@ class Source:
     """Frame id -> timestamp (s) from ``edges.csv``."""
     trajectory: Optional[Trajectory] = None
     groundtruth: Optional[Trajectory] = None
+    skill: Optional[dict] = None
+    """The source's accuracy against zero motion on validation data, when its folder says
+    (a learner's ``report.json`` -> ``calibration.json`` -> ``validation.skill``): ``ratio``
+    = its se(3) L2 error over zero motion's on the validation pairs (below 1: better than
+    a camera that never moves), ``reference`` (what the error was measured against),
+    ``pairs`` and ``from`` (the file)."""
 
 
 @dataclass
@@ -79,8 +87,41 @@ def load_dir(path: Path, name: str) -> Source:
         src.trajectory = read_tum(path / TRAJECTORY_FILE)
     if (path / GROUNDTRUTH_FILE).is_file():
         src.groundtruth = read_tum(path / GROUNDTRUTH_FILE)
+    src.skill = read_skill(path)
     log.info("%s: %d edges from %s", name, len(src.edges), path)
     return src
+
+
+def read_skill(path: Path) -> Optional[dict]:
+    """The validation skill a learner folder points to (see :attr:`Source.skill`), or
+    ``None`` when the folder has no ``report.json`` naming a calibration with one. A named
+    calibration that cannot be read is an error (the edges were calibrated with it)."""
+    report = Path(path) / REPORT_FILE
+    if not report.is_file():
+        return None
+    try:
+        cal = json.loads(report.read_text()).get("calibration")
+    except (OSError, ValueError, AttributeError) as exc:
+        raise FormatError(f"cannot read {report}: {exc}") from None
+    if not cal:
+        return None
+    cal = Path(cal)
+    if not cal.is_absolute() and not cal.is_file():
+        cal = Path(path) / cal
+    try:
+        d = json.loads(cal.read_text())
+        skill = (d.get("validation") or {}).get("skill")
+    except (OSError, ValueError, AttributeError) as exc:
+        raise FormatError(f"{report} names the calibration {cal}, which cannot be read: {exc}") from None
+    if skill is None:
+        return None
+    try:
+        ratio = float(skill["ratio"])
+    except (KeyError, TypeError, ValueError):
+        raise FormatError(f"{cal}: validation.skill needs a numeric ratio") from None
+    if not np.isfinite(ratio) or ratio < 0:
+        raise FormatError(f"{cal}: validation.skill.ratio must be finite and non-negative, got {ratio}")
+    return {**skill, "ratio": ratio, "from": str(cal)}
 
 
 def load_edges_file(path: Path, name: Optional[str] = None) -> Source:

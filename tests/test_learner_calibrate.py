@@ -332,3 +332,21 @@ def test_teacher_labels_of_another_sequence_are_refused(run, data_dirs, tmp_path
     (other / "report.json").write_text(json.dumps({"sequence": "val-seq-01"}))
     ckpt = _copy_run(run, tmp_path / "run")
     assert calibrate(ckpt, str(data_dirs["val"]), teacher_root=other, config=PredictConfig(samples=2)).path.is_file()
+
+
+def test_skill_figures_against_zero_motion_and_constant_velocity():
+    """Labels of a camera moving at constant velocity (0.01 per step in v_x): a learner that
+    halves every motion is 0.5x zero motion's distance, and worse than the constant-velocity
+    guess from the previous label, which is exact (NaN for the pairs with no previous step)."""
+    from learner.calibrate import constant_velocity_l2, skill_figures
+
+    i = np.array([0, 1, 2, 3, 0, 1, 2])
+    j = np.array([1, 2, 3, 4, 2, 3, 4])
+    log_t = np.zeros((7, 6))
+    log_t[:, 0] = 0.01 * (j - i)
+    cv = constant_velocity_l2(i, j, log_t)
+    assert np.isnan(cv[0]) and np.isnan(cv[4]) and np.allclose(cv[[1, 2, 3, 5, 6]], 0.0)
+    l2 = np.linalg.norm(log_t - 0.5 * log_t, axis=1)
+    s = skill_figures(l2, np.linalg.norm(log_t, axis=1), j - i, cv)
+    assert s["ratio"] == pytest.approx(0.5) and s["by_gap"]["2"]["ratio"] == pytest.approx(0.5)
+    assert s["by_gap"]["1"]["pairs"] == 4 and s["ratio_cv"] == float("inf")

@@ -43,7 +43,7 @@ def test_report_has_every_row_and_key(dirs, tmp_path, capsys):
     rc, err = _run(["optimize", "--teacher", str(t), "--learner", str(l), "--out", str(out), "--marginals"], capsys)
     assert rc == 0, err
     rep = json.loads((out / "report.json").read_text())
-    assert list(rep["rows"]) == ["teacher", "learner", "fused", "zero_motion", "constant_velocity"]
+    assert list(rep["rows"]) == ["teacher", "teacher_graph", "learner", "fused", "zero_motion", "constant_velocity"]
     gt_keys = [*METRIC_KEYS, *(f"rpe_g{g}_{q}" for g in (1, 2, 3) for q in ("trans_m", "rot_deg")),
                "rpe_1s_trans_m", "rpe_1s_rot_deg"]
     comp_keys = ["composition_trans_rmse_m", "composition_rot_rmse_deg"]
@@ -178,12 +178,23 @@ BAD_CASES = {
     "not_pd": (lambda ls: [_info_line(ls[0], np.diag([1, 1, 1, 1, 1, -1.0]))] + ls[1:], "not positive definite"),
     "missing_frame": (lambda ls: ls + [" ".join(["EDGE_SE3:QUAT", "3", "99"] + ls[0].split()[3:])],
                       "references frame 99, which does not exist"),
-    "disconnected": (lambda ls: [x for x in ls if not (x.split()[1:3] in (["9", "10"], ["8", "10"], ["9", "11"]))],
-                     "pose graph is disconnected: 2 components: 0..9"),
     "indeterminant": (lambda ls: [(_info_line(x, np.eye(6) * 1e-5) if x.split()[1:3] == ["9", "10"] else x)
                                   for x in ls if x.split()[1:3] not in (["8", "10"], ["9", "11"])],
                       "indeterminant near frame"),
 }
+
+
+def test_disconnected_teacher_graph_is_bridged(dirs, tmp_path, capsys):
+    """No edge spans 9 -> 10: one bridge edge with the step of the teacher's trajectory
+    joins the two halves (it used to be an error)."""
+    t, _ = dirs
+    _edit_g2o(t / "edges.g2o", lambda ls: [x for x in ls if x.split()[1:3] not in (["9", "10"], ["8", "10"], ["9", "11"])])
+    out = tmp_path / "out"
+    rc, err = _run(["optimize", "--teacher", str(t), "--out", str(out), "--no-plots"], capsys)
+    assert rc == 0, err
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["bridges"] == {"fused": 1, "teacher_graph": None}  # the teacher alone: fused is its graph
+    assert "Bridge edges" in (out / "report.md").read_text()
 
 
 @pytest.mark.parametrize("case", sorted(BAD_CASES))
@@ -203,7 +214,8 @@ def test_bad_input_is_one_clear_error(case, dirs, tmp_path, capsys):
 def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
     """Learner covariances 1000x too small: report.json/report.md give its estimated
     scale and the teacher's edges survive the outlier pass; ``--no-calibrate`` keeps
-    the covariances as given (and loses the learner's edges)."""
+    the covariances as given (and loses the learner's edges). With ``--learner-edges all``:
+    by default learner edges only bridge where the teacher's edges leave frames apart."""
     from data.formats import read_g2o, write_g2o
 
     t, l = dirs
@@ -212,7 +224,8 @@ def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
         e.cov = e.cov / 1000.0
     write_g2o(l / "edges.g2o", edges)
     out = tmp_path / "out"
-    rc, err = _run(["optimize", "--teacher", str(t), "--learner", str(l), "--out", str(out), "--no-plots"], capsys)
+    rc, err = _run(["optimize", "--teacher", str(t), "--learner", str(l), "--out", str(out), "--no-plots",
+                    "--learner-edges", "all"], capsys)
     assert rc == 0, err
     rep = json.loads((out / "report.json").read_text())
     assert 300 < rep["covariance_scales"]["learner"] < 3000, rep["covariance_scales"]
@@ -222,7 +235,7 @@ def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
     assert rep["rows"]["learner"]["calibration"]["nees_over_dof"] > 300  # the raw covariances, vs GT
     assert "Covariance scale per source" in (out / "report.md").read_text()
     rc, err = _run(["optimize", "--teacher", str(t), "--learner", str(l), "--out", str(tmp_path / "raw"),
-                    "--no-plots", "--no-calibrate"], capsys)
+                    "--no-plots", "--no-calibrate", "--learner-edges", "all"], capsys)
     raw = json.loads((tmp_path / "raw" / "report.json").read_text())
     assert rc == 0 and raw["covariance_calibration"] is None and raw["covariance_scales"]["learner"] == 1.0
     # as given, nearly every learner edge is an outlier; calibrated, nearly none is
