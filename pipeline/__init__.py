@@ -1,0 +1,1 @@
+"""The end-to-end pipeline: the only package that imports every stage."""
