@@ -116,6 +116,9 @@ class Fingerprint:
     stage: str
     inputs: dict[str, Any]
 
+    def __post_init__(self) -> None:  # as fingerprint.json will hold them (tuples become lists)
+        object.__setattr__(self, "inputs", json.loads(json.dumps(self.inputs, allow_nan=False)))
+
     @property
     def digest(self) -> str:
         text = json.dumps({"stage": self.stage, "inputs": self.inputs}, sort_keys=True, allow_nan=False,

@@ -16,7 +16,7 @@ from data.cli import add_command, make_parser, run
 from data.errors import ConfigError
 from learner.config import INPUTS, PRESETS, VARIANTS, PredictConfig
 
-PRESET_HELP = ("presets: 'paper' - the paper's network (224x224 VGG-11-BN, RGB pair; for a GPU); "
+PRESET_HELP = ("presets: 'paper' - the paper's network (320x240 VGG-11-BN widths, RGB pair; for a GPU); "
                "'cpu' - a network that trains on a 2-core CPU (128x96, VGG widths / 8, RGB + flow + inverse depth, "
                "1500 steps); 'tiny' - a toy network for the tests only (it learns nothing useful)")
 VARIANT_HELP = ("variants: cnn-* train the direct head on pairs, lstm-* and ctc also the LSTM on windows; *-gt on "
