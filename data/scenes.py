@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Optional
 
 from data.errors import DataError
-from data.runs import SYNTHETIC_PREFIX, scene_slug  # noqa: F401 - scene_slug: the run layout's
+from data.runs import SYNTHETIC_PREFIX
 from data.sequence import Sequence, parse_frame_range
 
 
