@@ -202,7 +202,7 @@ def claim(folder: Path, fp: Fingerprint, *, done: bool, has_outputs: bool, overw
     for name in [*outputs, FINGERPRINT_FILE]:
         p = folder / name
         if p.is_file() or p.is_symlink():
-            p.unlink()
+            p.unlink(missing_ok=True)  # several processes of one run may get here
     return False
 
 

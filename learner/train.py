@@ -494,15 +494,16 @@ def _fit(spec: FitSpec, run_dir: Path, dd: _Dist, *, resume: bool, overwrite: bo
             done = int(state["epoch"]) >= cfg.epochs and done
         else:
             raise StaleOutputError(f"{run_dir} was trained on other inputs than those given with --resume ({diff})")
-    if old is not None and claim(run_dir, fp, done=done, has_outputs=state is not None,
-                                 overwrite=overwrite and dd.main, outputs=RUN_FILES):
+    if old is not None and claim(run_dir, fp, done=done, has_outputs=state is not None, overwrite=overwrite,
+                                 outputs=RUN_FILES if dd.main else ()):
         log.info("%s: finished training of the same inputs (epoch %d/%d): kept (--overwrite to train again)",
                  run_dir, state["epoch"], cfg.epochs)
         history = state.get("history", [])
         cal = run_dir / CALIBRATION_FILE
         return FitResult(run_dir, ckpt_path, int(state["epoch"]), history, cal if cal.is_file() else None)
     if old is None and state is not None and not resume:  # a checkpoint without (matching) fingerprint
-        claim(run_dir, fp, done=False, has_outputs=True, overwrite=overwrite and dd.main, outputs=RUN_FILES)
+        claim(run_dir, fp, done=False, has_outputs=True, overwrite=overwrite, outputs=RUN_FILES if dd.main else ())
+    dd.barrier()  # rank 0 removed a replaced run's files
     if not (run_dir / CHECKPOINT).is_file():
         state = None
     if state is not None:

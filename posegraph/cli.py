@@ -18,7 +18,8 @@ PRESET_HELP = ("presets: 'default' - robust (Huber) Levenberg-Marquardt with per
 
 def _d(field: str) -> str:
     """The help suffix of an option that overrides a preset field."""
-    return f"(default: the preset's; 'default' has {getattr(DEFAULT, field)})"
+    v = getattr(DEFAULT, field)
+    return f"(default: the preset's; 'default' has {'no limit' if v is None or v == float('inf') else v})"
 
 
 def _parser() -> argparse.ArgumentParser:
