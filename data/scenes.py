@@ -2,7 +2,8 @@
 
 ``--scene`` accepts:
 * ``synthetic/NAME`` - a built-in synthetic scene, rendered on first use and cached
-  (see :mod:`data.synthetic`);
+  (see :mod:`data.synthetic`); ``synthetic/corpus-<COUNT>[x<FRAMES>]`` is the rooms
+  ``room-0 .. room-<COUNT-1>`` of the training corpus, one sequence each;
 * a 7-Scenes sequence folder (``.../seq-XX``) or any folder in that layout;
 * a 7-Scenes scene folder (``.../redkitchen``) together with ``split`` (train/test/all);
 * a TUM RGB-D sequence folder (``rgb.txt``, ``depth.txt``).
@@ -36,7 +37,7 @@ def _open(spec: str, split: str, cache_dir: Optional[Path]) -> list[Sequence]:
     if spec.startswith(SYNTHETIC_PREFIX):
         from data import synthetic
 
-        return [synthetic.synthetic_sequence(spec[len(SYNTHETIC_PREFIX):], cache_dir=cache_dir)]
+        return synthetic.synthetic_sequences(spec[len(SYNTHETIC_PREFIX):], cache_dir=cache_dir)
     path = Path(spec)
     if not path.exists():
         raise DataError(f"scene {spec!r} not found (give a sequence or scene folder, or synthetic/NAME)")

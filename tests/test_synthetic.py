@@ -343,3 +343,22 @@ def test_training_corpus_rooms(tmp_path: Path):
     cfg = dataclasses.replace(rooms[1], frames=3, width=160, height=120, fx=146.25, fy=146.25, cx=80.0, cy=60.0)
     seq = syn.synthetic_sequence("room-1", cache_dir=tmp_path, config=cfg)
     assert len(seq) == 3 and seq.rgb(0).shape == (120, 160, 3) and seq.groundtruth().shape == (3, 4, 4)
+
+
+def test_corpus_spec(tmp_path: Path, monkeypatch):
+    """``synthetic/corpus-<COUNT>[x<FRAMES>]`` opens rooms 0..COUNT-1 as separate sequences;
+    ``room-<N>x<FRAMES>`` is room N (same room, same trajectory statistics) with another
+    number of frames; malformed specs are refused with the list of known names."""
+    from data.synthetic.config import corpus_names, resolve_preset
+
+    assert corpus_names("corpus-3") == ["room-0", "room-1", "room-2"]
+    assert corpus_names("corpus-2x40") == ["room-0x40", "room-1x40"]
+    short, full = resolve_preset("room-2x40"), resolve_preset("room-2")
+    assert short.frames == 40 and full.frames == 300 and dataclasses.replace(short, frames=300) == full
+    for bad in ("corpus-0", "corpus-", "corpus-2x1", "corpus-2x", "room-2x1", "room-2x"):
+        with pytest.raises(DataError):
+            open_scene(f"synthetic/{bad}", cache_dir=tmp_path)
+    # each room is one sequence, rendered (here: stood in for) one after the other
+    opened = []
+    monkeypatch.setattr(syn, "synthetic_sequence", lambda name, cache_dir=None: opened.append(name) or name)
+    assert open_scene("synthetic/corpus-2x3", cache_dir=tmp_path) == ["room-0x3", "room-1x3"] == opened

@@ -39,14 +39,15 @@ from data.errors import ConfigError, DataError
 from data.geometry import relative_pose, se3_log
 from data.io import ensure_dir, git_revision, write_json, write_text
 from data.sequence import Sequence
-from data.synthetic.config import PRESETS, RENDER_VERSION, SceneConfig, SensorConfig, known_names, resolve_preset
+from data.synthetic.config import (PRESETS, RENDER_VERSION, SceneConfig, SensorConfig, corpus_names, known_names,
+                                   resolve_preset)
 from data.synthetic.layout import LAYOUTS, Scene
 from data.synthetic.renderer import ExactFrame, Renderer
 from data.synthetic.sensor import ColourSensor, NoiseBank, colour_camera_pad, depth_bias_field, depth_sensor, exposure_gains
 from data.synthetic.trajectory import make_trajectory, motion_stats
 
 __all__ = [
-    "PRESETS", "SceneConfig", "SensorConfig", "synthetic_sequence", "render_scene", "build",
+    "PRESETS", "SceneConfig", "SensorConfig", "synthetic_sequence", "synthetic_sequences", "render_scene", "build",
     "default_cache_dir", "scene_dir", "known_names", "FrameRenderer",
 ]
 
@@ -95,6 +96,17 @@ def synthetic_sequence(name: str, cache_dir: Optional[Path] = None, config: Opti
     if not (folder / "seq-01").is_dir():
         render_scene(config, folder)
     return SevenScenesSequence(folder / "seq-01", name=f"synthetic-{name}")
+
+
+def synthetic_sequences(name: str, cache_dir: Optional[Path] = None) -> list[Sequence]:
+    """The sequences of ``name``: the rooms of a corpus spec ``corpus-<COUNT>[x<FRAMES>]``
+    (see :func:`~data.synthetic.config.corpus_names`), rendered one after the other on first
+    use, or the one scene ``name``."""
+    try:
+        names = corpus_names(name)
+    except KeyError:
+        names = [name]
+    return [synthetic_sequence(n, cache_dir) for n in names]
 
 
 def build(config: SceneConfig) -> tuple[Scene, NDArray[np.float64]]:

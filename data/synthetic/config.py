@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -197,28 +198,43 @@ CLEAN_SUFFIX = "-clean"
 #: first seed of the training corpus rooms (the named scenes use seeds below 100)
 CORPUS_SEED0 = 1000
 CORPUS_PREFIX = "room-"
+#: frames of a corpus room unless its name asks for others (``room-<N>x<FRAMES>``)
+CORPUS_FRAMES = 300
+_ROOM = re.compile(r"room-(\d+)(?:x(\d+))?")
 
 
-def corpus_room(index: int) -> SceneConfig:
-    """Room ``index`` of the synthetic training corpus (``synthetic/room-<index>``): a new
-    room of one of the three layout generators in turn (its own furniture placement,
+def corpus_room(index: int, frames: int = CORPUS_FRAMES) -> SceneConfig:
+    """Room ``index`` of the synthetic training corpus (``synthetic/room-<index>``, or
+    ``synthetic/room-<index>x<frames>`` for a shorter or longer walk through the same room):
+    a new room of one of the three layout generators in turn (its own furniture placement,
     materials, textures and lights from seed ``CORPUS_SEED0 + index``, never one of the
     named scenes' seeds), and a trajectory of its own speed (0.12-0.40 m/s mean), top
     rotation rate (15-45 deg/s) and viewing distances, drawn from the same seed."""
-    if index < 0:
-        raise KeyError(f"{CORPUS_PREFIX}{index}")
+    if index < 0 or frames < 2:
+        raise KeyError(f"{CORPUS_PREFIX}{index}x{frames}")
     rng = np.random.default_rng([CORPUS_SEED0, index])
     near = float(rng.uniform(0.6, 1.2))
-    return SceneConfig(layout=("office", "kitchen", "lab")[index % 3], seed=CORPUS_SEED0 + index, frames=300,
+    return SceneConfig(layout=("office", "kitchen", "lab")[index % 3], seed=CORPUS_SEED0 + index, frames=frames,
                        mean_speed_mps=float(rng.uniform(0.12, 0.40)), max_angular_dps=float(rng.uniform(15.0, 45.0)),
                        max_speed_mps=0.6, view_distance_m=(near, float(near + rng.uniform(1.2, 2.4))))
+
+
+def corpus_names(spec: str) -> list[str]:
+    """The room names of a corpus spec ``corpus-<COUNT>[x<FRAMES>]``: rooms ``0..COUNT-1``
+    (``room-<N>`` or ``room-<N>x<FRAMES>``); KeyError if ``spec`` is not one."""
+    m = re.fullmatch(r"corpus-(\d+)(?:x(\d+))?", spec)
+    if not m or int(m.group(1)) < 1 or (m.group(2) and int(m.group(2)) < 2):
+        raise KeyError(spec)
+    suffix = f"x{int(m.group(2))}" if m.group(2) else ""
+    return [f"{CORPUS_PREFIX}{k}{suffix}" for k in range(int(m.group(1)))]
 
 
 def _base(name: str) -> SceneConfig:
     if name in PRESETS:
         return PRESETS[name]
-    if name.startswith(CORPUS_PREFIX) and name[len(CORPUS_PREFIX):].isdigit():
-        return corpus_room(int(name[len(CORPUS_PREFIX):]))
+    m = _ROOM.fullmatch(name)
+    if m:
+        return corpus_room(int(m.group(1)), int(m.group(2)) if m.group(2) else CORPUS_FRAMES)
     raise KeyError(name)
 
 
@@ -231,4 +247,5 @@ def resolve_preset(name: str) -> SceneConfig:
 
 
 def known_names() -> list[str]:
-    return sorted(PRESETS) + [f"{CORPUS_PREFIX}<N> (training corpus)"]
+    return sorted(PRESETS) + [f"{CORPUS_PREFIX}<N>[x<FRAMES>] (a training-corpus room)",
+                              "corpus-<COUNT>[x<FRAMES>] (rooms 0..COUNT-1)"]
