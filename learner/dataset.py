@@ -17,6 +17,7 @@ variants; ground-truth labels come from the sequence's poses (``*-gt`` variants 
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -293,10 +294,27 @@ def hull_range(ranges: list[Optional[str]]) -> Optional[str]:
     return f"{start}:" if None in stops else f"{start}:{max(stops)}"
 
 
-def _labelled_ids(g2o: Path) -> set[int]:
+def _labelled_ids(g2o: Path) -> frozenset[int]:
     """The frame ids a teacher ``edges.g2o`` covers (its vertices; else its edges' ends)."""
-    edges, vertices = read_g2o(g2o)
-    return {int(k) for k in vertices} or {int(k) for e in edges for k in (e.i, e.j)}
+    st = g2o.stat()
+    return _labelled_ids_of(str(g2o.resolve()), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=64)
+def _labelled_ids_of(path: str, mtime_ns: int, size: int) -> frozenset[int]:  # read once per file version
+    """The ids of the ``VERTEX_SE3:QUAT`` lines (the file is parsed strictly, by
+    :func:`data.formats.read_g2o`, when its labels are read; this only scans it)."""
+    ids = set()
+    with open(path) as fh:
+        for line in fh:
+            if line.startswith("VERTEX_SE3:QUAT"):
+                parts = line.split(maxsplit=2)
+                if len(parts) > 1 and parts[1].lstrip("-").isdigit():
+                    ids.add(int(parts[1]))
+    if ids:
+        return frozenset(ids)
+    edges, _ = read_g2o(Path(path))
+    return frozenset(int(k) for e in edges for k in (e.i, e.j))
 
 
 def check_teacher_sequence(g2o: Path, name: str) -> None:

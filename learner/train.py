@@ -480,10 +480,11 @@ def _fit(spec: FitSpec, run_dir: Path, dd: _Dist, *, resume: bool, overwrite: bo
     if clash and frame_ranges_overlap(spec.frames, spec.val_frames):
         raise ConfigError(f"validation sequence(s) {', '.join(sorted(clash))} are also training sequences "
                           f"(frames {spec.frames or 'all'} and {spec.val_frames or 'all'}): give disjoint --frames / --val-frames")
-    if dd.main:  # rank 0 runs the teacher where labels are missing
-        _teacher_labels(spec, opened, val_opened)
+    labels = _teacher_labels(spec, opened, val_opened) if dd.main else {}  # rank 0 runs the teacher if needed
     dd.barrier()
-    fp = fingerprint(spec, opened, val_opened, _teacher_labels(spec, opened, val_opened))
+    if not dd.main:
+        labels = _teacher_labels(spec, opened, val_opened)
+    fp = fingerprint(spec, opened, val_opened, labels)
     done, state = _finished(run_dir, spec)
     old = read_fingerprint(run_dir)
     if resume and state is not None and old is not None and old["digest"] != fp.digest:
