@@ -11,8 +11,13 @@ after which the training and validation se(3) L2 are logged beside zero motion a
 constant velocity (:class:`Evaluator`), and a loud warning ends a run whose model is no
 better than zero motion.
 
+The code is in three parts: :func:`resolve_fit` (options -> :class:`FitSpec`, pure),
+:func:`train_loop` (the epochs), and :func:`fit` (the entry point: processes, the run
+folder and its files, the rerun rule of :mod:`data.runs`).
+
 The run folder holds ``config.json`` (resolved configuration, variant, scenes, git
-revision), ``checkpoint.pt`` (written atomically after every epoch; ``resume=True``
+revision, and the options ``--resume`` reads back), ``fingerprint.json`` (the rerun rule),
+``checkpoint.pt`` (written atomically after every epoch; a rerun of the same inputs
 continues from it and reaches the same weights as an uninterrupted run, because every
 epoch re-seeds its own shuffling, dropout and label noise from ``(seed, epoch)``),
 ``history.json`` (per-epoch losses) and ``cache/`` (resized frames). With validation scenes
