@@ -38,7 +38,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from learner import loss as L  # noqa: E402
-from learner.config import INPUTS, PRESETS, PredictConfig  # noqa: E402
+from learner.config import FLOW_U_CHANNEL, INPUTS, PRESETS, PredictConfig  # noqa: E402
 from learner.dataset import Frames, SequenceData  # noqa: E402
 from learner.model import CTCNet  # noqa: E402
 from learner.predict import mc_edges  # noqa: E402
@@ -48,13 +48,13 @@ from learner.train import pair_batches, pairs_step, window_batches, windows_step
 def fake_sequence(n: int, width: int, height: int, max_gap: int, seed: int = 0, mode: str = "rgb") -> SequenceData:
     """``n`` random uint8 frames with small random labels of every gap and diagonal
     covariances (1 cm / 0.5 deg), as :func:`learner.dataset.load_sequences` returns; for the
-    ``rgbd`` / ``flow`` inputs also random inverse depth and grey frames at twice the size
+    ``rgbd`` / ``flow`` / ``flowd`` inputs also random inverse depth and grey frames at twice the size
     (the optical flow is computed per drawn pair, as in training)."""
     g = torch.Generator().manual_seed(seed)
     rgb = torch.randint(0, 256, (n, 3, height, width), dtype=torch.uint8, generator=g)
     inv = torch.randint(20, 200, (n, 1, height, width), dtype=torch.uint8, generator=g) if mode != "rgb" else None
     grey = (torch.randint(0, 256, (n, 2 * height, 2 * width), dtype=torch.uint8, generator=g).numpy()
-            if mode == "flow" else None)
+            if mode in FLOW_U_CHANNEL else None)
     frames = Frames(rgb, inv, grey, mode)
     labels = torch.randn(max_gap + 1, n, 6, generator=g) * 0.01
     mask = torch.ones(max_gap + 1, n, dtype=torch.bool)

@@ -15,8 +15,10 @@ from data.errors import ConfigError
 
 #: encoder inputs (``ModelConfig.input``) and their channels: the paper's stacked RGB pair,
 #: plus both frames' inverse depth, plus the pair's optical flow (DIS) and the first frame's
-#: inverse depth
-INPUTS: dict[str, int] = {"rgb": 6, "rgbd": 8, "flow": 9}
+#: inverse depth; ``flowd`` is the flow and both frames' inverse depth without colour
+INPUTS: dict[str, int] = {"rgb": 6, "rgbd": 8, "flow": 9, "flowd": 4}
+#: the channel holding the horizontal flow, per input with flow (mirroring negates it)
+FLOW_U_CHANNEL: dict[str, int] = {"flow": 6, "flowd": 0}
 #: conv widths of the VGG-11 stack (the ``M`` max-pools sit after conv 1, 2, 4, 6 and 8)
 VGG11_WIDTHS: tuple[int, ...] = (64, 128, 256, 256, 512, 512, 512, 512)
 #: the VGG-11 layout: an int is a 3x3 conv (index into the widths), ``"M"`` a 2x2 max-pool
@@ -47,8 +49,9 @@ class ModelConfig:
     input: str = "rgb"
     """What the encoder sees of a pair (i, j): ``rgb`` the paper's two stacked RGB frames (6
     channels); ``rgbd`` plus both frames' inverse depth (8); ``flow`` the RGB pair plus the
-    DIS optical flow i -> j and frame i's inverse depth (9). Not in the paper (it lists
-    RGB-D as future work); see bench/README.md for what each brings."""
+    DIS optical flow i -> j and frame i's inverse depth (9); ``flowd`` the flow i -> j and
+    both frames' inverse depth, no colour (4). Not in the paper (it lists RGB-D as future
+    work); see bench/README.md for what each brings."""
 
     def __post_init__(self) -> None:
         if self.input not in INPUTS:

@@ -38,7 +38,7 @@ from data.formats import read_g2o
 from data.io import atomic_write
 from data.runs import StaleOutputError, stage_dir
 from data.sequence import Sequence, parse_frame_range
-from learner.config import INPUTS
+from learner.config import FLOW_U_CHANNEL, INPUTS
 
 log = logging.getLogger(__name__)
 
@@ -79,8 +79,8 @@ class Frames:
             raise DataError(f"unknown input {self.mode!r} (choose from {', '.join(INPUTS)})")
         if self.mode != "rgb" and self.invdepth is None:
             raise DataError(f"input {self.mode!r} needs inverse depth")
-        if self.mode == "flow" and self.grey2x is None:
-            raise DataError("input 'flow' needs the grey frames at twice the resolution")
+        if self.mode in FLOW_U_CHANNEL and self.grey2x is None:
+            raise DataError(f"input {self.mode!r} needs the grey frames at twice the resolution")
 
     def __len__(self) -> int:
         return len(self.rgb)
@@ -133,7 +133,8 @@ class Frames:
     def pairs(self, i: Tensor, j: Tensor) -> Tensor:
         """Network inputs (n, C, H, W) of the pairs (i, j), frame ``i`` first: uint8 for
         ``rgb`` (6 channels) and ``rgbd`` (8: RGB i, RGB j, inverse depth i, j), float32 for
-        ``flow`` (9: RGB i, RGB j, flow i -> j in pixels, inverse depth i)."""
+        ``flow`` (9: RGB i, RGB j, flow i -> j in pixels, inverse depth i) and ``flowd`` (4:
+        flow i -> j, inverse depth i, j)."""
         i = torch.as_tensor(i, device=self.device)
         j = torch.as_tensor(j, device=self.device)
         rgb_i, rgb_j = self._take(self.rgb, i), self._take(self.rgb, j)
@@ -143,6 +144,8 @@ class Frames:
         if self.mode == "rgbd":
             return torch.cat([rgb_i, rgb_j, inv_i, self._take(self.invdepth, j)], dim=1)
         flow = self.flow(i.cpu().numpy(), j.cpu().numpy()).to(self.device)
+        if self.mode == "flowd":
+            return torch.cat([flow, inv_i.float(), self._take(self.invdepth, j).float()], dim=1)
         return torch.cat([rgb_i.float(), rgb_j.float(), flow, inv_i.float()], dim=1)
 
 
@@ -225,7 +228,7 @@ def load_frames(seq: Sequence, width: int, height: int, cache_dir: Path, mode: s
     inv = grey = None
     if mode != "rgb":
         inv = _cached(seq, "invdepth", (1, height, width), cache_dir, lambda k: _invdepth(seq.depth(k), width, height))
-    if mode == "flow":
+    if mode in FLOW_U_CHANNEL:
         grey = _cached(seq, "grey2x", (2 * height, 2 * width), cache_dir,
                        lambda k: cv2.cvtColor(_resize(seq.rgb(k), 2 * width, 2 * height), cv2.COLOR_RGB2GRAY))
     return Frames(rgb, inv, grey, mode)

@@ -40,6 +40,7 @@ INPUT_STATS: dict[str, list[tuple[float, float]]] = {
     "rgb": _RGB * 2,
     "rgbd": _RGB * 2 + [_INVDEPTH] * 2,
     "flow": _RGB * 2 + [_FLOW] * 2 + [_INVDEPTH],
+    "flowd": [_FLOW] * 2 + [_INVDEPTH] * 2,
 }
 
 

@@ -66,8 +66,8 @@ from learner import loss as L
 from learner import se3
 from learner.calibrate import CALIBRATION_FILE
 from learner.calibrate import calibrate as run_calibration
-from learner.config import (PredictConfig, Preset, TrainConfig, check_variant, get_preset, model_from_dict,
-                            to_dict)
+from learner.config import (FLOW_U_CHANNEL, PredictConfig, Preset, TrainConfig, check_variant, get_preset,
+                            model_from_dict, to_dict)
 from learner.dataset import Frames, SequenceData, check_labels, find_teacher_edges, hull_range, load_sequences
 from learner.model import CTCNet, load_pretrained_vgg
 
@@ -707,20 +707,16 @@ _MIRROR = torch.tensor([-1.0, 1.0, 1.0, 1.0, -1.0, -1.0])
 """Twist of a left-right mirrored motion, per component (see ``TrainConfig.flip_prob``)."""
 
 
-#: channel of the horizontal flow component in the ``flow`` input (negated by a mirror)
-_FLOW_U = 6
-
-
-def _mirror(x: Tensor, lab: Tensor, flip: Tensor) -> tuple[Tensor, Tensor]:
-    """Mirror the samples ``flip`` (B,) bool of images ``x`` (B, ..., C, H, W) and labels
-    ``lab`` (B, ..., 6); a float input of 9 channels (``flow``) also has its horizontal
+def _mirror(x: Tensor, lab: Tensor, flip: Tensor, mode: str = "rgb") -> tuple[Tensor, Tensor]:
+    """Mirror the samples ``flip`` (B,) bool of images ``x`` (B, ..., C, H, W) of input
+    ``mode`` and labels ``lab`` (B, ..., 6); an input with flow also has its horizontal
     flow negated."""
     if not bool(flip.any()):
         return x, lab
     x, lab = x.clone(), lab.clone()
     x[flip] = x[flip].flip(-1)
-    if x.is_floating_point() and x.shape[-3] == 9:
-        x[flip, ..., _FLOW_U, :, :] *= -1
+    if mode in FLOW_U_CHANNEL:
+        x[flip, ..., FLOW_U_CHANNEL[mode], :, :] *= -1
     lab[flip] = lab[flip] * _MIRROR
     return x, lab
 
@@ -756,7 +752,7 @@ def pairs_step(net, data, rows: np.ndarray, cfg: TrainConfig, aug: bool, gen, de
         gaps.append(g)
     x, lab = torch.cat(x), torch.cat(labs)
     if cfg.flip_prob > 0:
-        x, lab = _mirror(x, lab, torch.rand(len(x), generator=gen) < cfg.flip_prob)
+        x, lab = _mirror(x, lab, torch.rand(len(x), generator=gen) < cfg.flip_prob, data[0].frames.mode)
     xi_d, _ = net(x.to(device))
     return L.pair_loss(xi_d.float(), lab.to(device), torch.cat(masks).to(device), torch.cat(gaps).to(device),
                        cfg.beta, scale)
@@ -782,7 +778,7 @@ def windows_step(net, data, rows: np.ndarray, W: int, cfg: TrainConfig, aug: boo
         masks.append(m)
     x, lab = torch.stack(x), torch.stack(labs)  # (B, P, C, H, W), (B, P, 6)
     if cfg.flip_prob > 0:  # a whole window at a time
-        x, lab = _mirror(x, lab, torch.rand(B, generator=gen) < cfg.flip_prob)
+        x, lab = _mirror(x, lab, torch.rand(B, generator=gen) < cfg.flip_prob, data[0].frames.mode)
     seq_index = (torch.arange(B)[:, None] * P + torch.arange(W)[None, :]).to(device)  # gap-1 block first
     xi_d, xi_s = net(x.flatten(0, 1).to(device), seq_index)
     lab = lab.to(device)

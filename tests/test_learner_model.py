@@ -24,9 +24,9 @@ def _pairs(n: int, cfg) -> torch.Tensor:
     return torch.randint(0, 256, (n, INPUTS[cfg.input], cfg.height, cfg.width), dtype=torch.uint8, generator=g)
 
 
-@pytest.mark.parametrize("name", ["tiny", "cpu", "rgbd"])
+@pytest.mark.parametrize("name", ["tiny", "cpu", "rgbd", "flowd"])
 def test_forward_shapes(name: str) -> None:
-    """Every preset's network, and each input's channel count (cpu: flow, 9; rgbd: 8)."""
+    """Every preset's network, and each input's channel count (cpu: flow, 9; rgbd: 8; flowd: 4)."""
     import dataclasses
 
     cfg = PRESETS[name].model if name in PRESETS else dataclasses.replace(PRESETS["tiny"].model, input=name)

@@ -212,7 +212,7 @@ def test_reversed_pairs_and_windows_keep_labels_and_ctc_exact(reverse_prob) -> N
     assert float(pairs_step(swapped, data, rows, cfg, False, gen, cpu, scale).reg) > 1e-2
 
 
-def test_input_pairs_rgb_rgbd_and_flow() -> None:
+def test_input_pairs_rgb_rgbd_flow_and_flowd() -> None:
     """The encoder's inputs of a pair (i, j): RGB i then RGB j (a reversed pair, built as
     (j, i), shows the later frame first), inverse depth of both (``rgbd``), and for ``flow``
     the DIS flow i -> j, which on a texture shifted by (dx, dy) pixels at twice the
@@ -240,9 +240,15 @@ def test_input_pairs_rgb_rgbd_and_flow() -> None:
     # the content of pixel p of frame 0 lies at p - shift in frame 1 (the crop moved by +shift)
     assert torch.allclose(x[0, 6:8][inner].median(-1).values.median(-1).values, torch.tensor([-2.0, 1.0]), atol=0.15)
     assert torch.allclose(x[1, 6:8][inner].median(-1).values.median(-1).values, torch.tensor([2.0, -1.0]), atol=0.15)
-    xm, _ = _mirror(x, torch.zeros(2, 6), torch.tensor([True, False]))
+    xm, _ = _mirror(x, torch.zeros(2, 6), torch.tensor([True, False]), "flow")
     assert torch.equal(xm[0, 6], -x[0, 6].flip(-1)) and torch.equal(xm[0, 7], x[0, 7].flip(-1))
     assert torch.equal(xm[1], x[1])
+    # flowd: the same flow and both inverse depths, no colour
+    xd = Frames(rgb, inv, grey, mode="flowd").pairs(torch.tensor([0, 1]), torch.tensor([1, 0]))
+    assert xd.shape == (2, 4, H, W) and torch.equal(xd[:, :2], x[:, 6:8])
+    assert torch.equal(xd[:, 2:3], inv[[0, 1]].float()) and torch.equal(xd[:, 3:], inv[[1, 0]].float())
+    xm, _ = _mirror(xd, torch.zeros(2, 6), torch.tensor([True, False]), "flowd")
+    assert torch.equal(xm[0, 0], -xd[0, 0].flip(-1)) and torch.equal(xm[0, 1:], xd[0, 1:].flip(-1))
 
 
 @pytest.mark.parametrize("name, good, bad", [("flip_prob", 1.0, 1.5), ("reverse_prob", 0.5, -0.1)])
