@@ -6,6 +6,7 @@ Layout: ``runs/<scene-slug>/<stage>`` (:func:`stage_dir`), with the stages
 * ``learner``   - ``learner fit`` (a training run: checkpoint, config, history)
 * ``predict``   - ``learner predict`` (edges of a scene; never a training run's folder)
 * ``posegraph`` - ``posegraph optimize``
+* ``online``    - ``vo-online`` (pipeline/online.py)
 
 Rerun rule. Beside its outputs each stage writes ``fingerprint.json``: the inputs that
 shape its outputs (scene, selected frames, the stage's resolved config, the fingerprints
@@ -44,7 +45,7 @@ log = logging.getLogger(__name__)
 #: the root of the default output folders (relative to the working directory)
 RUNS_DIR = Path("runs")
 #: the stages, in pipeline order; each one's default folder is ``runs/<scene-slug>/<stage>``
-STAGES = ("teacher", "learner", "predict", "posegraph")
+STAGES = ("teacher", "learner", "predict", "posegraph", "online")
 FINGERPRINT_FILE = "fingerprint.json"
 SYNTHETIC_PREFIX = "synthetic/"
 
@@ -57,7 +58,10 @@ def scene_slug(spec: str) -> str:
     """A folder-friendly name for ``spec`` (``synthetic/office`` -> ``synthetic-office``)."""
     if spec.startswith(SYNTHETIC_PREFIX):
         return "synthetic-" + spec[len(SYNTHETIC_PREFIX):]
-    return Path(spec).resolve().name or "scene"
+    path = Path(spec.partition("?")[0])  # a bag's topic options are not part of its name
+    if path.suffix == ".bag":
+        return path.stem or "scene"
+    return path.resolve().name or "scene"
 
 
 def stage_dir(scene: str, stage: str, root: Optional[Path] = None) -> Path:

@@ -14,6 +14,7 @@ from typing import Optional, Sequence
 
 from data.cli import add_command, make_parser, run
 from data.errors import ConfigError
+from data.scenes import add_topic_options, scene_with_topics, scenes_with_topics
 from learner.config import INPUTS, PRESETS, VARIANTS, PredictConfig
 
 PRESET_HELP = ("presets: 'paper' - the paper's network (320x240 VGG-11-BN widths, RGB pair; for a GPU); "
@@ -77,6 +78,7 @@ def _parser() -> argparse.ArgumentParser:
                         "default: runs/<scene>/teacher, generated where labels are missing")
     f.add_argument("--no-calibration", dest="calibrate", action="store_false", default=None,
                    help="do not fit calibration.json on the --val-scene sequences after training")
+    add_topic_options(f)
 
     c = add_command(sub, "calibrate", "fit calibration.json (MC-dropout covariances vs teacher labels) "
                                       "of a checkpoint on a validation scene")
@@ -90,6 +92,7 @@ def _parser() -> argparse.ArgumentParser:
                         "default: runs/<scene>/teacher, generated when missing")
     _mc_options(c)
     c.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help=DEVICE_HELP)
+    add_topic_options(c)
 
     p = add_command(sub, "predict", "MC-dropout edges, trajectory and report of a scene",
                     "MC-dropout edges with covariances, a trajectory and a report of a scene. A rerun with the same "
@@ -106,6 +109,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help=DEVICE_HELP)
     p.add_argument("--no-calibration", dest="calibration", action="store_false",
                    help="ignore the calibration.json beside the checkpoint")
+    add_topic_options(p)
     return ap
 
 
@@ -159,7 +163,21 @@ def _predict(args: argparse.Namespace) -> int:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     args = _parser().parse_args(argv)
-    return run(args, {"fit": _fit, "calibrate": _calibrate, "predict": _predict}[args.command])
+    body = {"fit": _fit, "calibrate": _calibrate, "predict": _predict}[args.command]
+
+    def with_topics(a: argparse.Namespace) -> int:
+        # the bag topic options apply to the bag scenes among --scene / --val-scene
+        if isinstance(a.scene, list):
+            val = getattr(a, "val_scene", None) or []
+            scenes = scenes_with_topics(a.scene + val, a)
+            a.scene = scenes[:len(a.scene)]
+            if hasattr(a, "val_scene"):
+                a.val_scene = scenes[len(a.scene):] or a.val_scene
+        elif a.scene is not None:
+            a.scene = scene_with_topics(a.scene, a)
+        return body(a)
+
+    return run(args, with_topics)
 
 
 if __name__ == "__main__":

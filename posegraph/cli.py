@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from data.cli import add_command, make_parser, run
+from data.scenes import add_topic_options, scene_with_topics
 from posegraph.config import DEFAULT, KERNELS, OUTLIER_ACTIONS, PRESETS, SOLVERS
 
 PRESET_HELP = ("presets: 'default' - robust (Huber) Levenberg-Marquardt with per-source covariance calibration "
@@ -61,12 +62,14 @@ def _parser() -> argparse.ArgumentParser:
                    help="use every source's covariances as given (no per-source scale from residuals)")
     o.add_argument("--marginals", action="store_true", default=None, help="write marginals.npz")
     o.add_argument("--no-plots", dest="plots", action="store_false", default=None, help="write no PNG figures")
+    add_topic_options(o)
     return p
 
 
 def _optimize(args: argparse.Namespace) -> int:
     from posegraph.optimize import optimize
 
+    args.scene = scene_with_topics(args.scene, args)
     fields = {f.name for f in dataclasses.fields(PRESETS[args.preset])}
     changes = {k: v for k, v in vars(args).items() if k in fields and v is not None}
     cfg = dataclasses.replace(PRESETS[args.preset], **changes)

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from data.cli import add_command, make_parser, run
+from data.scenes import add_topic_options, scene_with_topics
 from teacher import processes
 from teacher.config import PRESETS
 
@@ -23,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "Estimate relative-pose labels (i, i+g), g = 1..K, of every sequence of a scene. A rerun with the "
                     "same inputs is skipped; other inputs in the same folder need --overwrite.\n\n"
                     + PRESET_HELP + ".")
-    g.add_argument("--scene", required=True, help="a 7-Scenes or TUM folder or synthetic/NAME")
+    g.add_argument("--scene", required=True, help="a 7-Scenes or TUM folder, a ROS bag, or synthetic/NAME")
     g.add_argument("--out", type=Path, default=None, help="output folder (default: runs/<scene>/teacher)")
     g.add_argument("--gaps", type=int, default=None, help="largest frame gap K of the edges (default: the preset's)")
     g.add_argument("--frames", default=None, help="frame range START:STOP[:STEP] of each sequence (default: all)")
@@ -33,6 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="worker processes (default: the preset's, 2)")
     g.add_argument("--overwrite", action="store_true",
                    help="replace outputs of other inputs instead of stopping with an error")
+    add_topic_options(g)
     return p
 
 
@@ -46,6 +48,7 @@ def _generate(args: argparse.Namespace) -> int:
         processes.start()  # the workers import Open3D and the teacher while this process does
     from teacher.generate import generate
 
+    args.scene = scene_with_topics(args.scene, args)
     generate(args.scene, args.out, args.split, args.frames, cfg, args.overwrite)
     return 0
 

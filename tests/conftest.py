@@ -15,6 +15,7 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("VO_SHARED_DATA", REPO.parent / "shared" / "data"))
 REDKITCHEN = SHARED_DATA / "7scenes" / "redkitchen" / "seq-sample"
 TUM_FR1_XYZ = SHARED_DATA / "tum" / "rgbd_dataset_freiburg1_xyz"
+TUM_IMAGES = SHARED_DATA / "tum" / "images" / "rgbd_dataset_freiburg1_xyz"
 
 
 def require_real_data(path: Path) -> Path:
@@ -37,6 +38,12 @@ def redkitchen() -> Path:
 def tum_fr1_xyz() -> Path:
     """Path of the real TUM fr1/xyz text files."""
     return require_real_data(TUM_FR1_XYZ)
+
+
+@pytest.fixture(scope="session")
+def tum_images() -> Path:
+    """Path of the real TUM fr1/xyz folder with images (400 frames)."""
+    return require_real_data(TUM_IMAGES)
 
 
 @pytest.fixture(autouse=True)

@@ -1,0 +1,140 @@
+"""Online mode benchmark: ``vo-online`` against the batch stages, side by side in one run.
+
+For each scene, on the same frames:
+
+* **batch teacher** (``teacher generate``'s :func:`teacher.generate.run_sequence`, its
+  default 2 worker processes): frames per second;
+* **online, teacher only, as fast as frames come** (every frame already on disk): sustained
+  frames per second and per-frame latency (frame handed over by the source -> its pose
+  written and flushed);
+* **online, teacher only, paced at 30 Hz** (a frame is handed over at ``k / 30`` s, as a
+  camera would): per-frame latency percentiles;
+* **online with the learner** (``--checkpoint``): the same two figures;
+* **accuracy**: ATE of the online run's trajectories - causal (each frame's estimate when
+  it arrived), ISAM2 after the last frame, final (ISAM2 then the batch solve warm-started
+  from it) - against batch ``posegraph optimize`` on the same edges (the online run's
+  ``teacher/`` folder), as ratios.
+
+    OMP_NUM_THREADS=1 .venv/bin/python bench/online.py [--checkpoint CKPT] [--frames 0:300]
+
+Results go to stdout (a Markdown table) and to ``--json`` if given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+if __name__ == "__main__":  # as `teacher generate` does: its worker imports while this process does
+    from teacher import processes
+
+    processes.start()
+
+import numpy as np  # noqa: E402
+
+from data.scenes import open_scene  # noqa: E402
+from pipeline import online  # noqa: E402
+from teacher.config import DEFAULT  # noqa: E402
+
+SCENES = [str(REPO.parent / "shared" / "data" / "7scenes" / "redkitchen" / "seq-sample"),
+          str(REPO.parent / "shared" / "data" / "tum" / "images" / "rgbd_dataset_freiburg1_xyz")]
+
+
+class Paced(online.FrameSource):
+    """Hands frame k over at ``t0 + k / rate`` (s), like a camera; decoding happens before."""
+
+    def __init__(self, seq, rate: float) -> None:
+        self.seq, self.rate, self.name, self.intrinsics = seq, rate, seq.name, seq.intrinsics
+
+    def __iter__(self):
+        t0 = time.perf_counter()
+        for k in range(len(self.seq)):
+            f = self.seq.frame(k)
+            wait = t0 + k / self.rate - time.perf_counter()
+            if wait > 0:
+                time.sleep(wait)
+            yield f
+
+
+def bench_scene(spec: str, frames: str, checkpoint: Path | None, tmp: Path) -> dict:
+    from posegraph.optimize import optimize
+    from teacher.generate import run_sequence
+
+    seq = open_scene(spec, frames=frames)[0]
+    row: dict = {"scene": seq.name, "frames": len(seq)}
+    run = run_sequence(seq, DEFAULT, progress=False)  # batch, 2 processes
+    row["batch_fps"] = len(seq) / run.seconds
+    for name, src in (("online", online.SequenceSource(seq)), ("online_30hz", Paced(seq, 30.0))):
+        res = online.run(src, tmp / seq.name / name, DEFAULT, progress=False)
+        row[f"{name}_fps"] = res.fps
+        row[f"{name}_latency_ms"] = res.latency_ms
+        row[f"{name}_work_ms"] = res.report["work_ms"]
+        if name == "online":
+            rep = res.report
+            outs = optimize(teacher=tmp / seq.name / name / "teacher", out=tmp / seq.name / "batch_pg")
+            pg = json.loads((outs[0] / "report.json").read_text())
+            batch_ate = pg["rows"]["fused"]["ate_rmse_m"]
+            row["ate_m"] = {"batch_posegraph": batch_ate, "final": rep["final"]["ate_rmse_m"],
+                            "isam2": rep["final_isam2"]["ate_rmse_m"], "causal": rep["online"]["ate_rmse_m"],
+                            "teacher_chain": rep["teacher_chain"]["ate_rmse_m"]}
+            row["final_solve_s"] = (rep.get("final_polish") or {}).get("seconds")
+    if checkpoint is not None:
+        for name, src in (("learner", online.SequenceSource(seq)), ("learner_30hz", Paced(seq, 30.0))):
+            res = online.run(src, tmp / seq.name / name, DEFAULT, checkpoint=checkpoint, progress=False)
+            row[f"{name}_fps"] = res.fps
+            row[f"{name}_latency_ms"] = res.latency_ms
+            row[f"{name}_work_ms"] = res.report["work_ms"]
+    return row
+
+
+def table(rows: list[dict]) -> str:
+    out = ["| scene | frames | batch teacher fps | online fps (ratio) | online latency p50/p95 ms "
+           "| own work p50/p95 ms | 30 Hz latency p50/p95 ms "
+           "| ATE final / ISAM2 / causal vs batch pose graph | with learner fps, 30 Hz p95 ms |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        a = r["ate_m"]
+        b = a["batch_posegraph"]
+        lrn = (f"{r['learner_fps']:.1f}, {r['learner_30hz_latency_ms']['p95']:.0f}" if "learner_fps" in r else "-")
+        out.append(
+            f"| {r['scene']} | {r['frames']} | {r['batch_fps']:.1f} | {r['online_fps']:.1f} "
+            f"({r['online_fps'] / r['batch_fps']:.2f}x) | {r['online_latency_ms']['p50']:.0f} / "
+            f"{r['online_latency_ms']['p95']:.0f} | "
+            + (f"{r['online_work_ms']['p50']:.0f} / {r['online_work_ms']['p95']:.0f}" if "online_work_ms" in r else "-")
+            + f" | {r['online_30hz_latency_ms']['p50']:.0f} / "
+            f"{r['online_30hz_latency_ms']['p95']:.0f} | {1000 * a['final']:.1f} / {1000 * a['isam2']:.1f} / "
+            f"{1000 * a['causal']:.1f} mm vs {1000 * b:.1f} mm ({a['final'] / b:.2f}x / {a['isam2'] / b:.2f}x / "
+            f"{a['causal'] / b:.2f}x) | {lrn} |")
+    return "\n".join(out)
+
+
+def main() -> int:
+    import torch
+
+    torch.set_num_threads(1)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", nargs="+", default=SCENES)
+    ap.add_argument("--frames", default="0:300")
+    ap.add_argument("--checkpoint", type=Path, help="learner checkpoint for the runs with the learner")
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for spec in args.scenes:
+            rows.append(bench_scene(spec, args.frames, args.checkpoint, Path(tmp)))
+            print(json.dumps(rows[-1]), file=sys.stderr)
+    print(table(rows))
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

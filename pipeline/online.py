@@ -1,0 +1,809 @@
+"""``vo-online``: odometry frame by frame, as the frames arrive.
+
+    vo-online --scene SCENE [--checkpoint CKPT] [--out DIR] [--frames A:B] [--follow]
+
+Frames come from any ``--scene`` (a folder, a ROS bag, ``synthetic/NAME``), read one at a
+time in order, or, with ``--follow``, from a 7-Scenes-layout folder that is still being
+written (``frame-NNNNNN.color.{png,jpg}`` + ``frame-NNNNNN.depth.png``, optional
+``.pose.txt``; polled every ``--poll`` s, ending after ``--timeout`` s without a new frame).
+
+For each new frame k:
+
+1. the teacher's per-frame and per-pair functions (:func:`teacher.odometry.extract`,
+   :func:`teacher.odometry.estimate_edge`) give the edges (k-g, k), g = 1..K, with the
+   same feature tracks and constant-velocity prediction as ``teacher generate``;
+2. with ``--checkpoint``, the learner adds MC-dropout edges (k-g, k), g = 1..max_gap
+   (the network and calibration loaded by :mod:`learner.predict`'s functions; the LSTM
+   head over the same chunks of ``window_max`` pairs as ``learner predict``);
+3. GTSAM's ISAM2 is updated with the new pose (predicted through its shortest good edge)
+   and its edges (the robust factors of :mod:`posegraph.graph`);
+4. the new pose's current estimate is appended to ``trajectory.tum`` and flushed.
+
+At the end (or on Ctrl-C) the smoothed estimate of every pose is written to
+``trajectory_final.tum``, the edges to ``teacher/`` and ``learner/`` (the layout of
+``teacher generate`` / ``learner predict``, so ``posegraph optimize --teacher DIR/teacher``
+solves the same edges in batch) and ``report.json`` (fps, latency percentiles, ATE when
+there is ground truth). Formats: docs/formats.md, "Online mode".
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import queue
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator, Optional, Sequence, TextIO
+
+import numpy as np
+from numpy.typing import NDArray
+
+from data import geometry as geo
+from data.errors import ConfigError, DataError, VOError
+from data.sequence import Frame, Intrinsics
+
+log = logging.getLogger(__name__)
+
+TRAJECTORY = "trajectory.tum"
+FINAL_TRAJECTORY = "trajectory_final.tum"
+
+
+@dataclass(frozen=True)
+class OnlineConfig:
+    """How frames arrive and how often the progress line is drawn."""
+
+    poll_s: float = 0.02
+    """``--follow``: seconds between looks at the folder for a new frame."""
+    timeout_s: float = 10.0
+    """``--follow``: the run ends when no new frame arrived for this long."""
+    progress_every_s: float = 0.5
+    """Seconds between progress lines (redrawn in place on a terminal, logged otherwise)."""
+    prefetch: int = 2
+    """Frames read and prepared (teacher features, learner inputs) ahead of the estimator
+    by a helper thread (at least 1)."""
+
+
+# ----------------------------------------------------------------------------------
+# frame sources
+# ----------------------------------------------------------------------------------
+class FrameSource:
+    """Frames in order, one at a time, with the camera's intrinsics."""
+
+    name: str
+    intrinsics: Intrinsics
+
+    def __iter__(self) -> Iterator[Frame]:
+        raise NotImplementedError
+
+
+class SequenceSource(FrameSource):
+    """The frames of a :class:`data.sequence.Sequence` (folder, bag, synthetic), read lazily."""
+
+    def __init__(self, seq) -> None:
+        self.seq, self.name, self.intrinsics = seq, seq.name, seq.intrinsics
+
+    def __iter__(self) -> Iterator[Frame]:
+        for k in range(len(self.seq)):
+            yield self.seq.frame(k)
+
+
+class FollowFolder(FrameSource):
+    """A 7-Scenes-layout folder still being written: frame ids in increasing order as their
+    colour and depth files appear (timestamps ``id / 30`` s; ground truth from
+    ``.pose.txt`` when every frame has one). A file that exists but does not decode yet
+    (still being written without a rename) is retried until ``timeout_s``."""
+
+    def __init__(self, folder: Path, cfg: OnlineConfig) -> None:
+        from data import sevenscenes
+
+        self.folder, self.cfg = Path(folder), cfg
+        if not self.folder.is_dir():
+            raise DataError(f"--follow needs a folder, {folder} is not one")
+        self.name = self.folder.resolve().name
+        intr = sevenscenes.DEFAULT_INTRINSICS
+        for cand in (self.folder / "camera-intrinsics.txt", self.folder.parent / "camera-intrinsics.txt"):
+            if cand.is_file():
+                intr = sevenscenes.read_intrinsics_file(cand)
+                break
+        self.intrinsics = intr
+        self.stop = threading.Event()
+
+    def _next_id(self, after: int) -> Optional[int]:
+        from data.sevenscenes import _FRAME_RE
+
+        ids = [int(m.group(1)) for p in self.folder.iterdir() if (m := _FRAME_RE.match(p.name))]
+        later = [k for k in ids if k > after]
+        return min(later) if later else None
+
+    def __iter__(self) -> Iterator[Frame]:
+        from data import sevenscenes
+        from data.sequence import read_depth, read_rgb
+
+        last, waited_since = -1, time.monotonic()
+        while not self.stop.is_set():
+            k = self._next_id(last)
+            color = None
+            if k is not None:
+                color = next((c for ext in (".color.png", ".color.jpg")
+                              if (c := self.folder / f"frame-{k:06d}{ext}").is_file()), None)
+            if k is not None and color is not None:
+                try:
+                    rgb = read_rgb(color, self.intrinsics)
+                    depth = read_depth(self.folder / f"frame-{k:06d}.depth.png", sevenscenes.DEPTH_SCALE,
+                                       self.intrinsics, invalid=(0, 65535))
+                    pose_file = self.folder / f"frame-{k:06d}.pose.txt"
+                    pose = sevenscenes.read_pose_file(pose_file) if pose_file.is_file() else None
+                except DataError:
+                    if time.monotonic() - waited_since > self.cfg.timeout_s:
+                        raise
+                    time.sleep(self.cfg.poll_s)
+                    continue
+                yield Frame(k, k / sevenscenes.FPS, rgb, depth, pose)
+                last, waited_since = k, time.monotonic()
+                continue
+            if time.monotonic() - waited_since > self.cfg.timeout_s:
+                log.info("%s: no new frame for %.1f s, ending", self.folder, self.cfg.timeout_s)
+                return
+            time.sleep(self.cfg.poll_s)
+
+
+def open_source(spec: str, frames: Optional[str] = None, follow: bool = False,
+                cfg: OnlineConfig = OnlineConfig()) -> FrameSource:
+    """The frame source of ``spec`` (``follow``: a folder still being written)."""
+    if follow:
+        if frames:
+            raise ConfigError("--frames does not apply with --follow (frames are taken as they arrive)")
+        return FollowFolder(Path(spec), cfg)
+    from data.scenes import open_scene
+
+    seqs = open_scene(spec, frames=frames)
+    if len(seqs) != 1:
+        raise ConfigError(f"{spec} holds {len(seqs)} sequences; give one sequence folder")
+    return SequenceSource(seqs[0])
+
+
+# ----------------------------------------------------------------------------------
+# teacher edges, frame by frame
+# ----------------------------------------------------------------------------------
+@dataclass
+class _WindowEntry:
+    pos: int
+    feats: object  # teacher.odometry.FrameFeatures
+    link: NDArray[np.int64]  # keypoint of this frame -> keypoint in the newest frame (-1: lost)
+    T_k_cur: NDArray[np.float64]  # chained gap-1 motion from this frame to the newest
+
+
+class OnlineTeacher:
+    """The edges (k-g, k), g = 1..cfg.gaps, of each new frame k, by the same rules as
+    ``teacher generate`` (:func:`teacher.generate._run_chunk`): the gap-1 edge guided by
+    constant velocity, its inliers extending feature tracks, longer edges from the tracks
+    predicted by the chained gap-1 motion."""
+
+    def __init__(self, intr: Intrinsics, cfg) -> None:
+        from teacher.odometry import make_orb
+
+        self.intr, self.cfg = intr, cfg
+        self.orb = make_orb(cfg)
+        self.window: deque[_WindowEntry] = deque()
+        self.v_prev: Optional[NDArray[np.float64]] = None
+        self.prev_keys = None
+        self.ids: list[int] = []
+        self.times: list[float] = []
+
+    def features(self, frame: Frame):
+        """Per-frame work (safe to run in one helper thread ahead of :meth:`add`)."""
+        from teacher.odometry import extract
+
+        return extract(frame.rgb, frame.depth, self.cfg, self.orb, self.intr.K)
+
+    def add(self, frame: Frame, fk) -> list:
+        """The edges ending at ``frame`` (``EdgeEstimate``; failed ones included)."""
+        from teacher.odometry import estimate_edge, stale_stream
+
+        cfg, k = self.cfg, len(self.ids)
+        self.ids.append(int(frame.frame_id))
+        self.times.append(float(frame.timestamp))
+        if self.prev_keys is not None:
+            fk.stale = stale_stream(self.prev_keys, fk.keys)
+        self.prev_keys = fk.keys
+        edges = []
+        if self.window:
+            prev = self.window[-1]
+            dt = self.times[k] - self.times[k - 1]
+            e = estimate_edge(self.ids[k - 1], self.ids[k], prev.feats, fk, self.intr, cfg, dt, T_pred=self.v_prev)
+            edges.append(e)
+            step = e.T_i_j if e.ok else (self.v_prev if self.v_prev is not None else np.eye(4))
+            if e.ok:
+                self.v_prev = e.T_i_j
+            m = np.full(len(prev.feats.uv) + 1, -1, np.int64)  # last slot maps -1 -> -1
+            if e.ok and e.inlier_pairs is not None:
+                m[e.inlier_pairs[:, 0]] = e.inlier_pairs[:, 1]
+            for w in self.window:
+                w.link = m[w.link]
+                w.T_k_cur = w.T_k_cur @ step
+            for w in list(self.window)[:-1]:  # gaps >= 2
+                tracks = np.flatnonzero(w.link >= 0)
+                tracks = np.stack([tracks, w.link[tracks]], axis=1)
+                edges.append(estimate_edge(self.ids[w.pos], self.ids[k], w.feats, fk, self.intr, cfg,
+                                           self.times[k] - self.times[w.pos], w.T_k_cur.copy(), tracks))
+        self.window.append(_WindowEntry(k, fk, np.arange(len(fk.uv)), np.eye(4)))
+        while self.window and k - self.window[0].pos >= cfg.gaps:
+            self.window.popleft()
+        for e in edges:
+            e.inlier_pairs = None
+        return edges
+
+
+# ----------------------------------------------------------------------------------
+# learner edges, frame by frame
+# ----------------------------------------------------------------------------------
+class OnlineLearner:
+    """MC-dropout edges (k-g, k), g = 1..max_gap, of each new frame: the pairs are encoded
+    once, the dropout layers resampled K times; gap 1 from the LSTM head (LSTM variants;
+    chunks of ``window_max`` pairs as in ``learner predict``, the LSTM being causal the
+    newest output equals the batch one), longer gaps from the direct head. Mean and
+    covariance as in :func:`learner.predict.mc_edges`, calibrated with the checkpoint's
+    ``calibration.json`` when there is one."""
+
+    def __init__(self, checkpoint: Path, cfg=None, device: str = "cpu", use_calibration: bool = True,
+                 seed: int = 0) -> None:
+        import torch
+
+        from learner.calibrate import calibration_for
+        from learner.config import PredictConfig, check_variant
+        from learner.predict import load_model
+
+        self.cfg = cfg or PredictConfig()
+        self.model, state = load_model(Path(checkpoint), None, device)
+        found = calibration_for(Path(checkpoint), self.cfg) if use_calibration else None
+        self.calibration = found[1] if found is not None else None
+        if found is None and use_calibration:
+            log.info("no calibration.json beside %s: MC-dropout covariances used as they are", checkpoint)
+        self.uses_lstm = check_variant(state["variant"])[0]
+        self.window = int(state["train_config"]["window_max"])
+        m = self.model.cfg
+        self.width, self.height, self.mode = m.width, m.height, m.input
+        self.buf: deque[tuple] = deque(maxlen=self.cfg.max_gap + 1)
+        self.z1: list = []  # gap-1 latents of the current LSTM chunk
+        self.n = 0
+        torch.manual_seed(seed)
+
+    def inputs(self, frame: Frame) -> tuple:
+        """Per-frame network inputs (resized RGB, inverse depth, grey at 2x), as the learner caches them."""
+        import cv2
+
+        from learner.config import FLOW_U_CHANNEL
+        from learner.dataset import _invdepth, _resize
+
+        rgb = _resize(frame.rgb, self.width, self.height).transpose(2, 0, 1)
+        inv = _invdepth(frame.depth, self.width, self.height) if self.mode != "rgb" else None
+        grey = (cv2.cvtColor(_resize(frame.rgb, 2 * self.width, 2 * self.height), cv2.COLOR_RGB2GRAY)
+                if self.mode in FLOW_U_CHANNEL else None)  # the inputs with optical flow
+        return rgb, inv, grey
+
+    def add(self, inputs: tuple) -> list[tuple[int, NDArray[np.float64], NDArray[np.float64], str]]:
+        """(gap, mean twist (6,), covariance (6, 6), head) of the edges ending at the new frame."""
+        import torch
+
+        from learner.dataset import Frames
+
+        self.buf.append(inputs)
+        k, self.n = self.n, self.n + 1
+        G = min(self.cfg.max_gap, len(self.buf) - 1)
+        if G < 1:
+            return []
+        stack = [None if self.buf[0][c] is None else np.stack([b[c] for b in self.buf]) for c in range(3)]
+        frames = Frames(stack[0], stack[1], stack[2], self.mode)
+        last = len(self.buf) - 1
+        gaps = np.arange(1, G + 1)
+        with torch.no_grad():
+            z = self.model.encode(frames.pairs(torch.as_tensor(last - gaps), torch.full((G,), last)).to(
+                self.model.output_scale.device))
+            out: list[tuple[str, torch.Tensor]] = []
+            if self.uses_lstm:
+                if (k - 1) % self.window == 0:
+                    self.z1 = []
+                self.z1.append(z[0])
+                out.append(("lstm", self.model.sequential_mc(torch.stack(self.z1)[None], self.cfg.samples,
+                                                             self.cfg.drop)[:, 0, -1]))
+                rest = z[1:]
+            else:
+                rest = z
+            if len(rest):
+                d = self.model.direct_mc(rest, self.cfg.samples, self.cfg.drop)  # (K, n, 6)
+                out += [("direct", d[:, n]) for n in range(d.shape[1])]
+        res = []
+        for g, (head, samples) in zip(gaps.tolist(), out):
+            s = samples.double().cpu().numpy()
+            mean = s.mean(0)
+            dev = s - mean
+            cov = dev.T @ dev / max(self.cfg.samples - 1, 1)
+            cov = 0.5 * (cov + cov.T) + self.cfg.cov_floor * np.eye(6)
+            if self.calibration is not None:
+                cov = self.calibration.apply(cov[None], [head], np.array([g]))[0]
+            res.append((g, mean, cov, head))
+        return res
+
+
+# ----------------------------------------------------------------------------------
+# the incremental pose graph
+# ----------------------------------------------------------------------------------
+class OnlineGraph:
+    """ISAM2 over frame ids: a prior fixes the first pose at the identity; each new pose
+    starts at its prediction through its shortest good edge (else constant velocity, as
+    the teacher's chained trajectory) and enters with its edges.
+
+    The graph is reviewed as ``posegraph optimize`` reviews it - covariance scale per
+    edge source (:func:`posegraph.graph._scale_factors`: median squared whitened residual
+    against chi-square(6), corrected for the graph's redundancy) and outlier edges
+    (:func:`posegraph.graph._apply_action`) - online: when it reaches ``review_from`` frames,
+    at every doubling after that, and at the end until nothing changes. Factors whose scale
+    or status changed are swapped in one ISAM2 update (log2(N) reviews over a run, so the
+    cost stays amortised), so the robust kernel sees the residuals at the scale the batch
+    solve sees them."""
+
+    def __init__(self, cfg=None, review_from: int = 16) -> None:
+        import gtsam
+
+        from posegraph.config import ONLINE
+
+        self.cfg = cfg or ONLINE
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.cfg.isam2_relinearize_threshold)
+        params.relinearizeSkip = 1
+        self.isam = gtsam.ISAM2(params)
+        self.ids: list[int] = []
+        self.pos: dict[int, int] = {}
+        self.latest: dict[int, NDArray[np.float64]] = {}
+        self.v_prev = np.eye(4)
+        self.edges: list = []  # data.formats.Edge in the graph
+        self.slots: list[int] = []  # ISAM2 factor index of each edge
+        self.sources: list[str] = []
+        self.status = np.zeros(0, np.int64)  # per edge: 0 in the graph, 1 down-weighted, 2 removed
+        self.scale: dict[str, float] = {}
+        self.next_review = review_from
+        self.reviews = 0
+        self.live: dict[int, object] = {}  # ISAM2 factor index -> factor, of the factors in the graph
+        self.polish: Optional[dict] = None
+
+    def _edge_factors(self, edges: list, weak: Optional[NDArray[np.bool_]] = None) -> list:
+        """Robust factors of ``edges`` under the current source scales (``weak``: times
+        ``cfg.downweight_factor``), built by :func:`posegraph.graph._factors`."""
+        from posegraph.graph import _factors
+
+        if not edges:
+            return []
+        ids = np.array([[e.i, e.j] for e in edges], dtype=np.int64)
+        meas = [geo.to_gtsam_pose3(geo.orthonormalize(e.T_i_j)) for e in edges]
+        mult = np.array([self.scale.get(e.extra.get("source", ""), 1.0) for e in edges])
+        if weak is not None:
+            mult = mult * np.where(weak, self.cfg.downweight_factor, 1.0)
+        covs = np.stack([e.cov for e in edges]) * mult[:, None, None]
+        return _factors(ids, meas, covs, self.cfg)
+
+    def add(self, frame_id: int, edges: list) -> NDArray[np.float64]:
+        """Add frame ``frame_id`` with its ``data.formats.Edge`` list (edges (i, frame_id),
+        i already in the graph; ``edge.extra["source"]`` names the source); return its
+        current estimate ``T_world_cam``."""
+        import gtsam
+
+        from posegraph.graph import _prior
+
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        if not self.ids:
+            T0 = np.eye(4)
+            graph.add(_prior(frame_id, T0, self.cfg))
+        else:
+            prev = self.ids[-1]
+            best = max(edges, key=lambda e: self.pos[e.i], default=None)  # the shortest gap
+            if best is not None:
+                T0 = self.latest[best.i] @ best.T_i_j
+                if best.i == prev:
+                    self.v_prev = best.T_i_j
+            else:
+                T0 = self.latest[prev] @ self.v_prev
+                log.debug("frame %d: no edge, placed by constant velocity", frame_id)
+                # an unconnected pose needs a factor: the constant-velocity guess, weakly
+                graph.add(gtsam.BetweenFactorPose3(prev, frame_id, geo.to_gtsam_pose3(self.v_prev),
+                                                   gtsam.noiseModel.Diagonal.Sigmas(np.full(6, 0.1))))
+        values.insert(int(frame_id), geo.to_gtsam_pose3(T0))
+        first_edge = graph.size()
+        for f in self._edge_factors(edges):
+            graph.add(f)
+        res = self._update(graph, values)
+        all_slots = list(res.getNewFactorsIndices())
+        self.live.update({int(k): graph.at(n) for n, k in enumerate(all_slots)})
+        slots = all_slots[first_edge:]
+        self.edges += edges
+        self.slots += slots
+        self.status = np.concatenate([self.status, np.zeros(len(edges), np.int64)])
+        self.pos[int(frame_id)] = len(self.ids)
+        self.ids.append(int(frame_id))
+        if len(self.ids) >= self.next_review:
+            self.next_review *= 2
+            self._review()
+        for k in self.ids[-8:]:  # refresh the newest estimates (anchors of the next predictions)
+            self.latest[k] = geo.from_gtsam_pose3(self.isam.calculateEstimatePose3(k))
+        return self.latest[int(frame_id)]
+
+    def _update(self, graph, values, remove: Sequence[int] = ()):
+        try:
+            return self.isam.update(graph, values, list(remove))
+        except RuntimeError as exc:
+            from posegraph.graph import _indeterminant
+
+            raise _indeterminant(exc) from None
+
+    def poses(self) -> NDArray[np.float64]:
+        """(N, 4, 4) current estimate of every pose."""
+        est = self.isam.calculateEstimate()
+        return np.stack([geo.from_gtsam_pose3(est.atPose3(k)) for k in self.ids])
+
+    def _review(self, poses: Optional[NDArray[np.float64]] = None) -> bool:
+        """Re-estimate the per-source covariance scales and the outlier edges as ``posegraph
+        optimize`` does (whitened residual above ``cfg.residual_threshold`` under the new
+        scales: removed, or down-weighted where removal would disconnect the graph); swap
+        the factors whose scale or status changed. Returns whether anything changed."""
+        import gtsam
+
+        from posegraph.graph import _apply_action, _scale_factors, edge_residuals
+
+        if not self.edges:
+            return False
+        names = list(dict.fromkeys(e.extra.get("source", "") for e in self.edges))
+        src = np.array([names.index(e.extra.get("source", "")) for e in self.edges])
+        pos = np.array([[self.pos[e.i], self.pos[e.j]] for e in self.edges], dtype=np.int64)
+        T = np.stack([e.T_i_j for e in self.edges])
+        scale = np.array([self.scale.get(n, 1.0) for n in names])
+        info = np.linalg.inv(np.stack([e.cov for e in self.edges]) * scale[src, None, None])
+        res = edge_residuals(self.poses() if poses is None else poses, pos, T, info)
+        new = scale
+        if self.cfg.calibrate:
+            redundancy = 1.0 - (len(self.ids) - 1) / max(len(self.edges), 1)
+            # over every edge, flagged ones included (robust median), as the batch solve does
+            factor, _ = _scale_factors(res, src, np.ones(len(res), bool), len(names), redundancy, self.cfg)
+            new = np.clip(scale * factor, *self.cfg.calibration_scale_range)
+            moved = np.abs(np.log(new / scale)) > np.log1p(self.cfg.calibration_tolerance)
+            new = np.where(moved, new, scale)
+        res = res * np.sqrt(scale / new)[src]  # under the new scales
+        flagged = res > self.cfg.residual_threshold
+        drop, weak = _apply_action(len(self.ids), pos, flagged, np.argsort(res), self.cfg)
+        status = np.where(drop, 2, np.where(weak, 1, 0))
+        changed = np.flatnonzero((status != self.status) | (new != scale)[src])
+        if len(changed) == 0:
+            return False
+        self.scale.update({n: float(v) for n, v in zip(names, new)})
+        remove = [self.slots[n] for n in changed if self.slots[n] >= 0]
+        add = [n for n in changed if status[n] != 2]
+        graph = gtsam.NonlinearFactorGraph()
+        for f in self._edge_factors([self.edges[n] for n in add], status[add] == 1):
+            graph.add(f)
+        res_u = self._update(graph, gtsam.Values(), remove)
+        for n in changed:
+            self.live.pop(int(self.slots[n]), None)
+            self.slots[n] = -1
+        for m, (n, slot) in enumerate(zip(add, res_u.getNewFactorsIndices())):
+            self.slots[n] = int(slot)
+            self.live[int(slot)] = graph.at(m)
+        self.status = status
+        self.reviews += 1
+        log.debug("frame %d: covariance scales %s, %d outlier edges", self.ids[-1], self.scale, int(flagged.sum()))
+        return True
+
+    def final(self, polish: bool = True) -> NDArray[np.float64]:
+        """(N, 4, 4) smoothed poses. A last review and ``cfg.isam2_final_updates`` ISAM2
+        updates give the ISAM2 estimate (kept in ``isam2_poses``); with ``polish`` the
+        batch solve of ``posegraph optimize`` (:func:`posegraph.graph.solve`, LM, its
+        covariance calibration and outlier pass from scratch) then runs on the same edges,
+        warm-started from it.
+
+        Why the polish: with the robust kernel ISAM2's Gauss-Newton steps stop at a higher
+        cost than LM reaches on the same factors (synthetic/tiny, Huber, no calibration:
+        945 vs 886, ATE 15.8 vs 14.1 mm; the project's batch ``--solver isam2`` stops there
+        too), and more updates or a zero relinearisation threshold do not move it; and the
+        reviews made online on partial graphs can settle on other outliers than the batch
+        pass. One solve at the end costs what ``posegraph optimize`` costs (bench/README.md,
+        "Online mode")."""
+        self._review()
+        for _ in range(self.cfg.isam2_final_updates):
+            self.isam.update()
+        self.isam2_poses = self.poses()
+        if not polish or len(self.ids) < 2 or not self.edges:
+            return self.isam2_poses
+        from posegraph.graph import GraphError, solve
+
+        t0 = time.perf_counter()
+        try:
+            res = solve(np.array(self.ids, dtype=np.int64), self.edges, self.isam2_poses,
+                        dataclasses.replace(self.cfg, solver="lm"))
+        except GraphError as exc:  # e.g. a frame no edge reaches: keep the ISAM2 estimate
+            log.warning("final batch solve skipped (%s); the ISAM2 estimate is the final trajectory", exc)
+            return self.isam2_poses
+        order = np.argsort(np.argsort(np.array(self.ids)))  # solve sorts by id
+        self.polish = {"seconds": time.perf_counter() - t0, "iterations": res.iterations,
+                       "outliers": len(res.outliers), "source_scales": res.source_scales}
+        return res.poses[order]
+
+
+# ----------------------------------------------------------------------------------
+# the run
+# ----------------------------------------------------------------------------------
+@dataclass
+class OnlineResult:
+    """What a run did (also in ``report.json``)."""
+
+    out: Path
+    frames: int
+    fps: float
+    latency_ms: dict[str, float]
+    interrupted: bool
+    report: dict = field(default_factory=dict)
+
+
+class _Progress:
+    def __init__(self, every_s: float, stream: TextIO = sys.stderr) -> None:
+        self.every, self.stream, self.tty = every_s, stream, stream.isatty()
+        self.last = 0.0
+
+    def show(self, n: int, fps: float, lat_s: list[float], edges: int) -> None:
+        now = time.monotonic()
+        if now - self.last < self.every:
+            return
+        self.last = now
+        recent = lat_s[-300:]  # the percentile of the last 10 s at 30 Hz
+        line = (f"online: {n} frames, {fps:.1f} fps, latency {1000 * lat_s[-1]:.0f} ms "
+                f"(p95 {1000 * float(np.percentile(recent, 95)):.0f} ms), {edges} edges")
+        if self.tty:
+            self.stream.write("\r" + line + "\x1b[K")
+            self.stream.flush()
+        else:
+            log.info("%s", line)
+
+    def close(self) -> None:
+        if self.tty and self.last:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[Path] = None,
+        predict_cfg=None, graph_cfg=None, cfg: OnlineConfig = OnlineConfig(), device: str = "cpu",
+        max_frames: Optional[int] = None, progress: bool = True) -> OnlineResult:
+    """Run the online pipeline over ``source`` (see the module docstring); KeyboardInterrupt
+    ends it early with every output written for the frames so far (``interrupted``)."""
+    from data.formats import Edge
+    from data.io import ensure_dir
+    from teacher.config import DEFAULT as TEACHER_DEFAULT
+
+    teacher_cfg = teacher_cfg or TEACHER_DEFAULT
+    out = ensure_dir(Path(out))
+    teacher = OnlineTeacher(source.intrinsics, teacher_cfg)
+    learner = OnlineLearner(checkpoint, predict_cfg, device) if checkpoint is not None else None
+    graph = OnlineGraph(graph_cfg)
+    t_edges: list = []
+    l_edges: list[Edge] = []
+    gts: list[Optional[NDArray]] = []
+    lat: list[float] = []
+    work: list[float] = []  # prepare + estimate + update + write, without any wait in the queue
+    bar = _Progress(cfg.progress_every_s) if progress else None
+
+    def prepare(frame: Frame):
+        feats = teacher.features(frame)
+        return frame, feats, (learner.inputs(frame) if learner is not None else None)
+
+    # A helper thread takes frames from the source (decoding them), stamps their arrival and
+    # prepares them (teacher features, learner inputs) up to cfg.prefetch frames ahead;
+    # this thread estimates edges, updates the graph and writes.
+    ahead: queue.Queue = queue.Queue(maxsize=max(cfg.prefetch, 1))
+    stop = threading.Event()
+
+    def produce() -> None:
+        try:
+            for k, frame in enumerate(source):
+                t_arr = time.perf_counter()  # the frame is here: its latency counts from now
+                item = (t_arr, *prepare(frame), time.perf_counter() - t_arr)
+                while not stop.is_set():
+                    try:
+                        ahead.put(item, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set() or (max_frames is not None and k + 1 >= max_frames):
+                    break
+            ahead.put(None)
+        except BaseException as exc:  # noqa: BLE001 - handed to the main thread
+            ahead.put(exc)
+
+    producer = threading.Thread(target=produce, name="vo-online-frames", daemon=True)
+    interrupted = False
+    t_start = time.perf_counter()
+    fh = open(out / TRAJECTORY, "w")
+    fh.write("# timestamp tx ty tz qx qy qz qw  (T_world_cam, metres; each frame's estimate when it arrived)\n")
+    n = 0
+    producer.start()
+    try:
+        while True:
+            item = ahead.get()
+            if item is None:
+                break
+            if isinstance(item, BaseException):
+                raise item
+            t_arr, frame, feats, inputs, t_prep = item
+            t_take = time.perf_counter()
+            edges = teacher.add(frame, feats)
+            t_edges += edges
+            new = [Edge(e.i, e.j, e.T_i_j, e.cov, {"source": "teacher"}) for e in edges if e.ok]
+            if learner is not None:
+                for g, mean, cov, head in learner.add(inputs):
+                    e = Edge(teacher.ids[-1 - g], teacher.ids[-1], geo.se3_exp(mean), cov,
+                             {"source": "learner", "head": head})
+                    l_edges.append(e)
+                    new.append(e)
+            T = graph.add(int(frame.frame_id), new)
+            fh.write(f"{frame.timestamp:.6f} " + " ".join(f"{x:.9f}" for x in geo.T_to_tum(T)) + "\n")
+            fh.flush()
+            gts.append(frame.T_world_cam)
+            n += 1
+            lat.append(time.perf_counter() - t_arr)
+            work.append(t_prep + time.perf_counter() - t_take)
+            if bar is not None:
+                bar.show(n, n / (time.perf_counter() - t_start), lat, len(t_edges) + len(l_edges))
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        stop.set()
+        if isinstance(source, FollowFolder):
+            source.stop.set()
+        fh.close()
+        if bar is not None:
+            bar.close()
+        producer.join(timeout=5.0)
+    seconds = time.perf_counter() - t_start
+    if n == 0:
+        raise DataError(f"{source.name}: no frame arrived")
+    lat_ms = {f"p{q}": 1000 * float(np.percentile(lat, q)) for q in (50, 95, 99)} | {"max": 1000 * max(lat)}
+    work_ms = {f"p{q}": 1000 * float(np.percentile(work, q)) for q in (50, 95, 99)} | {"max": 1000 * max(work)}
+    report = _finish(out, source, teacher, graph, t_edges, l_edges, gts, teacher_cfg, seconds,
+                     {"latency_ms": lat_ms, "work_ms": work_ms}, interrupted, checkpoint)
+    return OnlineResult(out, n, n / seconds, lat_ms, interrupted, report)
+
+
+def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: OnlineGraph, t_edges: list,
+            l_edges: list, gts: list, teacher_cfg, seconds: float, timing: dict, interrupted: bool,
+            checkpoint: Optional[Path]) -> dict:
+    """Write the final trajectory, the edge folders and report.json (all atomically)."""
+    from data.formats import Edge, Trajectory, write_g2o, write_tum
+    from data.io import ensure_dir, git_revision, write_json
+    from data.metrics import trajectory_report
+    from teacher.generate import chain_trajectory
+
+    ids = np.array(teacher.ids, dtype=np.int64)
+    times = np.array(teacher.times)
+    n = len(ids)
+    final = graph.final()
+    write_tum(out / FINAL_TRAJECTORY, Trajectory(times, final))
+    t_edges = sorted(t_edges, key=lambda e: (e.i, e.j))  # the order of teacher generate's files
+    good = [Edge(e.i, e.j, e.T_i_j, e.cov) for e in t_edges if e.ok]
+    chained, _ = chain_trajectory(ids, t_edges, teacher_cfg.gaps)
+    tdir = ensure_dir(out / "teacher")
+    write_g2o(tdir / "edges.g2o", good, {int(f): T for f, T in zip(ids, chained)})
+    write_tum(tdir / "trajectory.tum", Trajectory(times, chained))
+    has_gt = n >= 2 and all(g is not None for g in gts)
+    if has_gt:
+        gt = Trajectory(times, np.stack(gts))
+        write_tum(tdir / "groundtruth.tum", gt)
+    if l_edges:
+        ldir = ensure_dir(out / "learner")
+        write_g2o(ldir / "edges.g2o", [Edge(e.i, e.j, e.T_i_j, e.cov) for e in sorted(l_edges, key=lambda e: (e.i, e.j))],
+                  {int(f): T for f, T in zip(ids, final)})
+    report: dict = {
+        "sequence": source.name, "frames": n, "seconds": seconds, "fps": n / seconds if seconds > 0 else None,
+        **timing, "interrupted": interrupted,
+        "teacher_edges": len(good), "teacher_failed_edges": len(t_edges) - len(good),
+        "learner_edges": len(l_edges), "checkpoint": str(checkpoint) if checkpoint else None,
+        "covariance_scales": graph.scale, "graph_reviews": graph.reviews, "final_polish": graph.polish,
+        "outlier_edges": {"removed": int((graph.status == 2).sum()), "downweighted": int((graph.status == 1).sum())},
+        "teacher": teacher_cfg.to_dict(), "git_revision": git_revision(),
+    }
+    if has_gt:
+        report["final"] = trajectory_report(gt, Trajectory(times, final))
+        if graph.polish is not None:
+            report["final_isam2"] = trajectory_report(gt, Trajectory(times, graph.isam2_poses))
+        report["online"] = trajectory_report(gt, Trajectory(times, _read_rows(out / TRAJECTORY, n)))
+        report["teacher_chain"] = trajectory_report(gt, Trajectory(times, chained))
+    write_json(out / "report.json", _finite(report))
+    return report
+
+
+def _read_rows(path: Path, n: int) -> NDArray[np.float64]:
+    from data.formats import read_tum
+
+    return read_tum(path).poses[:n]
+
+
+def _finite(obj):
+    if isinstance(obj, float):
+        return obj if np.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+# ----------------------------------------------------------------------------------
+# command line
+# ----------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    from data.scenes import add_topic_options
+    from teacher.config import PRESETS as TEACHER_PRESETS
+
+    p = argparse.ArgumentParser(prog="vo-online", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scene", required=True, help="sequence folder, ROS bag or synthetic/NAME; with --follow "
+                   "a 7-Scenes-layout folder being written")
+    p.add_argument("--checkpoint", type=Path, help="learner checkpoint: add its MC-dropout edges")
+    p.add_argument("--out", type=Path, help="output folder (default runs/<scene>/online)")
+    p.add_argument("--frames", help="frame range START:STOP[:STEP]")
+    p.add_argument("--follow", action="store_true", help="the folder is still being written: wait for new frames")
+    p.add_argument("--timeout", type=float, default=OnlineConfig.timeout_s,
+                   help="--follow: end after this many seconds without a new frame")
+    p.add_argument("--poll", type=float, default=OnlineConfig.poll_s, help="--follow: seconds between polls")
+    p.add_argument("--gaps", type=int, help="teacher edges to the last K frames (default: the preset's)")
+    p.add_argument("--preset", default="default", choices=sorted(TEACHER_PRESETS), help="teacher preset")
+    p.add_argument("--samples", type=int, help="MC-dropout passes K (default 10)")
+    p.add_argument("--max-gap", type=int, help="learner edges to the last frames (default 5)")
+    p.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"], help="learner device")
+    p.add_argument("-v", "--verbose", action="store_true")
+    add_topic_options(p)
+    return p
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    from data.io import setup_logging
+
+    args = build_parser().parse_args(argv)
+    setup_logging(args.verbose, "%(message)s")
+    try:
+        from data.runs import stage_dir
+        from data.scenes import scene_with_topics
+        from learner.config import PredictConfig
+        from teacher.config import PRESETS as TEACHER_PRESETS
+
+        scene = scene_with_topics(args.scene, args)
+        tcfg = TEACHER_PRESETS[args.preset]
+        if args.gaps is not None:
+            if args.gaps < 1:
+                raise ConfigError(f"--gaps must be >= 1, got {args.gaps}")
+            tcfg = dataclasses.replace(tcfg, gaps=args.gaps)
+        pcfg = PredictConfig(**{k: v for k, v in (("samples", args.samples), ("max_gap", args.max_gap)) if v is not None})
+        if args.timeout <= 0 or args.poll <= 0:
+            raise ConfigError("--timeout and --poll must be positive")
+        ocfg = OnlineConfig(poll_s=args.poll, timeout_s=args.timeout)
+        out = args.out or stage_dir(scene, "online")
+        source = open_source(scene, args.frames, args.follow, ocfg)
+        res = run(source, out, tcfg, args.checkpoint, pcfg, cfg=ocfg, device=args.device)
+    except VOError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:  # outside the frame loop (opening, writing)
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    rep = res.report
+    line = (f"{res.frames} frames, {res.fps:.1f} fps, latency p50 {res.latency_ms['p50']:.0f} ms / "
+            f"p95 {res.latency_ms['p95']:.0f} ms")
+    if "final" in rep:
+        line += f", ATE {1000 * rep['final']['ate_rmse_m']:.1f} mm"
+    if res.interrupted:
+        print(f"interrupted after {line}; trajectory so far in {res.out / TRAJECTORY}", file=sys.stderr)
+        return 130
+    print(f"{line} -> {res.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
