@@ -23,7 +23,7 @@ test: $(STAMP)
 	$(PY) -m pytest -q -p no:dash
 
 bench: $(STAMP)
-	$(PY) bench/teacher.py
+	$(PY) -m bench.teacher
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

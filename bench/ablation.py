@@ -20,11 +20,11 @@ Markdown tables. Beside every learned row stand the trivial baselines of
 ground truth): results ``zero_motion`` (the camera never moves) and ``constant_velocity``
 (each step repeats the previous true step), with the trajectory columns only.
 
-    .venv/bin/python bench/ablation.py --scene ../shared/data/7scenes/redkitchen/seq-sample \\
+    .venv/bin/python -m bench.ablation --scene ../shared/data/7scenes/redkitchen/seq-sample \\
         --test-frames 450:600 --teacher /tmp/rk/teacher --teacher-eval /tmp/rk/teacher \\
         --val-scene ../shared/data/7scenes/redkitchen/seq-sample --val-frames 350:450 --frames 0:350 \\
         --out /tmp/rk/runs
-    .venv/bin/python bench/ablation.py --scene synthetic/office --scene synthetic/lab \\
+    .venv/bin/python -m bench.ablation --scene synthetic/office --scene synthetic/lab \\
         --test-scene synthetic/kitchen --steps 300 --out runs/ablation-synth
 """
 
@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Optional
@@ -41,15 +40,13 @@ from typing import Optional
 import numpy as np
 import torch
 
-sys.path = [q for q in sys.path if Path(q or ".").resolve() != Path(__file__).resolve().parent]
-
-from data.formats import Trajectory, read_tum  # noqa: E402
-from data.io import write_json  # noqa: E402
-from data.metrics import BASELINE_KEYS, associate, ate_rmse, baseline_trajectories, trajectory_report  # noqa: E402
-from data.scenes import open_scene  # noqa: E402
-from learner.config import INPUTS, VARIANTS, PredictConfig  # noqa: E402
-from learner.predict import predict  # noqa: E402
-from learner.train import fit  # noqa: E402
+from data.formats import Trajectory, read_tum
+from data.io import write_json
+from data.metrics import BASELINE_KEYS, associate, ate_rmse, baseline_trajectories, trajectory_report
+from data.scenes import open_scene
+from learner.config import INPUTS, VARIANTS, PredictConfig
+from learner.predict import predict
+from learner.train import fit
 
 TRAJ_KEYS = ["ate_rmse_m", "ate_sub_mean_m", "ate_sub_std_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "se3_l2_mean"]
 CAL_KEYS = ["spearman_sigma_error", "coverage_1sigma", "coverage_2sigma", "outlier_auroc"]

@@ -1,9 +1,9 @@
 """CPU throughput of the learner (targets for the ``cpu`` preset: training >= 100 pairs/s,
 MC-dropout prediction with K=10 >= 100 pairs/s). Random frames; no data needed.
 
-    .venv/bin/python bench/learner.py                       # cpu preset, all cores
-    .venv/bin/python bench/learner.py --threads 1 --steps 8 --json out.json
-    .venv/bin/python bench/learner.py --input flow           # with the optical-flow input
+    .venv/bin/python -m bench.learner                       # cpu preset, all cores
+    .venv/bin/python -m bench.learner --threads 1 --steps 8 --json out.json
+    .venv/bin/python -m bench.learner --input flow           # with the optical-flow input
 
 Training runs the real training step of ``learner fit`` (:func:`learner.train.pairs_step`
 / :func:`learner.train.windows_step`: gathering the cached uint8 frames and labels, the
@@ -26,23 +26,19 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Callable
 
-# this script is named like the package it measures: keep bench/ off the import path
-sys.path = [q for q in sys.path if Path(q or ".").resolve() != Path(__file__).resolve().parent]
+import numpy as np
+import torch
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from learner import loss as L  # noqa: E402
-from learner.config import FLOW_U_CHANNEL, INPUTS, PRESETS, PredictConfig  # noqa: E402
-from learner.dataset import Frames, SequenceData  # noqa: E402
-from learner.model import CTCNet  # noqa: E402
-from learner.predict import mc_edges  # noqa: E402
-from learner.train import pair_batches, pairs_step, window_batches, windows_step  # noqa: E402
+from learner import loss as L
+from learner.config import FLOW_U_CHANNEL, INPUTS, PRESETS, PredictConfig
+from learner.dataset import Frames, SequenceData
+from learner.model import CTCNet
+from learner.predict import mc_edges
+from learner.train import pair_batches, pairs_step, window_batches, windows_step
 
 
 def fake_sequence(n: int, width: int, height: int, max_gap: int, seed: int = 0, mode: str = "rgb") -> SequenceData:

@@ -15,7 +15,7 @@ For each scene, on the same frames:
   from it) - against batch ``posegraph optimize`` on the same edges (the online run's
   ``teacher/`` folder), as ratios.
 
-    OMP_NUM_THREADS=1 .venv/bin/python bench/online.py [--checkpoint CKPT] [--frames 0:300]
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.online [--checkpoint CKPT] [--frames 0:300]
 
 Results go to stdout (a Markdown table) and to ``--json`` if given.
 """
@@ -30,7 +30,6 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 if __name__ == "__main__":  # as `teacher generate` does: its worker imports while this process does
     from teacher import processes

@@ -19,8 +19,8 @@ is per size. Reported per size and solver:
 
 Target: 10k poses / 50k edges, LM in under 5 s.
 
-    .venv/bin/python bench/posegraph.py                 # 1k, 10k, 50k; ISAM2 up to 10k
-    .venv/bin/python bench/posegraph.py --sizes 1000 --isam2-max 1000
+    .venv/bin/python -m bench.posegraph                 # 1k, 10k, 50k; ISAM2 up to 10k
+    .venv/bin/python -m bench.posegraph --sizes 1000 --isam2-max 1000
 """
 
 from __future__ import annotations
@@ -32,13 +32,11 @@ import resource
 import subprocess
 import sys
 import time
-
 from pathlib import Path
 
 import numpy as np
 
-# This script is named like the package: keep bench/ off the import path.
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _rss_mb() -> float:
@@ -120,8 +118,9 @@ def main() -> None:
         for solver in ("lm", "isam2"):
             if solver == "isam2" and n > args.isam2_max:
                 continue
-            cmd = [sys.executable, __file__, "--gaps", str(args.gaps), "--one", str(n), solver]
-            out = subprocess.run(cmd + (["--marginals"] if args.marginals else []), capture_output=True, text=True)
+            cmd = [sys.executable, "-m", "bench.posegraph", "--gaps", str(args.gaps), "--one", str(n), solver]
+            out = subprocess.run(cmd + (["--marginals"] if args.marginals else []), capture_output=True, text=True,
+                                 cwd=REPO)
             if out.returncode != 0:
                 print(out.stderr, file=sys.stderr)
                 raise SystemExit(out.returncode)

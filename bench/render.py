@@ -5,8 +5,8 @@ build, trajectory, ray casting, shading, sensor model, JPEG / PNG encoding and w
 every frame back through the 7-Scenes reader, and prints frames/s (wall clock), CPU seconds
 per frame, and a per-stage CPU breakdown of single-threaded frames.
 
-    .venv/bin/python bench/render.py                       # office, kitchen, lab
-    .venv/bin/python bench/render.py --presets tiny --frames 60 --workers 1
+    .venv/bin/python -m bench.render                       # office, kitchen, lab
+    .venv/bin/python -m bench.render --presets tiny --frames 60 --workers 1
 
 The machine's load average is printed too: on a shared machine, wall-clock frames/s drop
 with other jobs while CPU seconds per frame stay comparable.
@@ -19,18 +19,15 @@ import dataclasses
 import json
 import os
 import resource
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import data.synthetic as syn  # noqa: E402
-from data.sevenscenes import SevenScenesSequence  # noqa: E402
-from data.synthetic.config import PRESETS  # noqa: E402
+import data.synthetic as syn
+from data.sevenscenes import SevenScenesSequence
+from data.synthetic.config import PRESETS
 
 
 def _cpu() -> float:

@@ -6,8 +6,8 @@ truth: gap-1 RMSE and median (translation mm, rotation deg), gap-5 RMSE, the RPE
 chained gap-1 trajectory over 1 s (30 frames), and the ratio of each synthetic number to the
 real one. The issue's target: gap-1 RMSE of every preset within 0.5-2x of the real one.
 
-    .venv/bin/python bench/synthetic_realism.py                  # real + office kitchen lab
-    .venv/bin/python bench/synthetic_realism.py --presets office --reuse   # read old outputs
+    .venv/bin/python -m bench.synthetic_realism                  # real + office kitchen lab
+    .venv/bin/python -m bench.synthetic_realism --presets office --reuse   # read old outputs
 
 Outputs go to ``--out`` (default ``/tmp/synthetic-realism/<scene>/``); ``--reuse`` only
 reads folders already there. The real ground truth (KinectFusion) carries ~1.5-2 mm of
@@ -19,16 +19,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from data import geometry as geo  # noqa: E402
-from data.formats import read_edges_csv, read_g2o, read_tum  # noqa: E402
-from data.metrics import relative_pose_error, rpe_rmse  # noqa: E402
+from data import geometry as geo
+from data.formats import read_edges_csv, read_g2o, read_tum
+from data.metrics import relative_pose_error, rpe_rmse
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "7scenes" / "redkitchen" / "seq-sample"
 

@@ -5,8 +5,8 @@ For each scene: frames per second end to end (decode included; the teacher also
 estimates its gap 2..K edges, the peers only gap 1) and gap-1 RPE (trans, rot), ATE and
 the paper's se(3) L2 of the chained gap-1 trajectory, all metrics through evo.
 
-    .venv/bin/python bench/teacher.py                       # redkitchen sample + synthetic/office
-    .venv/bin/python bench/teacher.py --scenes synthetic/lab --frames 0:300
+    .venv/bin/python -m bench.teacher                       # redkitchen sample + synthetic/office
+    .venv/bin/python -m bench.teacher --scenes synthetic/lab --frames 0:300
 
 Results go to stdout (a Markdown table) and to ``--json`` if given.
 """
@@ -20,7 +20,6 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 if __name__ == "__main__":  # as `teacher generate` does: its worker imports while this process does
     from teacher import processes
@@ -31,6 +30,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from data import geometry as geo  # noqa: E402
+from data.chain import chain_steps  # noqa: E402
 from data.formats import Trajectory  # noqa: E402
 from data.metrics import trajectory_report  # noqa: E402
 from data.scenes import open_scene  # noqa: E402
@@ -38,13 +38,6 @@ from teacher.config import TeacherConfig  # noqa: E402
 from teacher.generate import run_sequence  # noqa: E402
 
 REDKITCHEN = REPO.parent / "shared" / "data" / "7scenes" / "redkitchen" / "seq-sample"
-
-
-def _chain(rel: list[np.ndarray]) -> np.ndarray:
-    poses = [np.eye(4)]
-    for T in rel:
-        poses.append(poses[-1] @ T)
-    return np.array(poses)
 
 
 def run_open3d(seq) -> tuple[np.ndarray, float, int]:
@@ -72,7 +65,7 @@ def run_open3d(seq) -> tuple[np.ndarray, float, int]:
         rel.append(geo.inv_T(np.asarray(T_t_s)))
         init = np.asarray(T_t_s)
         prev = cur
-    return _chain(rel), time.perf_counter() - t0, fails
+    return chain_steps(rel), time.perf_counter() - t0, fails
 
 
 def run_opencv(seq) -> tuple[np.ndarray, float, int]:
@@ -94,7 +87,7 @@ def run_opencv(seq) -> tuple[np.ndarray, float, int]:
             Rt = np.eye(4)
         rel.append(geo.inv_T(np.asarray(Rt, dtype=np.float64)))
         prev = cur
-    return _chain(rel), time.perf_counter() - t0, fails
+    return chain_steps(rel), time.perf_counter() - t0, fails
 
 
 def bench_scene(spec: str, frames: str | None) -> list[dict]:

@@ -2,8 +2,8 @@
 alignment: the teacher with several ``dense_blend`` values on one sequence, gap-1 RPE and
 ATE of its chained trajectory and the RMSE of its gap-5 labels (all against ground truth).
 
-    .venv/bin/python bench/teacher_blend.py                         # redkitchen, 0 0.25 0.5 0.75 1
-    .venv/bin/python bench/teacher_blend.py --scene synthetic/office --blends 0 0.25
+    .venv/bin/python -m bench.teacher_blend                         # redkitchen, 0 0.25 0.5 0.75 1
+    .venv/bin/python -m bench.teacher_blend --scene synthetic/office --blends 0 0.25
 
 ``dense_blend = 0`` is the sparse estimate alone (the dense step still runs, for the same
 cost); 1 takes the dense alignment whole. Accuracy only: the speed is bench/teacher.py's.
@@ -13,15 +13,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))  # before bench/, whose teacher.py would shadow the package
+from data.scenes import open_scene
+from teacher.config import TeacherConfig
+from teacher.generate import build_report, run_sequence
 
-from data.scenes import open_scene  # noqa: E402
-from teacher.config import TeacherConfig  # noqa: E402
-from teacher.generate import build_report, run_sequence  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
 
 REDKITCHEN = REPO.parent / "shared" / "data" / "7scenes" / "redkitchen" / "seq-sample"
 

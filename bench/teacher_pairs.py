@@ -1,31 +1,21 @@
 """Per-pair gap-1 errors of this teacher vs cv2.Odometry on redkitchen: which pairs both
 methods get wrong (ground-truth / timing glitches) and which only the teacher does.
 
-    .venv/bin/python bench/teacher_pairs.py [--scene PATH] [--threshold-mm 15]
+    .venv/bin/python -m bench.teacher_pairs [--scene PATH] [--threshold-mm 15]
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
-
-import importlib.util
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))  # before bench/, whose teacher.py would shadow the package
-
-from data import geometry as geo  # noqa: E402
-from data.metrics import relative_pose_error  # noqa: E402
-from data.scenes import open_scene  # noqa: E402
-from teacher.config import TeacherConfig  # noqa: E402
-from teacher.generate import run_sequence  # noqa: E402
-
-_spec = importlib.util.spec_from_file_location("bench_teacher", REPO / "bench" / "teacher.py")
-bench_teacher = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(bench_teacher)
+from bench import teacher as bench_teacher
+from data import geometry as geo
+from data.metrics import relative_pose_error
+from data.scenes import open_scene
+from teacher.config import TeacherConfig
+from teacher.generate import run_sequence
 
 
 def gap1_errors_mm(gt: np.ndarray, poses: np.ndarray) -> np.ndarray:

@@ -18,7 +18,7 @@ import io
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Optional
+from typing import Callable, Iterable, Optional
 
 import numpy as np
 from numpy.typing import NDArray
@@ -89,29 +89,51 @@ def read_tum(path: Path) -> Trajectory:
     return Trajectory.from_evo(traj)
 
 
-def _check_tum_rows(path: Path) -> None:
-    prev, n = -math.inf, 0
+def read_tum_rows(path: Path, fields: str, what: str, numbers: int = 1,
+                  check: Optional[Callable[[str, NDArray[np.float64]], None]] = None
+                  ) -> list[tuple[str, list[str], NDArray[np.float64]]]:
+    """The rows of a TUM-style text file (trajectories, TUM RGB-D ``rgb.txt`` /
+    ``depth.txt``): blank and ``#`` lines skipped, each row ``len(fields.split())``
+    whitespace-separated entries, the first ``numbers`` of them finite numbers, the first
+    a timestamp, strictly increasing; ``check(where, numbers)`` may reject a row further.
+
+    Returns ``("path:line", entries, the leading numbers)`` per row; raises
+    :class:`~data.errors.FormatError` naming the file and line (``fields`` spells the
+    expected row, ``what`` the rows, for the message of an empty file)."""
+    path = Path(path)
     try:
-        with open(path) as fh:
-            lines = fh.readlines()
+        lines = path.read_text().splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise FormatError(f"{path}: cannot read as text ({exc})") from None
+    rows, prev = [], -math.inf
+    n = len(fields.split())
     for lineno, line in enumerate(lines, 1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
         where = f"{path}:{lineno}"
         toks = s.split()
-        if len(toks) != 8:
-            raise FormatError(f"{where}: a TUM row needs 8 entries 'timestamp tx ty tz qx qy qz qw', got {len(toks)}")
-        vals = _parse_floats(toks, where)
+        if len(toks) != n:
+            raise FormatError(f"{where}: a row needs {n} entries '{fields}', got {len(toks)}")
+        vals = _parse_floats(toks[:numbers], where)
+        if check is not None:
+            check(where, vals)
+        t = vals[0]
+        if t <= prev:
+            raise FormatError(f"{where}: timestamps must be strictly increasing ({t:.6f} after {prev:.6f})")
+        prev = t
+        rows.append((where, toks, vals))
+    if not rows:
+        raise FormatError(f"{path}: no {what}")
+    return rows
+
+
+def _check_tum_rows(path: Path) -> None:
+    def nonzero_quaternion(where: str, vals: NDArray[np.float64]) -> None:
         if np.linalg.norm(vals[4:]) < 1e-6:
             raise FormatError(f"{where}: zero quaternion")
-        if vals[0] <= prev:
-            raise FormatError(f"{where}: timestamps must be strictly increasing ({vals[0]:.6f} after {prev:.6f})")
-        prev, n = vals[0], n + 1
-    if n == 0:
-        raise FormatError(f"{path}: no poses")
+
+    read_tum_rows(path, "timestamp tx ty tz qx qy qz qw", "poses", numbers=8, check=nonzero_quaternion)
 
 
 # ----------------------------------------------------------------------------------

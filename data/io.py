@@ -11,11 +11,14 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import os
 import subprocess
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator, TextIO
+
+import numpy as np
 
 from data.errors import VOError
 
@@ -70,7 +73,24 @@ def write_text(path: Path, text: str) -> None:
         fh.write(text)
 
 
+def json_safe(obj: Any) -> Any:
+    """``obj`` with every non-finite float (NaN, inf) replaced by ``None`` (JSON ``null``),
+    recursively through dicts, lists and tuples; NumPy scalars become Python numbers.
+    Strict JSON has no NaN, and :func:`write_json` refuses it."""
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    return obj
+
+
 def write_json(path: Path, obj: Any) -> None:
+    """Write ``obj`` as strict JSON atomically (non-finite floats are an error; pass the
+    object through :func:`json_safe` to write them as ``null``)."""
     with atomic_write(path) as fh:
         json.dump(obj, fh, indent=2, sort_keys=False, allow_nan=False)
         fh.write("\n")

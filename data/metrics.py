@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from data import geometry as geo
+from data.chain import chain_steps
 from data.errors import VOError
 from data.formats import Trajectory
 
@@ -94,12 +95,15 @@ def relative_pose_error(T_ref_rel: NDArray[np.float64], T_est_rel: NDArray[np.fl
 def se3_l2_errors(gt_rel: NDArray[np.float64], est_rel: NDArray[np.float64]) -> NDArray[np.float64]:
     """The paper's local metric per pair: ``||log(T_gt_rel) - log(T_est_rel)||_2`` with
     ``log`` in the project se(3) order (v, w). Inputs are (N, 4, 4) relative poses."""
-    return np.array([np.linalg.norm(geo.se3_log(g) - geo.se3_log(e)) for g, e in zip(gt_rel, est_rel)])
+    gt_rel = np.asarray(gt_rel, dtype=np.float64).reshape(-1, 4, 4)
+    est_rel = np.asarray(est_rel, dtype=np.float64).reshape(-1, 4, 4)
+    return np.linalg.norm(geo.se3_log(gt_rel) - geo.se3_log(est_rel), axis=1)
 
 
 def relative_poses(poses: NDArray[np.float64], delta: int = 1) -> NDArray[np.float64]:
     """``T_k_{k+delta}`` for every k of an (N, 4, 4) ``T_world_cam`` array."""
-    return np.array([geo.relative_pose(poses[k], poses[k + delta]) for k in range(len(poses) - delta)])
+    return np.array([geo.relative_pose(poses[k], poses[k + delta])
+                     for k in range(len(poses) - delta)]).reshape(-1, 4, 4)
 
 
 def trajectory_report(gt: Trajectory, est: Trajectory) -> dict[str, float]:
@@ -130,12 +134,8 @@ def constant_velocity_poses(gt_poses: NDArray[np.float64]) -> NDArray[np.float64
     the ground-truth step k-1 -> k (the first step is zero motion), chained from the first
     pose, (N, 4, 4). Its relative error is what a predictor with a one-frame lag scores."""
     gt_poses = np.asarray(gt_poses, dtype=np.float64)
-    out = [gt_poses[0]]
-    step = np.eye(4)
-    for k in range(1, len(gt_poses)):
-        out.append(out[-1] @ step)
-        step = geo.relative_pose(gt_poses[k - 1], gt_poses[k])
-    return np.array(out)
+    steps = [np.eye(4)] + [geo.relative_pose(gt_poses[k - 1], gt_poses[k]) for k in range(1, len(gt_poses) - 1)]
+    return chain_steps(steps[: len(gt_poses) - 1], gt_poses[0])
 
 
 def baseline_trajectories(gt: Trajectory) -> dict[str, Trajectory]:

@@ -63,39 +63,32 @@ class Frame:
     T_world_cam: Optional[NDArray[np.float64]]
 
 
+def _decode(path: Path, what: str, flags: int, intr: Optional[Intrinsics]) -> NDArray:
+    """``cv2.imdecode`` of an image file; :class:`DataError` if it is missing, unreadable
+    or not of the intrinsics' size."""
+    if not path.is_file():
+        raise DataError(f"missing {what} image {path}")
+    buf = np.fromfile(path, dtype=np.uint8)
+    img = cv2.imdecode(buf, flags) if buf.size else None
+    if img is None:
+        raise DataError(f"corrupt or unreadable {what} image {path}")
+    if what == "depth" and (img.dtype != np.uint16 or img.ndim != 2):
+        raise DataError(f"depth image {path} must be single-channel 16-bit, got {img.dtype} with shape {img.shape}")
+    if intr is not None and img.shape[:2] != (intr.height, intr.width):
+        raise DataError(f"{what} image {path} is {img.shape[1]}x{img.shape[0]}, expected {intr.width}x{intr.height}")
+    return img
+
+
 def read_rgb(path: Path, intr: Optional[Intrinsics] = None) -> NDArray[np.uint8]:
     """Decode a colour image to (H, W, 3) uint8 RGB; clear error if unreadable or mis-sized."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"missing colour image {path}")
-    buf = np.fromfile(path, dtype=np.uint8)
-    img = cv2.imdecode(buf, cv2.IMREAD_COLOR) if buf.size else None
-    if img is None:
-        raise DataError(f"corrupt or unreadable colour image {path}")
-    if intr is not None and img.shape[:2] != (intr.height, intr.width):
-        raise DataError(
-            f"colour image {path} is {img.shape[1]}x{img.shape[0]}, expected {intr.width}x{intr.height}"
-        )
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return cv2.cvtColor(_decode(Path(path), "colour", cv2.IMREAD_COLOR, intr), cv2.COLOR_BGR2RGB)
 
 
 def read_depth(
     path: Path, scale: float, intr: Optional[Intrinsics] = None, invalid: TypingSequence[int] = (0,)
 ) -> NDArray[np.float32]:
     """Decode a 16-bit depth PNG to float32 metres (``raw / scale``; ``invalid`` raw values -> 0)."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"missing depth image {path}")
-    buf = np.fromfile(path, dtype=np.uint8)
-    raw = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED) if buf.size else None
-    if raw is None:
-        raise DataError(f"corrupt or unreadable depth image {path}")
-    if raw.dtype != np.uint16 or raw.ndim != 2:
-        raise DataError(f"depth image {path} must be single-channel 16-bit, got {raw.dtype} with shape {raw.shape}")
-    if intr is not None and raw.shape != (intr.height, intr.width):
-        raise DataError(
-            f"depth image {path} is {raw.shape[1]}x{raw.shape[0]}, expected {intr.width}x{intr.height}"
-        )
+    raw = _decode(Path(path), "depth", cv2.IMREAD_UNCHANGED, intr)
     return _depth_table(float(scale), tuple(invalid))[raw]
 
 

@@ -40,8 +40,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
-from data import geometry as geo
-from data.errors import DataError
+from data.errors import DataError, FormatError
+from data.formats import read_tum, read_tum_rows
 from data.sequence import Intrinsics, Sequence, read_depth, read_rgb
 from data.sevenscenes import read_intrinsics_file
 
@@ -67,81 +67,26 @@ _CAMERA_RE = re.compile(r"(?:freiburg|(?<![a-z])fr)([123])(?![0-9])")
 # ----------------------------------------------------------------------------------
 # file parsing
 # ----------------------------------------------------------------------------------
-def _data_lines(path: Path) -> list[tuple[int, list[str]]]:
-    """(line number, fields) of the non-comment, non-blank lines of a TUM text file."""
-    if not path.is_file():
-        raise DataError(f"missing TUM file {path}")
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DataError(f"cannot read {path}: {exc}") from None
-    out = []
-    for lineno, line in enumerate(text.splitlines(), 1):
-        s = line.strip()
-        if s and not s.startswith("#"):
-            out.append((lineno, s.split()))
-    return out
-
-
-def _float(tok: str, where: str, what: str) -> float:
-    try:
-        x = float(tok)
-    except ValueError:
-        raise DataError(f"{where}: {what} {tok!r} is not a number") from None
-    if not np.isfinite(x):
-        raise DataError(f"{where}: {what} {tok!r} is not finite")
-    return x
-
-
-def _check_increasing(stamps: NDArray[np.float64], linenos: list[int], path: Path) -> None:
-    bad = np.flatnonzero(np.diff(stamps) <= 0)
-    if bad.size:
-        k = int(bad[0]) + 1
-        raise DataError(f"{path}:{linenos[k]}: timestamps must be strictly increasing "
-                        f"({stamps[k]:.6f} after {stamps[k - 1]:.6f})")
-
-
 def read_image_list(path: Path) -> tuple[NDArray[np.float64], list[str]]:
     """Parse ``rgb.txt`` / ``depth.txt``: timestamps (N,) and relative file names."""
     path = Path(path)
-    rows = _data_lines(path)
-    if not rows:
-        raise DataError(f"{path} lists no images")
-    stamps, names, linenos = [], [], []
-    for lineno, toks in rows:
-        where = f"{path}:{lineno}"
-        if len(toks) != 2:
-            raise DataError(f"{where}: expected 2 fields 'timestamp filename', got {len(toks)}")
-        stamps.append(_float(toks[0], where, "timestamp"))
-        names.append(toks[1])
-        linenos.append(lineno)
-    arr = np.asarray(stamps, dtype=np.float64)
-    _check_increasing(arr, linenos, path)
-    return arr, names
+    if not path.is_file():
+        raise DataError(f"missing TUM file {path}")
+    try:
+        rows = read_tum_rows(path, "timestamp filename", "images")
+    except FormatError as exc:
+        raise DataError(str(exc)) from None
+    return np.array([vals[0] for _, _, vals in rows]), [toks[1] for _, toks, _ in rows]
 
 
 def read_groundtruth(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Parse ``groundtruth.txt``: timestamps (M,) and ``T_world_cam`` poses (M, 4, 4)."""
-    path = Path(path)
-    rows = _data_lines(path)
-    if not rows:
-        raise DataError(f"{path} contains no poses")
-    stamps = np.empty(len(rows))
-    poses = np.empty((len(rows), 4, 4))
-    linenos = []
-    for n, (lineno, toks) in enumerate(rows):
-        where = f"{path}:{lineno}"
-        if len(toks) != 8:
-            raise DataError(f"{where}: expected 8 fields 'timestamp tx ty tz qx qy qz qw', got {len(toks)}")
-        vals = [_float(t, where, "value") for t in toks]
-        stamps[n] = vals[0]
-        try:
-            poses[n] = geo.tum_to_T(vals[1:])
-        except ValueError as exc:
-            raise DataError(f"{where}: {exc}") from None
-        linenos.append(lineno)
-    _check_increasing(stamps, linenos, path)
-    return stamps, poses
+    """Parse ``groundtruth.txt`` (a TUM trajectory file, read by
+    :func:`data.formats.read_tum`): timestamps (M,) and ``T_world_cam`` poses (M, 4, 4)."""
+    try:
+        traj = read_tum(path)
+    except FormatError as exc:
+        raise DataError(str(exc)) from None
+    return traj.timestamps, traj.poses
 
 
 # ----------------------------------------------------------------------------------

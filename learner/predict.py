@@ -32,9 +32,10 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from data import geometry as geo
+from data.chain import chain_steps
 from data.errors import ConfigError, DataError
 from data.formats import Edge, Trajectory, write_g2o, write_tum
-from data.io import atomic_write, git_revision, write_json
+from data.io import atomic_write, git_revision, json_safe, write_json
 from data.metrics import BASELINES, baseline_reports, se3_l2_errors, trajectory_report
 from data.runs import Fingerprint, claim, file_digest, frames_id, output_folder, scene_id, stage_dir, write_fingerprint
 from data.scenes import open_scene
@@ -156,10 +157,7 @@ def chain(edges: EdgeSet, T0: NDArray[np.float64]) -> NDArray[np.float64]:
     """``T_world_cam`` (N, 4, 4) from chaining the gap-1 edges from ``T0``."""
     one = np.nonzero(edges.j - edges.i == 1)[0]
     one = one[np.argsort(edges.i[one])]
-    poses = [np.asarray(T0, dtype=np.float64)]
-    for e in one:
-        poses.append(poses[-1] @ geo.se3_exp(edges.mean[e]))
-    return np.array(poses)
+    return chain_steps([geo.se3_exp(edges.mean[e]) for e in one], T0)
 
 
 def auroc(score: NDArray[np.float64], positive: NDArray[np.bool_]) -> float:
@@ -202,10 +200,6 @@ def calibration(edges: EdgeSet, gt: NDArray[np.float64]) -> tuple[dict[str, floa
         "outlier_auroc": auroc(edges.sigma, worst),
     }
     return out, err, d2
-
-
-def _nan_to_none(d: dict) -> dict:
-    return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in d.items()}
 
 
 def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split: str = "all",
@@ -307,7 +301,7 @@ def _predict(checkpoint: Path, scene: str, base: Path, *, frames: Optional[str],
                 report.update({f"raw_{k}": raw_cal[k] for k in
                                ("coverage_1sigma", "coverage_2sigma", "nees_mean", "spearman_sigma_error")})
         _write_mc_csv(out_dir / "edges_mc.csv", edges, ids, flags, err, d2)
-        report = _nan_to_none(report)
+        report = json_safe(report)
         write_json(out_dir / "config.json", {"scene": scene, "frames": frames, "split": split,
                                              "checkpoint": str(checkpoint), "predict": to_dict(config),
                                              "calibration": report["calibration"], "git_revision": git_revision()})

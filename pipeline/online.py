@@ -677,7 +677,7 @@ def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: Onlin
             checkpoint: Optional[Path]) -> dict:
     """Write the final trajectory, the edge folders and report.json (all atomically)."""
     from data.formats import Edge, Trajectory, write_g2o, write_tum
-    from data.io import ensure_dir, git_revision, write_json
+    from data.io import ensure_dir, git_revision, json_safe, write_json
     from data.metrics import trajectory_report
     from teacher.generate import chain_trajectory
 
@@ -688,7 +688,7 @@ def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: Onlin
     write_tum(out / FINAL_TRAJECTORY, Trajectory(times, final))
     t_edges = sorted(t_edges, key=lambda e: (e.i, e.j))  # the order of teacher generate's files
     good = [Edge(e.i, e.j, e.T_i_j, e.cov) for e in t_edges if e.ok]
-    chained, _ = chain_trajectory(ids, t_edges, teacher_cfg.gaps)
+    chained, _ = chain_trajectory(ids, t_edges)
     tdir = ensure_dir(out / "teacher")
     write_g2o(tdir / "edges.g2o", good, {int(f): T for f, T in zip(ids, chained)})
     write_tum(tdir / "trajectory.tum", Trajectory(times, chained))
@@ -715,7 +715,7 @@ def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: Onlin
             report["final_isam2"] = trajectory_report(gt, Trajectory(times, graph.isam2_poses))
         report["online"] = trajectory_report(gt, Trajectory(times, _read_rows(out / TRAJECTORY, n)))
         report["teacher_chain"] = trajectory_report(gt, Trajectory(times, chained))
-    write_json(out / "report.json", _finite(report))
+    write_json(out / "report.json", json_safe(report))
     return report
 
 
@@ -723,16 +723,6 @@ def _read_rows(path: Path, n: int) -> NDArray[np.float64]:
     from data.formats import read_tum
 
     return read_tum(path).poses[:n]
-
-
-def _finite(obj):
-    if isinstance(obj, float):
-        return obj if np.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_finite(v) for v in obj]
-    return obj
 
 
 # ----------------------------------------------------------------------------------

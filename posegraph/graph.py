@@ -17,7 +17,6 @@ import logging
 import math
 import sys
 import time
-from collections import deque
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
 
@@ -26,6 +25,7 @@ from numpy.typing import NDArray
 from tqdm import tqdm
 
 from data import geometry as geo
+from data.chain import UnionFind, chain_edges
 from data.errors import VOError
 from data.formats import Edge
 from posegraph.config import DEFAULT, PoseGraphConfig
@@ -174,36 +174,11 @@ def validate_edges(frame_ids: NDArray[np.int64], edges: Sequence[Edge],
         fail(np.flatnonzero(~rigid)[0], "relative pose is not a finite rigid transform")
 
 
-def _orthonormalize_batch(Ts: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(N, 4, 4) transforms with rotation blocks projected onto SO(3): the orthogonal
-    polar factor, as :func:`data.geometry.orthonormalize` (SVD ``U V^T``). Nearly
-    orthonormal blocks (``|R^T R - I| < 1e-3``, all validated edges) take three
-    Newton-Schulz steps ``R <- R (3 I - R^T R) / 2`` (quadratic convergence to the same
-    polar factor, vectorised); the others a batched SVD."""
-    Ts = np.array(Ts, dtype=np.float64).reshape(-1, 4, 4)
-    R = Ts[:, :3, :3]
-    err = np.abs(R.transpose(0, 2, 1) @ R - np.eye(3)).max(axis=(1, 2), initial=0.0)
-    near = np.flatnonzero((err > 1e-12) & (err < 1e-3))  # exactly orthonormal ones stay as they are
-    if len(near):
-        Rn = R[near]
-        for _ in range(3):
-            Rn = 0.5 * Rn @ (3.0 * np.eye(3) - Rn.transpose(0, 2, 1) @ Rn)
-        R[near] = Rn
-    far = np.flatnonzero(~(err < 1e-3))
-    if len(far):
-        U, _, Vt = np.linalg.svd(R[far])
-        d = np.sign(np.linalg.det(U @ Vt))
-        U[:, :, -1] *= d[:, None]
-        R[far] = U @ Vt
-    Ts[:, 3] = [0, 0, 0, 1]
-    return Ts
-
-
 def _pose3s(Ts: NDArray[np.float64]) -> list:
     """``gtsam.Pose3`` objects of (N, 4, 4) transforms (orthonormalised first)."""
     import gtsam
 
-    return [gtsam.Pose3(T) for T in _orthonormalize_batch(Ts)]
+    return [gtsam.Pose3(T) for T in geo.orthonormalize(Ts)]
 
 
 def _covs_gtsam(covs: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -212,29 +187,6 @@ def _covs_gtsam(covs: NDArray[np.float64]) -> NDArray[np.float64]:
     c = np.asarray(covs, dtype=np.float64).reshape(-1, 6, 6)
     c = geo.vec_to_gtsam(geo.vec_to_gtsam(c).transpose(0, 2, 1))
     return 0.5 * (c + c.transpose(0, 2, 1))
-
-
-def _se3_log_batch(T: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(E, 6) logarithms ``(v, w)`` of (E, 4, 4) rigid transforms: the batched form of
-    :func:`data.geometry.se3_log` (scipy rotation vectors, ``v = V^-1 t`` with the same
-    series near zero), for residuals of large graphs."""
-    from scipy.spatial.transform import Rotation
-
-    T = np.asarray(T, dtype=np.float64).reshape(-1, 4, 4)
-    if len(T) == 0:
-        return np.zeros((0, 6))
-    w = Rotation.from_matrix(T[:, :3, :3]).as_rotvec().reshape(-1, 3)
-    theta = np.linalg.norm(w, axis=1)
-    W = np.zeros((len(T), 3, 3))
-    W[:, 0, 1], W[:, 0, 2], W[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
-    W -= W.transpose(0, 2, 1)
-    small = theta < 1e-4
-    th = np.where(small, 1.0, theta)
-    half = 0.5 * th
-    d = np.where(small, 1.0 / 12.0 + theta**2 / 720.0, (1.0 - half * np.cos(half) / np.sin(half)) / th**2)
-    V_inv = np.eye(3) - 0.5 * W + d[:, None, None] * (W @ W)
-    v = np.einsum("nij,nj->ni", V_inv, T[:, :3, 3])
-    return np.concatenate([v, w], axis=1)
 
 
 def edge_residuals(poses: NDArray[np.float64], pos: NDArray[np.int64], T_meas: NDArray[np.float64],
@@ -259,26 +211,8 @@ def edge_residuals(poses: NDArray[np.float64], pos: NDArray[np.int64], T_meas: N
     D[:, :3, :3] = Mi_t @ R_rel
     D[:, :3, 3] = np.einsum("nij,nj->ni", Mi_t, t_rel - T_meas[:, :3, 3])
     D[:, 3, 3] = 1.0
-    d = _se3_log_batch(D)
+    d = geo.se3_log(D)
     return np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", d, info, d), 0.0))
-
-
-class _UnionFind:
-    def __init__(self, n: int) -> None:
-        self.parent = list(range(n))
-
-    def find(self, a: int) -> int:
-        while self.parent[a] != a:
-            self.parent[a] = self.parent[self.parent[a]]
-            a = self.parent[a]
-        return a
-
-    def union(self, a: int, b: int) -> bool:
-        ra, rb = self.find(a), self.find(b)
-        if ra == rb:
-            return False
-        self.parent[rb] = ra
-        return True
 
 
 def _component_labels(n: int, pos: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -327,29 +261,10 @@ def chain_poses(frame_ids: NDArray[np.int64], edges: Sequence[Edge],
     a = edge_arrays(frame_ids, edges)
     if (a.pos < 0).any():
         validate_edges(frame_ids, edges, a)
-    n = len(frame_ids)
-    uf = _UnionFind(n)
-    adj: list[list[tuple[int, int, bool]]] = [[] for _ in range(n)]
-    for e in np.argsort(a.gap, kind="stable").tolist():
-        p, q = int(a.pos[e, 0]), int(a.pos[e, 1])
-        if uf.union(p, q):
-            adj[p].append((q, e, False))
-            adj[q].append((p, e, True))  # traversed backwards: inverse
-    poses = np.full((n, 4, 4), np.nan)
-    poses[0] = np.eye(4) if T_world_first is None else T_world_first
-    seen = np.zeros(n, bool)
-    seen[0] = True
-    queue = deque([0])
-    while queue:
-        p = queue.popleft()
-        for q, e, backwards in adj[p]:
-            if not seen[q]:
-                seen[q] = True
-                poses[q] = poses[p] @ (geo.inv_T(a.T[e]) if backwards else a.T[e])
-                queue.append(q)
-    if not seen.all():
+    chained = chain_edges(frame_ids, a.pos, a.T, T_world_first)
+    if not chained.reached.all():
         check_connected(frame_ids, edges, a)
-    return poses
+    return chained.poses
 
 
 # ----------------------------------------------------------------------------------
@@ -566,7 +481,7 @@ def whitened_residuals(poses: NDArray[np.float64], frame_ids: NDArray[np.int64],
     no robust kernel."""
     a = edge_arrays(np.asarray(frame_ids, dtype=np.int64), edges)
     c = a.cov if covs is None else np.asarray(covs, dtype=np.float64).reshape(-1, 6, 6)
-    return edge_residuals(np.asarray(poses, dtype=np.float64), a.pos, _orthonormalize_batch(a.T), np.linalg.inv(c))
+    return edge_residuals(np.asarray(poses, dtype=np.float64), a.pos, geo.orthonormalize(a.T), np.linalg.inv(c))
 
 
 def _keep_connected(n_frames: int, pos: NDArray[np.int64], drop: NDArray[np.bool_],
@@ -580,7 +495,7 @@ def _keep_connected(n_frames: int, pos: NDArray[np.int64], drop: NDArray[np.bool
     if len(np.unique(labels)) == 1:
         return keep
     # union frames by component label, then add dropped edges best first while they join components
-    uf = _UnionFind(n_frames)
+    uf = UnionFind(n_frames)
     first: dict[int, int] = {}
     for p, lab in enumerate(labels.tolist()):
         uf.union(first.setdefault(lab, p), p)
@@ -606,7 +521,7 @@ class _Problem:
     def __init__(self, frame_ids: NDArray[np.int64], a: EdgeArrays, initial: NDArray[np.float64],
                  cfg: PoseGraphConfig) -> None:
         self.frame_ids, self.a, self.cfg = frame_ids, a, cfg
-        self.T = _orthonormalize_batch(a.T)
+        self.T = geo.orthonormalize(a.T)
         self.measured = _pose3s(self.T)  # the one per-edge conversion
         self.prior = _prior(frame_ids[0], initial[0], cfg)
         self.info = np.linalg.inv(a.cov) if len(a.cov) else np.zeros((0, 6, 6))

@@ -31,7 +31,6 @@ multiplied by in the graph, estimated from residuals without ground truth.
 
 from __future__ import annotations
 
-import math
 from typing import Optional, Sequence
 
 import numpy as np
@@ -40,6 +39,7 @@ from numpy.typing import NDArray
 from data import geometry as geo
 from data import metrics
 from data.formats import Edge, Trajectory
+from data.io import json_safe as _f  # JSON-safe number (NaN -> None)
 
 ROW_LABELS = {"teacher": "teacher (chained)", "learner": "learner (chained)", "fused": "fused (graph)",
               "zero_motion": "zero motion", "constant_velocity": "constant velocity"}
@@ -51,14 +51,6 @@ RPE_GAPS = (1, 2, 3)
 CHI2_6_1SIGMA = 7.0405
 CHI2_6_2SIGMA = 11.3139
 METRIC_KEYS = ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "se3_l2_mean")
-
-
-def _f(x: Optional[float]) -> Optional[float]:
-    """JSON-safe float (NaN -> None)."""
-    if x is None:
-        return None
-    x = float(x)
-    return x if math.isfinite(x) else None
 
 
 def frames_per_second_gap(times: NDArray[np.float64]) -> int:

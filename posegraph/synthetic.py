@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from data import geometry as geo
+from data.chain import chain_steps
 from data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
 
 
@@ -57,10 +58,7 @@ def make_edges(gt: NDArray[np.float64], gaps: Iterable[int], cov: NDArray[np.flo
 def chain_trajectory(edges: list[Edge], n: int) -> NDArray[np.float64]:
     """Dead-reckoned (n, 4, 4) poses from the gap-1 edges ``k -> k+1`` (positions 0..n-1)."""
     step = {e.i: e.T_i_j for e in edges if e.j == e.i + 1}
-    out = [np.eye(4)]
-    for k in range(n - 1):
-        out.append(out[-1] @ step[k])
-    return np.array(out)
+    return chain_steps([step[k] for k in range(n - 1)])
 
 
 def write_source_dir(path: Path, gt: NDArray[np.float64], edges: list[Edge], times: NDArray[np.float64],

@@ -13,7 +13,9 @@ from data.scenes import add_topic_options, scene_with_topics
 from teacher import processes
 from teacher.config import PRESETS
 
-PRESET_HELP = ("presets: 'default' - the teacher as benchmarked (K = 5 gaps, 1000 ORB features); "
+PRESET_HELP = ("presets: 'default' - the teacher as benchmarked (K = 5 gaps, 1000 ORB features, two-way "
+               "refinement and dense depth alignment); 'paper' - the paper's kind of teacher (ORB + PnP-RANSAC "
+               "with a least-squares refinement, no dense step; noisier labels); "
                "'tiny' - 2 gaps and 800 features, for the tests only")
 
 

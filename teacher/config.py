@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 
 @dataclass(frozen=True)
@@ -63,6 +63,13 @@ class TeacherConfig:
     in pixel-equivalent units per metre; 0 disables it. 1000 treats a 1 mm disagreement at
     1 m like a 1 px reprojection error. On redkitchen it lowers the gap-1 error from 6.1 to
     5.6 mm, most in motion-blurred frames where keypoints are poorly localised."""
+    refine: bool = True
+    """Refine the PnP-RANSAC pose with the robust Newton solve of
+    :func:`teacher.odometry.refine_two_way` (two-way and 3-D terms as set above). False
+    keeps the pose of ``cv2.solvePnPRansac`` + ``cv2.solvePnPRefineLM`` on the RANSAC
+    inliers (forward reprojection, least squares), as ORB-SLAM's tracking does; the
+    covariance is then evaluated at that pose from the forward reprojection residuals of
+    the inliers alone (same formula, no Newton step, no backward or 3-D term)."""
     refine_rounds: int = 1
     """Rounds of (select inliers with the current pose, refine)."""
     refine_iters: int = 6
@@ -145,4 +152,13 @@ class TeacherConfig:
 DEFAULT = TeacherConfig()
 #: a fast preset for tests: fewer features and gaps
 TINY = TeacherConfig(gaps=2, n_features=800)
-PRESETS = {"default": DEFAULT, "tiny": TINY}
+#: The paper's kind of teacher: frame-to-frame ORB + PnP-RANSAC as ORB-SLAM's tracking
+#: front-end does it (guided matching with a constant-velocity prediction, RANSAC, a
+#: least-squares pose refinement on the inliers), without what ``default`` adds on top:
+#: no robust two-way Newton refinement (``refine`` False, so no backward reprojection and
+#: no 3-D depth term either) and no dense point-to-plane depth alignment
+#: (``dense_iters`` 0, so no stale-stream handling). Everything else (features, matching,
+#: feature tracks for gaps 2..K, failure tests, gaps 1..K) is ``default``'s. Its labels are
+#: noisier: on the redkitchen sample see bench/README.md, "Teacher-noise sweep".
+PAPER = replace(DEFAULT, refine=False, dense_iters=0)
+PRESETS = {"default": DEFAULT, "tiny": TINY, "paper": PAPER}

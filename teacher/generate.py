@@ -36,8 +36,9 @@ from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from data import geometry as geo
+from data.chain import chain_edges
 from data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
-from data.io import ensure_dir, git_revision, write_json
+from data.io import ensure_dir, git_revision, json_safe, write_json
 from data.metrics import relative_pose_error, trajectory_report
 from data.runs import Fingerprint, claim, frames_id, output_folder, scene_id, stage_dir, write_fingerprint
 from data.scenes import open_scene
@@ -91,7 +92,7 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> Te
         edges = _run_chunks(seq, cfg, bounds, bar.update)
     bar.close()
     edges.sort(key=lambda e: (e.i, e.j))
-    poses, bridges = chain_trajectory(seq.ids(), edges, cfg.gaps)
+    poses, bridges = chain_trajectory(seq.ids(), edges)
     return TeacherRun(edges, poses, bridges, time.perf_counter() - t0)
 
 
@@ -228,38 +229,15 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     return edges
 
 
-def chain_trajectory(ids: NDArray[np.int64], edges: list[EdgeEstimate], gaps: int
-                     ) -> tuple[NDArray[np.float64], list[dict]]:
-    """Chain gap-1 edges into ``T_world_cam`` (frame 0 at the identity).
-
-    A failed gap-1 edge (k, k+1) is bridged by the shortest good edge (k-m, k+1),
-    m = 1..gaps-1, from an already placed frame; else by constant velocity (the last good
-    gap-1 motion, identity if none). Returns (poses (N, 4, 4), bridges).
-    """
-    pos = {int(f): p for p, f in enumerate(ids)}
-    good = {(e.i, e.j): e.T_i_j for e in edges if e.ok}
-    n = len(ids)
-    poses = np.tile(np.eye(4), (n, 1, 1))
-    bridges: list[dict] = []
-    v_prev = np.eye(4)
-    for k in range(n - 1):
-        a, b = int(ids[k]), int(ids[k + 1])
-        if (a, b) in good:
-            v_prev = good[(a, b)]
-            poses[k + 1] = poses[k] @ v_prev
-            continue
-        for m in range(1, gaps):
-            if k - m < 0:
-                break
-            key = (int(ids[k - m]), b)
-            if key in good:
-                poses[k + 1] = poses[pos[key[0]]] @ good[key]
-                bridges.append({"i": a, "j": b, "method": f"edge {key[0]}->{b}"})
-                break
-        else:
-            poses[k + 1] = poses[k] @ v_prev
-            bridges.append({"i": a, "j": b, "method": "constant velocity"})
-    return poses, bridges
+def chain_trajectory(ids: NDArray[np.int64], edges: list[EdgeEstimate]) -> tuple[NDArray[np.float64], list[dict]]:
+    """Chain the good edges into ``T_world_cam`` (frame 0 at the identity) with
+    :func:`data.chain.chain_edges`: gap-1 edges first, a failed gap-1 edge bridged by the
+    shortest good edge spanning it, frames no good edge reaches placed by constant velocity.
+    Returns (poses (N, 4, 4), bridges)."""
+    at = {int(f): p for p, f in enumerate(ids)}
+    good = [e for e in edges if e.ok]
+    chained = chain_edges(ids, [(at[e.i], at[e.j]) for e in good], [e.T_i_j for e in good], fill_gaps=True)
+    return chained.poses, chained.bridges
 
 
 def _edge_rows(edges: list[EdgeEstimate], ts: dict[int, float]) -> list[dict]:
@@ -346,19 +324,8 @@ def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path,
     report = build_report(seq, run, cfg)
     if fingerprint is not None:
         write_fingerprint(out, fingerprint)
-    write_json(out / "report.json", _finite(report))
+    write_json(out / "report.json", json_safe(report))
     return report
-
-
-def _finite(obj):
-    """Replace non-finite floats by None so the JSON stays strict."""
-    if isinstance(obj, float):
-        return obj if np.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_finite(v) for v in obj]
-    return obj
 
 
 def fingerprint(spec: str, seq: Sequence, cfg: TeacherConfig) -> Fingerprint:

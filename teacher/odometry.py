@@ -513,7 +513,8 @@ def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     # points of frame j with valid depth give the backward term
     z_j = (depth_at(fj.depth, uv_j, cfg) if cfg.subpixel else fj.z[pairs[:, 1]]).astype(np.float64)
     Q_all = _backproject(uv_j, z_j, K)
-    has_b = (z_j > 0) if cfg.two_way else np.zeros(len(z_j), bool)
+    has_b = (z_j > 0) if cfg.two_way and cfg.refine else np.zeros(len(z_j), bool)
+    iters, w3 = (cfg.refine_iters, cfg.depth_weight) if cfg.refine else (0, 0.0)  # 0: covariance at T0 only
     T, r, cov = T0, None, None
     for _ in range(cfg.refine_rounds):  # select inliers with the current pose, refine
         in_f = _reproj_err(geo.inv_T(T), P_i, uv_j, K) < cfg.refine_inlier_px
@@ -522,13 +523,13 @@ def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
         if in_f.sum() < max(6, cfg.min_inliers):
             return EdgeEstimate(i, j, "few_inliers", matches=n_match, inliers=int(in_f.sum()))
         sf, sb = _even(np.flatnonzero(in_f), cfg.refine_max_points), _even(np.flatnonzero(in_b), cfg.refine_max_points)
-        T, cov, r = refine_two_way(T, P_i[sf], uv_j[sf], Q_all[sb], uv_i[sb], K, cfg.huber_px, cfg.refine_iters,
-                                   cfg.min_sigma_px, P_i[sb], cfg.depth_weight)
+        T, cov, r = refine_two_way(T, P_i[sf], uv_j[sf], Q_all[sb], uv_i[sb], K, cfg.huber_px, iters,
+                                   cfg.min_sigma_px, P_i[sb], w3)
     n_in = int(in_f.sum())
     res = EdgeEstimate(i, j, "ok", matches=n_match, inliers=n_in, inlier_ratio=n_in / n_match,
                        inlier_pairs=pairs[in_f])
     n_px = 2 * (len(sf) + len(sb))  # the pixel residuals lead r (unless a point fell behind a camera)
-    r_px = r[:n_px] if len(r) == n_px + (3 * len(sb) if cfg.depth_weight > 0 else 0) else \
+    r_px = r[:n_px] if len(r) == n_px + (3 * len(sb) if w3 > 0 else 0) else \
         _residuals(T, P_i[sf], uv_j[sf], Q_all[sb], uv_i[sb], K, False)[0]
     res.rmse_px = float(np.sqrt(np.mean(r_px * r_px)))
     res.T_i_j, res.cov = T, cov

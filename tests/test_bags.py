@@ -84,6 +84,7 @@ def test_sequence_crosses_processes(bags):
         np.testing.assert_array_equal(twin.depth(k), s.depth(k))
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 @pytest.mark.parametrize("kind", ["ros1", "ros2_sqlite"])
 def test_teacher_trajectory_from_bag_equals_folder(bags, tum_images, tmp_path, kind):
@@ -101,6 +102,7 @@ def test_teacher_trajectory_from_bag_equals_folder(bags, tum_images, tmp_path, k
     assert (tmp_path / "folder" / "edges.g2o").read_text() == (tmp_path / "bag" / "edges.g2o").read_text()
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_teacher_on_compressed_colour_bag_is_close(bags, tum_images, tmp_path):
     """JPEG re-encoding changes pixels, not the motion: the trajectory stays within 2 mm."""
@@ -136,6 +138,7 @@ def _write(tmp_path, tiny_seq, name="r.bag", **kw) -> Path:
     return bag.write_bag(tiny_seq, tmp_path / name, **kw)
 
 
+@pytest.mark.slow
 def test_16uc1_millimetres_and_mono8(tmp_path, tiny_seq):
     p = _write(tmp_path, tiny_seq, colour_encoding="mono8")
     [seq] = open_scene(str(p))
@@ -151,6 +154,7 @@ def _cli_error(capsys, argv) -> str:
     return err
 
 
+@pytest.mark.slow
 def test_truncated_bags_give_one_line_errors(tmp_path, tiny_seq, capsys):
     p = _write(tmp_path, tiny_seq)
     data = p.read_bytes()
@@ -168,6 +172,7 @@ def test_truncated_bags_give_one_line_errors(tmp_path, tiny_seq, capsys):
         assert f"r2-{storage}" in err
 
 
+@pytest.mark.slow
 def test_missing_and_ambiguous_topics(tmp_path, tiny_seq, capsys):
     p = _write(tmp_path, tiny_seq)
     out = ["--out", str(tmp_path / "o")]
@@ -193,6 +198,7 @@ def test_missing_and_ambiguous_topics(tmp_path, tiny_seq, capsys):
     assert "no depth image (16UC1 or 32FC1) topic" in _cli_error(capsys, ["--scene", str(nodepth), *out])
 
 
+@pytest.mark.slow
 def test_wrong_encodings(tmp_path, tiny_seq, capsys):
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
@@ -240,6 +246,7 @@ def _merge(dst: Path, srcs: list[Path], drop: str = "") -> None:
                         w.write(conns[c.topic], t, raw)
 
 
+@pytest.mark.slow
 def test_posegraph_and_learner_clis_take_bag_scenes(tmp_path, tiny_seq, capsys):
     """The pose graph reads the bag's ground truth through --gt-topic; the learner CLI gives
     the topic options to its bag scenes only."""

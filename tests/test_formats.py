@@ -322,3 +322,18 @@ def test_setup_logging_shows_ours_at_info_and_libraries_at_warning() -> None:
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parents[1])
     assert res.stderr.splitlines() == ["WARNING numexpr.utils: a library warning", "INFO teacher.generate: ours"]
+
+
+def test_json_safe_writes_non_finite_numbers_as_null(tmp_path: Path) -> None:
+    """The one NaN-to-null helper: nested containers, NumPy scalars; write_json stays strict."""
+    import json
+
+    from data.io import json_safe, write_json
+
+    obj = {"a": float("nan"), "b": [1.5, np.float64("inf"), np.float32(2.0), np.int64(3)],
+           "c": {"d": (np.nan, "x", None, True)}}
+    f = tmp_path / "r.json"
+    with pytest.raises(ValueError):
+        write_json(f, obj)
+    write_json(f, json_safe(obj))
+    assert json.loads(f.read_text()) == {"a": None, "b": [1.5, None, 2.0, 3], "c": {"d": [None, "x", None, True]}}

@@ -107,6 +107,20 @@ def test_small_angle_series_continuity() -> None:
     np.testing.assert_allclose(geo.se3_log(geo.se3_exp(lo)), geo.se3_log(geo.se3_exp(hi)), atol=1e-12)
 
 
+def test_log_of_a_batch_equals_each_log() -> None:
+    """se3_log of (..., 4, 4) is the log of each transform (both rotation branches and the
+    series mixed in one batch), and inverts exp: log(exp(xi)) = xi."""
+    rng = np.random.default_rng(RNG_SEED)
+    xis = np.array([_random_xi(rng, a) for a in ANGLES] + [np.zeros(6)])
+    Ts = np.array([geo.se3_exp(x) for x in xis])
+    batch = geo.se3_log(Ts)
+    for x, T, got in zip(xis, Ts, batch):
+        np.testing.assert_allclose(got, geo.se3_log(T), rtol=0, atol=1e-15)
+        np.testing.assert_allclose(got, x, atol=1e-9)
+    assert geo.se3_log(Ts[:12].reshape(3, 4, 4, 4)).shape == (3, 4, 6)
+    assert geo.se3_log(np.zeros((0, 4, 4))).shape == (0, 6)
+
+
 # ----------------------------------------------------------------------------------
 # GTSAM agreement (tangent order (w, v), right perturbation)
 # ----------------------------------------------------------------------------------
@@ -292,6 +306,26 @@ def test_rigid_checks_and_orthonormalize() -> None:
     np.testing.assert_allclose(fixed[:3, 3], noisy[:3, 3])
     assert geo.rotation_angle_deg(geo.se3_exp([0, 0, 0, 0, 0, np.radians(30)])) == pytest.approx(30, abs=1e-9)
     assert geo.rotation_angle_deg(geo.se3_exp([0, 0, 0, np.pi, 0, 0])) == pytest.approx(180, abs=1e-9)
+
+
+def test_orthonormalize_is_the_closest_rotation() -> None:
+    """orthonormalize of one transform or a batch is the polar factor of the rotation block
+    (scipy.linalg.polar) on both of its paths (Newton-Schulz near SO(3), SVD further
+    away); a reflection becomes a rotation; exact rotations are returned unchanged."""
+    rng = np.random.default_rng(8)
+    Ts = np.array([_random_T(rng) for _ in range(40)])
+    noisy = Ts + rng.normal(size=Ts.shape) * np.repeat([1e-6, 1e-2], 20)[:, None, None]
+    noisy[:, 3] = [0, 0, 0, 1]
+    fixed = geo.orthonormalize(noisy)
+    for n, T in zip(noisy, fixed):
+        np.testing.assert_allclose(T[:3, :3], scipy.linalg.polar(n[:3, :3])[0], atol=1e-12)
+        np.testing.assert_array_equal(T[:3, 3], n[:3, 3])
+        np.testing.assert_allclose(geo.orthonormalize(n), T, rtol=0, atol=1e-15)
+    assert np.array_equal(geo.orthonormalize(Ts), Ts)
+    mirror = Ts[0].copy()
+    mirror[:3, 0] *= -1  # det -1
+    assert geo.is_rigid(geo.orthonormalize(mirror), atol=1e-12)
+    assert geo.orthonormalize(np.zeros((0, 4, 4))).shape == (0, 4, 4)
 
 
 def test_evo_array_round_trip() -> None:

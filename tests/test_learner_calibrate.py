@@ -174,6 +174,7 @@ def _copy_run(ckpt: Path, dst: Path) -> Path:
     return dst / ckpt.name
 
 
+@pytest.mark.slow
 def test_calibrate_writes_a_readable_calibration(run, data_dirs, tmp_path, monkeypatch) -> None:
     ckpt = _copy_run(run, tmp_path / "run")
     from data.sequence import Sequence
@@ -218,6 +219,7 @@ def test_read_calibration_rejects_bad_files(tmp_path) -> None:
             read_calibration(p)
 
 
+@pytest.mark.slow
 def test_predict_applies_the_calibration(run, data_dirs, tmp_path) -> None:
     ckpt = _copy_run(run, tmp_path / "run")
     cfg = PredictConfig(samples=6, max_gap=3)
@@ -254,6 +256,7 @@ def test_predict_applies_the_calibration(run, data_dirs, tmp_path) -> None:
         predict(ckpt, seq, out=tmp_path / "y", config=cfg)
 
 
+@pytest.mark.slow
 def test_fit_with_validation_scene_calibrates(data_dirs, tmp_path, caplog) -> None:
     kw = dict(variant="cnn-unsup", preset="tiny", teacher_root=data_dirs["teacher"], steps=2)
     res = fit([str(data_dirs["train"])], val_scenes=[str(data_dirs["val"])], out=tmp_path / "run", **kw)
@@ -286,6 +289,7 @@ def test_fit_checks_validation_teacher_labels_before_training(data_dirs, tmp_pat
 # ----------------------------------------------------------------------------------
 # command line
 # ----------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_cli_calibrate_then_predict(run, data_dirs, tmp_path, capsys) -> None:
     ckpt = _copy_run(run, tmp_path / "run")
     assert cli.main(["calibrate", "--checkpoint", str(ckpt), "--scene", str(data_dirs["val"]),
@@ -299,6 +303,7 @@ def test_cli_calibrate_then_predict(run, data_dirs, tmp_path, capsys) -> None:
     assert json.loads((tmp_path / "q" / "report.json").read_text())["calibration_applied"] is False
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, message", [
     (["calibrate", "--checkpoint", "{tmp}/missing.pt", "--scene", "{val}", "--teacher", "{teacher}"],
      "does not exist"),
@@ -316,6 +321,7 @@ def test_cli_calibrate_bad_inputs_exit_1(args, message, run, data_dirs, tmp_path
     assert not (run.parent / CALIBRATION_FILE).exists()
 
 
+@pytest.mark.slow
 def test_teacher_labels_of_another_sequence_are_refused(run, data_dirs, tmp_path) -> None:
     """``--teacher DIR`` of a single-sequence scene is the folder itself; a teacher folder
     records its sequence in report.json, so another sequence's labels are caught."""

@@ -48,6 +48,7 @@ def test_mc_dropout_shapes_and_spread() -> None:
     assert q.shape == (5, 1, 3, 6)
 
 
+@pytest.mark.slow
 def test_pretrained_init(tmp_path) -> None:
     full = CTCNet(PRESETS["paper"].model)
     # a fake torchvision vgg11_bn state dict with a 3-channel first conv

@@ -90,6 +90,7 @@ def _state(ckpt: Path) -> dict:
 # ----------------------------------------------------------------------------------
 # training
 # ----------------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", list(VARIANTS))
 def test_every_variant_trains_two_steps(variant: str, fixture_seq, tmp_path) -> None:
     seq, teacher = fixture_seq
@@ -113,6 +114,7 @@ def test_every_variant_trains_two_steps(variant: str, fixture_seq, tmp_path) -> 
     assert torch.isfinite(init).all()
 
 
+@pytest.mark.slow
 def test_cpu_preset_two_steps(fixture_seq, tmp_path) -> None:
     seq, teacher = fixture_seq
     res = fit([str(seq)], variant="ctc", preset="cpu", out=tmp_path / "run", teacher_root=teacher,
@@ -251,6 +253,7 @@ def test_input_pairs_rgb_rgbd_flow_and_flowd() -> None:
     assert torch.equal(xm[0, 0], -xd[0, 0].flip(-1)) and torch.equal(xm[0, 1:], xd[0, 1:].flip(-1))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, good, bad", [("flip_prob", 1.0, 1.5), ("reverse_prob", 0.5, -0.1)])
 def test_augmentation_trains(fixture_seq, tmp_path, name, good, bad) -> None:
     """Mirroring and time reversal: a tiny fit with each trains both phases, records its
@@ -264,6 +267,7 @@ def test_augmentation_trains(fixture_seq, tmp_path, name, good, bad) -> None:
         fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "bad", teacher_root=teacher, **{name: bad})
 
 
+@pytest.mark.slow
 def test_paper_preset_single_forward_backward() -> None:
     """The full-size network: its latent at the preset's 320x240 input, and one
     forward/backward of the CTC + regression loss. The backward runs on 64x48 inputs: the
@@ -296,6 +300,7 @@ def test_paper_preset_single_forward_backward() -> None:
     assert float(small.lstm.weight_ih_l0.grad.abs().sum()) > 0
 
 
+@pytest.mark.slow
 def test_resume_reaches_the_same_state(fixture_seq, tmp_path) -> None:
     seq, teacher = fixture_seq
     kw = dict(variant="lstm-aug", preset="tiny", teacher_root=teacher, steps=4, pretrain_steps=2, seed=7)
@@ -339,6 +344,7 @@ def _train_one_epoch_then_stop(seq: Path, out: Path, kw: dict) -> None:
         T.save_checkpoint = orig
 
 
+@pytest.mark.slow
 def test_steps_override_keeps_the_preset_proportions(fixture_seq, tmp_path) -> None:
     """``--steps`` keeps the preset's phase-1 and warm-up proportions (the cpu preset:
     1000 of 1500 steps in phase 1, 100 of warm-up), an explicit value wins, and the
@@ -362,6 +368,7 @@ def test_steps_override_keeps_the_preset_proportions(fixture_seq, tmp_path) -> N
     assert all(a >= b for a, b in zip(lrs[99:], lrs[100:]))
 
 
+@pytest.mark.slow
 def test_fit_refuses_teacher_labels_of_another_sequence(fixture_seq, tmp_path) -> None:
     """One ``--teacher`` folder given for a scene it was not made for (its report.json names
     another sequence) is an error, not silently used as that scene's labels."""
@@ -375,6 +382,7 @@ def test_fit_refuses_teacher_labels_of_another_sequence(fixture_seq, tmp_path) -
         fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=other, steps=2)
 
 
+@pytest.mark.slow
 def test_resume_with_another_preset_or_variant_fails(fixture_seq, tmp_path) -> None:
     seq, teacher = fixture_seq
     fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher, steps=2)
@@ -393,6 +401,7 @@ def test_resume_with_another_preset_or_variant_fails(fixture_seq, tmp_path) -> N
         fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher)
 
 
+@pytest.mark.slow
 def test_nan_loss_is_a_clear_error_and_keeps_checkpoint(fixture_seq, tmp_path, monkeypatch) -> None:
     seq, teacher = fixture_seq
     fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher, steps=2)
@@ -407,6 +416,7 @@ def test_nan_loss_is_a_clear_error_and_keeps_checkpoint(fixture_seq, tmp_path, m
     assert (tmp_path / "run" / "checkpoint.pt").read_bytes() == before
 
 
+@pytest.mark.slow
 def test_missing_teacher_labels_is_a_clear_error(fixture_seq, tmp_path) -> None:
     seq, _ = fixture_seq
     with pytest.raises(DataError, match="has no teacher labels"):
@@ -424,6 +434,7 @@ def test_val_scene_must_differ_from_training(fixture_seq, tmp_path) -> None:
             out=tmp_path / "r2", teacher_root=teacher)
 
 
+@pytest.mark.slow
 def test_val_frames_of_a_training_sequence(fixture_seq, tmp_path) -> None:
     """Train on frames 0:6 of a sequence and validate (calibrate) on its frames 6:20."""
     seq, teacher = fixture_seq
@@ -446,6 +457,7 @@ def trained(fixture_seq, tmp_path_factory) -> Path:
     return fit([str(seq)], variant="ctc", preset="tiny", out=out, teacher_root=teacher).checkpoint
 
 
+@pytest.mark.slow
 def test_predict_writes_readable_outputs(trained, fixture_seq, tmp_path) -> None:
     seq, _ = fixture_seq
     res = predict(trained, str(seq), out=tmp_path / "pred", config=PredictConfig(samples=6, drop=0.2, max_gap=3))
@@ -471,6 +483,7 @@ def test_predict_writes_readable_outputs(trained, fixture_seq, tmp_path) -> None
     assert factor.noiseModel().sigmas().min() > 0
 
 
+@pytest.mark.slow
 def test_predict_is_deterministic_and_samples_matter(trained, fixture_seq, tmp_path) -> None:
     seq, _ = fixture_seq
     a = predict(trained, str(seq), out=tmp_path / "a", config=PredictConfig(samples=4)).reports[0]
@@ -489,6 +502,7 @@ def test_auroc_known_answers() -> None:
 # ----------------------------------------------------------------------------------
 # command line
 # ----------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_cli_fit_and_predict(fixture_seq, tmp_path, capsys) -> None:
     seq, teacher = fixture_seq
     assert cli.main(["fit", "--scene", str(seq), "--variant", "cnn-unsup", "--preset", "tiny", "--steps", "2",
@@ -499,6 +513,7 @@ def test_cli_fit_and_predict(fixture_seq, tmp_path, capsys) -> None:
     assert rep["frames"] == 8 and rep["samples"] == 3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, message", [
     (["predict", "--checkpoint", "{tmp}/missing.pt", "--scene", "{seq}"], "does not exist"),
     (["predict", "--checkpoint", "{ckpt}", "--scene", "{seq}", "--preset", "cpu"], "preset 'tiny', not 'cpu'"),
@@ -529,6 +544,7 @@ def test_cli_wrong_checkpoint_file(fixture_seq, tmp_path, capsys) -> None:
 # ----------------------------------------------------------------------------------
 # multi-process
 # ----------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_ddp_two_cpu_processes(fixture_seq, tmp_path) -> None:
     seq, teacher = fixture_seq
     torchrun = Path(sys.executable).with_name("torchrun")
@@ -565,6 +581,7 @@ def write_random_walk_sequence(root: Path, n: int = 24, w: int = 64, h: int = 48
     return seq
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("labels", ["aligned", "shuffled", "shifted"])
 def test_tiny_model_overfits_exact_labels_and_only_aligned_ones(labels: str, tmp_path, monkeypatch) -> None:
     """The ``tiny`` network fits a tiny sequence with exact labels to <= 0.3x the error of
@@ -641,6 +658,7 @@ def test_no_skill_warning(caplog) -> None:
     assert [r.levelname for r in caplog.records] == ["WARNING"] and "training" in caplog.text
 
 
+@pytest.mark.slow
 def test_init_fine_tunes_from_another_checkpoint(fixture_seq, tmp_path) -> None:
     """``init``: a second fit starts from the first one's weights (its output scale kept)
     with a fresh schedule; another network shape or input is refused."""

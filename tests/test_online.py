@@ -42,6 +42,7 @@ def online_run(tmp_path_factory) -> online.OnlineResult:
     return online.run(online.open_source("synthetic/tiny"), out, TCFG, progress=False)
 
 
+@pytest.mark.slow
 def test_online_teacher_edges_equal_batch(batch, online_run):
     """The same edges, bit for bit: online/teacher/edges.g2o is the batch teacher's file."""
     assert online_run.frames == 20 and not online_run.interrupted
@@ -52,6 +53,7 @@ def test_online_teacher_edges_equal_batch(batch, online_run):
     assert rep["teacher_edges"] == len(read_g2o(batch / "teacher" / "edges.g2o")[0])
 
 
+@pytest.mark.slow
 def test_online_trajectory_matches_batch_pose_graph(batch, online_run):
     """The final trajectory (ISAM2, then the batch solve warm-started from it) has the ATE
     of the batch pose graph on the same edges to 10 %; the ISAM2 estimate alone and the
@@ -87,6 +89,7 @@ def _copy_frames_slowly(src: Path, dst: Path, period_s: float, done: threading.E
         done.set()
 
 
+@pytest.mark.slow
 def test_follow_a_folder_being_written(tmp_path, online_run):
     """Frames written by another thread one by one are taken as they arrive; the run ends
     after --timeout without a new frame, with the edges of the complete folder."""
@@ -129,6 +132,7 @@ class _Interrupting(online.FrameSource):
             yield f
 
 
+@pytest.mark.slow
 def test_ctrl_c_keeps_the_trajectory_so_far(tmp_path, monkeypatch, capsys):
     inner = online.open_source("synthetic/tiny")
     monkeypatch.setattr(online, "open_source", lambda *a, **k: _Interrupting(inner, 9))
@@ -153,6 +157,7 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert "--frames does not apply with --follow" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_online_learner_edges_equal_predict(batch, tmp_path):
     """With dropout off the MC mean is the network's output: the online learner's edges
     equal ``learner predict``'s (the LSTM over the same chunks), and they enter the graph."""

@@ -8,6 +8,7 @@ import time
 
 import pytest
 
+pytestmark = pytest.mark.slow  # trains and renders
 
 @pytest.fixture(scope="module")
 def demo_runs(tmp_path_factory):

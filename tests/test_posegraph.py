@@ -136,18 +136,12 @@ def test_isam2_matches_lm_on_noisy_graph():
 # ----------------------------------------------------------------------------------
 # vectorised internals used by large graphs
 # ----------------------------------------------------------------------------------
-def test_batched_log_and_residuals_match_geometry_and_gtsam():
-    """_se3_log_batch equals data.geometry.se3_log (angles 0, 1e-6, ~1, near pi); the
-    vectorised whitened residuals equal GTSAM's BetweenFactorPose3 whitened error, also
-    for gross errors (30 degrees) where a small-angle shortcut would be wrong."""
-    from posegraph.graph import _se3_log_batch, _orthonormalize_batch, whitened_residuals
+def test_vectorised_residuals_match_gtsam():
+    """The vectorised whitened residuals equal GTSAM's BetweenFactorPose3 whitened error,
+    also for gross errors (30 degrees) where a small-angle shortcut would be wrong."""
+    from posegraph.graph import whitened_residuals
 
     rng = np.random.default_rng(4)
-    xis = [np.zeros(6), [0.1, -0.2, 0.3, 1e-6, 0, 0], [0.5, 0.1, -0.3, 0.4, -0.7, 0.2],
-           [0.2, 0.3, 0.1, 0, np.pi - 1e-6, 0], [1, 2, 3, 0.9, 0.3, -2.9]]
-    Ts = np.array([geo.se3_exp(x) for x in xis])
-    np.testing.assert_allclose(_se3_log_batch(Ts), [geo.se3_log(T) for T in Ts], atol=1e-9)
-
     gt = syn.helix(12)
     A = rng.normal(size=(6, 6))
     C = A @ A.T * 1e-4 + np.eye(6) * 1e-5  # correlated, anisotropic
@@ -157,23 +151,12 @@ def test_batched_log_and_residuals_match_geometry_and_gtsam():
     ours = whitened_residuals(poses, np.arange(12), edges)
     noise = gtsam.noiseModel.Gaussian.Covariance(geo.cov_to_gtsam(C))
     values = gtsam.Values()
-    for k, T in enumerate(_orthonormalize_batch(poses)):
+    for k, T in enumerate(geo.orthonormalize(poses)):
         values.insert(k, gtsam.Pose3(T))
     ref = [np.linalg.norm(noise.whiten(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T_i_j), noise)
                                        .unwhitenedError(values))) for e in edges]
     np.testing.assert_allclose(ours, ref, rtol=1e-7)
     assert ours[4] > 30 and np.median(ours) < 10
-
-
-def test_orthonormalize_batch_is_the_polar_factor():
-    from posegraph.graph import _orthonormalize_batch
-
-    rng = np.random.default_rng(8)
-    Ts = np.array([geo.se3_exp(rng.normal(size=6)) for _ in range(40)])
-    noisy = Ts + rng.normal(size=Ts.shape) * np.repeat([1e-6, 1e-2], 20)[:, None, None]  # Newton-Schulz and SVD paths
-    noisy[:, 3] = [0, 0, 0, 1]
-    np.testing.assert_allclose(_orthonormalize_batch(noisy), [geo.orthonormalize(T) for T in noisy], atol=1e-12)
-    assert np.array_equal(_orthonormalize_batch(Ts), Ts)  # exact rotations are left as they are
 
 
 def test_chain_poses_is_dead_reckoning_with_noisy_long_edges():

@@ -121,6 +121,7 @@ def test_presets_are_distinct_and_sized():
     assert clean.sensor.noise_free and clean.digest() != PRESETS["office"].digest()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["office", "kitchen", "lab"])
 def test_trajectories_are_hand_held_speeds(name):
     cfg = PRESETS[name]
@@ -142,6 +143,7 @@ def test_trajectories_are_hand_held_speeds(name):
     assert clearance.min() > 0.2
 
 
+@pytest.mark.slow
 def test_rendering_is_deterministic_for_a_seed():
     cfg = dataclasses.replace(PRESETS["tiny"], frames=4)
     a = syn.FrameRenderer(cfg, *syn.build(cfg))
@@ -160,6 +162,7 @@ def test_rendering_is_deterministic_for_a_seed():
     assert np.abs(d_a[valid] - exact[valid]).max() > 1e-3
 
 
+@pytest.mark.slow
 def test_open_scene_round_trip_and_cache(tmp_path: Path):
     seqs = open_scene("synthetic/tiny", cache_dir=tmp_path)
     assert len(seqs) == 1
@@ -187,6 +190,7 @@ def test_open_scene_round_trip_and_cache(tmp_path: Path):
     assert not list(folder.parent.glob(".tmp-*"))
 
 
+@pytest.mark.slow
 def test_killed_render_leaves_no_scene(tmp_path: Path, monkeypatch):
     calls = {"n": 0}
     real = syn._write_frame
@@ -236,6 +240,7 @@ def test_open3d_barycentric_convention():
     np.testing.assert_allclose(ans["t_hit"].numpy()[0], 1.0, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_rolling_shutter_row_poses():
     cfg = dataclasses.replace(PRESETS["tiny"], frames=6)
     fr = syn.FrameRenderer(cfg, *syn.build(cfg))
@@ -277,6 +282,7 @@ def test_colour_camera_is_unregistered_like_kinect(z):
     np.testing.assert_allclose(found, expected, atol=0.15)
 
 
+@pytest.mark.slow
 def test_dropped_frames_repeat_the_previous_files(tmp_path: Path):
     """The sensor model's dropped frames: a repeated frame has the previous frame's colour,
     depth and pose; a colour repeat only its colour; a depth repeat its depth and pose. The
@@ -306,6 +312,7 @@ def test_dropped_frames_repeat_the_previous_files(tmp_path: Path):
             assert not any(same.values()), k
 
 
+@pytest.mark.slow
 def test_colour_files_are_the_sensor_jpeg(tmp_path) -> None:
     """The colour files are the sensor model's JPEG itself (as the 7-Scenes sample's): read
     back, they equal the rendered image exactly; the noise-free variant stays lossless PNG."""
@@ -325,6 +332,7 @@ def test_colour_files_are_the_sensor_jpeg(tmp_path) -> None:
     assert syn.colour_suffix(cfg.sensor) == ".color.jpg" and syn.colour_suffix(clean.sensor) == ".color.png"
 
 
+@pytest.mark.slow
 def test_training_corpus_rooms(tmp_path: Path):
     """``synthetic/room-<N>``: rooms of the three layouts in turn, each from its own seed
     (never a named scene's) with its own trajectory statistics; ``-clean`` works for them
