@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m posegraph.pipeline
+	$(PY) -m pipeline.demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q -p no:dash

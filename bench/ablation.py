@@ -137,7 +137,7 @@ def main() -> None:
         t0, c0 = time.perf_counter(), time.process_time()
         res = fit(args.scene, variant=v, preset=args.preset, frames=args.frames, out=run,
                   val_scenes=args.val_scene, val_frames=args.val_frames, calibrate=False,
-                  resume=(run / "checkpoint.pt").is_file(), teacher_root=args.teacher, steps=args.steps,
+                  teacher_root=args.teacher, steps=args.steps,  # a rerun keeps or continues the run
                   lr=args.lr, input=args.input, seed=args.seed, flip_prob=args.flip_prob, reverse_prob=args.reverse_prob)
         t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
         rep = predict(res.checkpoint, test_scene, frames=args.test_frames, out=run / "predict",

@@ -5,8 +5,8 @@ MC-dropout prediction with K=10 >= 100 pairs/s). Random frames; no data needed.
     .venv/bin/python -m bench.learner --threads 1 --steps 8 --json out.json
     .venv/bin/python -m bench.learner --input flow           # with the optical-flow input
 
-Training runs the real training step of ``learner fit`` (:func:`learner.train._pairs_step`
-/ :func:`learner.train._windows_step`: gathering the cached uint8 frames and labels, the
+Training runs the real training step of ``learner fit`` (:func:`learner.train.pairs_step`
+/ :func:`learner.train.windows_step`: gathering the cached uint8 frames and labels, the
 forward pass, the loss, backward and Adam) on a sequence of ``--frames`` random frames with
 teacher-style labels and covariances:
 
@@ -38,7 +38,7 @@ from learner.config import FLOW_U_CHANNEL, INPUTS, PRESETS, PredictConfig
 from learner.dataset import Frames, SequenceData
 from learner.model import CTCNet
 from learner.predict import mc_edges
-from learner.train import _pair_batches, _pairs_step, _window_batches, _windows_step
+from learner.train import pair_batches, pairs_step, window_batches, windows_step
 
 
 def fake_sequence(n: int, width: int, height: int, max_gap: int, seed: int = 0, mode: str = "rgb") -> SequenceData:
@@ -106,23 +106,23 @@ def main() -> None:
 
     net.train()
     # phase 1: single pairs, aug labels (the costliest label path)
-    batches = iter(_pair_batches(data, t, rng) * 10)
+    batches = iter(pair_batches(data, t, rng) * 10)
 
     def step_pairs() -> int:
         rows = next(batches)
-        optimise(_pairs_step(net, data, rows, t, True, gen, torch.device("cpu"), scale))
+        optimise(pairs_step(net, data, rows, t, True, gen, torch.device("cpu"), scale))
         return len(rows)
 
     wall, cpu, n = timed(step_pairs, args.steps)
     out.update(train_phase1_pairs_per_s=n / wall, train_phase1_pairs_per_cpu_s=n / cpu)
     # phase 2: windows, CTC on
     W = args.window or t.window_max
-    wins = iter(_window_batches(data, W, t, rng) * 10)
+    wins = iter(window_batches(data, W, t, rng) * 10)
     P = len(L.window_pairs(W, t.max_gap))
 
     def step_windows() -> int:
         rows = next(wins)
-        optimise(_windows_step(net, data, rows, W, t, False, gen, torch.device("cpu"), scale))
+        optimise(windows_step(net, data, rows, W, t, False, gen, torch.device("cpu"), scale))
         return len(rows) * P
 
     wall, cpu, n = timed(step_windows, max(1, args.steps // 2))

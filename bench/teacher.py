@@ -8,15 +8,10 @@ teacher also its constant-velocity bridges, failed gap-1 edges and the paths tha
 gap-1 edges (see teacher/odometry.py's fallback chain), and its ratios to Open3D (gap-1
 error, fps).
 
-<<<<<<< HEAD
-    .venv/bin/python bench/teacher.py           # every synthetic preset, stress scenes included,
-                                                # redkitchen and TUM fr1/xyz images; teacher + Open3D
-    .venv/bin/python bench/teacher.py --scenes synthetic/lab --frames 0:300 --peers open3d cv2
-    .venv/bin/python bench/teacher.py --scenes synthetic/stress-far --synthetic-frames 60   # a 60-frame walk
-=======
-    .venv/bin/python -m bench.teacher                       # redkitchen sample + synthetic/office
-    .venv/bin/python -m bench.teacher --scenes synthetic/lab --frames 0:300
->>>>>>> main
+    .venv/bin/python -m bench.teacher          # every synthetic preset, stress scenes included,
+                                               # redkitchen and TUM fr1/xyz images; teacher + Open3D
+    .venv/bin/python -m bench.teacher --scenes synthetic/lab --frames 0:300 --peers open3d cv2
+    .venv/bin/python -m bench.teacher --scenes synthetic/stress-far --synthetic-frames 60   # a 60-frame walk
 
 Results go to stdout (a Markdown table) and to ``--json`` if given.
 """

@@ -3,13 +3,8 @@ the teacher with several ``dense_blend`` values (``dense_fusion="blend"``) and s
 ``dense_cov_scale`` values (``dense_fusion="information"``) on one sequence: gap-1 RPE and ATE
 of its chained trajectory and the RMSE of its gap-5 labels (all against ground truth).
 
-<<<<<<< HEAD
-    .venv/bin/python bench/teacher_blend.py                      # redkitchen 0:450 (train + val)
-    .venv/bin/python bench/teacher_blend.py --scene synthetic/lab --frames 0:300 --blends 0 0.25 --scales 1 5
-=======
-    .venv/bin/python -m bench.teacher_blend                         # redkitchen, 0 0.25 0.5 0.75 1
-    .venv/bin/python -m bench.teacher_blend --scene synthetic/office --blends 0 0.25
->>>>>>> main
+    .venv/bin/python -m bench.teacher_blend                      # redkitchen 0:450 (train + val)
+    .venv/bin/python -m bench.teacher_blend --scene synthetic/lab --frames 0:300 --blends 0 0.25 --scales 1 5
 
 Validation data only: redkitchen 0:450 (its test range is 450:600) and synthetic/lab (the
 test scene is synthetic/kitchen). ``dense_blend = 0`` is the sparse estimate alone (the

@@ -32,9 +32,9 @@ it the learner beats its teacher), one panel per protocol.
     S=../shared/data/7scenes/redkitchen/seq-sample
     .venv/bin/teacher generate --scene $S --out /tmp/i12/default
     .venv/bin/teacher generate --scene $S --preset paper --out /tmp/i12/paper
-    .venv/bin/python bench/teacher_noise.py noisy --scene $S --teacher /tmp/i12/default \\
+    .venv/bin/python -m bench.teacher_noise noisy --scene $S --teacher /tmp/i12/default \\
         --calib-frames 0:450 --target 0.0052 --out /tmp/i12/noisy52
-    OMP_NUM_THREADS=1 .venv/bin/python bench/teacher_noise.py run --scene $S --frames 0:450 \\
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.teacher_noise run --scene $S --frames 0:450 \\
         --test-frames 450:600 --teacher default=/tmp/i12/default --teacher paper=/tmp/i12/paper \\
         --teacher noisy52=/tmp/i12/noisy52 --variants ctc cnn-unsup lstm-unsup --out /tmp/i12/sweep
 """
@@ -52,14 +52,12 @@ from typing import Optional
 
 import numpy as np
 
-sys.path = [q for q in sys.path if Path(q or ".").resolve() != Path(__file__).resolve().parent]
-
-from data import geometry as geo  # noqa: E402
-from data.errors import VOError  # noqa: E402
-from data.formats import Edge, Trajectory, read_g2o, read_tum, write_g2o, write_tum  # noqa: E402
-from data.io import ensure_dir, git_revision, write_json, write_text  # noqa: E402
-from data.metrics import BASELINES, baseline_reports, se3_l2_errors, trajectory_report  # noqa: E402
-from data.scenes import open_scene  # noqa: E402
+from data import geometry as geo
+from data.errors import VOError
+from data.formats import Edge, Trajectory, read_g2o, read_tum, write_g2o, write_tum
+from data.io import ensure_dir, git_revision, write_json, write_text
+from data.metrics import BASELINES, baseline_reports, se3_l2_errors, trajectory_report
+from data.scenes import open_scene
 
 log = logging.getLogger("teacher_noise")
 

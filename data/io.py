@@ -2,7 +2,8 @@
 
 Every writer goes through :func:`atomic_write` (write to a temporary file in the same
 folder, flush, fsync, ``os.replace``), so a killed run leaves either the old file or the
-new one, never a truncated one.
+new one, never a truncated one. Files get the mode a plain ``open`` would give them
+(``0o666`` less the umask: 0644 by default), not the temporary file's 0600.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ def atomic_write(path: Path, mode: str = "w") -> Iterator[TextIO]:
     ensure_dir(path.parent)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, 0o666 & ~current_umask())
         with os.fdopen(fd, mode) as fh:
             yield fh
             fh.flush()
@@ -50,6 +52,20 @@ def atomic_write(path: Path, mode: str = "w") -> Iterator[TextIO]:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+def current_umask() -> int:
+    """The process's umask, read without changing it (Linux: /proc; elsewhere set and reset)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def write_text(path: Path, text: str) -> None:

@@ -20,9 +20,9 @@ from pathlib import Path
 from typing import Optional
 
 from data.errors import DataError
+from data.runs import SYNTHETIC_PREFIX, scene_slug  # noqa: F401 - scene_slug lives with the run layout
 from data.sequence import Sequence, parse_frame_range
 
-SYNTHETIC_PREFIX = "synthetic/"
 
 
 def open_scene(spec: str, split: str = "all", frames: Optional[str] = None,
@@ -72,16 +72,6 @@ def _open(spec: str, split: str, cache_dir: Optional[Path]) -> list[Sequence]:
     if any(path.glob("seq-*")) or (path / "TrainSplit.txt").is_file():
         return sevenscenes.open_scene_folder(path, split)
     raise DataError(f"{spec} is neither a 7-Scenes sequence/scene folder nor a TUM sequence (no rgb.txt/depth.txt)")
-
-
-def scene_slug(spec: str) -> str:
-    """A folder-friendly name for ``spec`` (``synthetic/office`` -> ``synthetic-office``)."""
-    if spec.startswith(SYNTHETIC_PREFIX):
-        return "synthetic-" + spec[len(SYNTHETIC_PREFIX):]
-    path = Path(spec.partition("?")[0])  # a bag's topic options are not part of its name
-    if path.suffix == ".bag":
-        return path.stem or "scene"
-    return path.resolve().name or "scene"
 
 
 def add_topic_options(parser) -> None:

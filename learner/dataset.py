@@ -17,6 +17,7 @@ variants; ground-truth labels come from the sequence's poses (``*-gt`` variants 
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -35,8 +36,8 @@ from data import geometry as geo
 from data.errors import DataError, VOError
 from data.formats import read_g2o
 from data.io import atomic_write
-from data.scenes import scene_slug
-from data.sequence import Sequence
+from data.runs import StaleOutputError, stage_dir
+from data.sequence import Sequence, parse_frame_range
 from learner.config import FLOW_U_CHANNEL, INPUTS
 
 log = logging.getLogger(__name__)
@@ -277,8 +278,46 @@ def teacher_labels(g2o: Path, ids: NDArray[np.int64], max_gap: int) -> tuple[Ten
 
 def default_teacher_dir(spec: str, seq: Sequence, n_sequences: int, root: Optional[Path] = None) -> Path:
     """Where ``teacher generate`` writes a sequence by default (docs/formats.md)."""
-    base = Path(root) if root is not None else Path("runs") / scene_slug(spec) / "teacher"
+    base = Path(root) if root is not None else stage_dir(spec, "teacher")
     return base / seq.name if n_sequences > 1 else base
+
+
+def hull_range(ranges: list[Optional[str]]) -> Optional[str]:
+    """One frame range that holds every range of ``ranges`` (``None``: the whole sequence):
+    the teacher runs once over it, and each range's labels are cut from that run."""
+    parsed = [parse_frame_range(r) for r in ranges]
+    if not parsed or any(r is None or r == "" for r in ranges):
+        return None
+    if any(step not in (None, 1) for _, _, step in parsed):
+        return ranges[0] if len(set(ranges)) == 1 else None
+    if any(v is not None and v < 0 for a, b, _ in parsed for v in (a, b)):
+        return None
+    start = min(a or 0 for a, _, _ in parsed)
+    stops = [b for _, b, _ in parsed]
+    return f"{start}:" if None in stops else f"{start}:{max(stops)}"
+
+
+def _labelled_ids(g2o: Path) -> frozenset[int]:
+    """The frame ids a teacher ``edges.g2o`` covers (its vertices; else its edges' ends)."""
+    st = g2o.stat()
+    return _labelled_ids_of(str(g2o.resolve()), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=64)
+def _labelled_ids_of(path: str, mtime_ns: int, size: int) -> frozenset[int]:  # read once per file version
+    """The ids of the ``VERTEX_SE3:QUAT`` lines (the file is parsed strictly, by
+    :func:`data.formats.read_g2o`, when its labels are read; this only scans it)."""
+    ids = set()
+    with open(path) as fh:
+        for line in fh:
+            if line.startswith("VERTEX_SE3:QUAT"):
+                parts = line.split(maxsplit=2)
+                if len(parts) > 1 and parts[1].lstrip("-").isdigit():
+                    ids.add(int(parts[1]))
+    if ids:
+        return frozenset(ids)
+    edges, _ = read_g2o(Path(path))
+    return frozenset(int(k) for e in edges for k in (e.i, e.j))
 
 
 def check_teacher_sequence(g2o: Path, name: str) -> None:
@@ -297,28 +336,44 @@ def check_teacher_sequence(g2o: Path, name: str) -> None:
 
 def find_teacher_edges(spec: str, seqs: list[Sequence], split: str, frames: Optional[str],
                        teacher_root: Optional[Path]) -> list[Path]:
-    """The teacher ``edges.g2o`` of every sequence; runs the teacher if they are missing.
+    """The teacher ``edges.g2o`` of every sequence, covering each sequence's frames; runs
+    the teacher over ``frames`` when they are missing (callers that use several ranges of
+    one scene pass the :func:`hull_range` of them first, so that one run covers all).
 
     With an explicit ``teacher_root`` nothing is generated: missing labels are an error.
     """
     paths = [default_teacher_dir(spec, s, len(seqs), teacher_root) / "edges.g2o" for s in seqs]
-    missing = [p for p in paths if not p.is_file()]
-    if not missing:
+
+    def uncovered() -> Optional[str]:
         for seq, g2o in zip(seqs, paths):
+            if not g2o.is_file():
+                return f"{g2o} is missing"
             check_teacher_sequence(g2o, seq.name)
+            lack = set(map(int, seq.ids())) - _labelled_ids(g2o)
+            if lack:
+                return (f"{g2o} covers other frames: {len(lack)} of the {len(seq)} frames {seq.ids()[0]}.."
+                        f"{seq.ids()[-1]} of {seq.name} are not in it")
+        return None
+
+    why = uncovered()
+    if why is None:
         return paths
     if teacher_root is not None:
-        raise DataError(f"scene {spec} has no teacher labels: {missing[0]} is missing (run `teacher generate` first)")
+        raise DataError(f"scene {spec} has no teacher labels for frames {frames or 'all'}: {why} "
+                        "(run `teacher generate` first)")
     try:
         from teacher.generate import generate
     except ImportError as exc:
-        raise DataError(f"scene {spec} has no teacher labels ({missing[0]} is missing) and the teacher "
-                        f"cannot be run: {exc}") from None
-    log.info("no teacher labels for %s: running the teacher", spec)
-    generate(spec, split=split, frames=frames)
-    missing = [p for p in paths if not p.is_file()]
-    if missing:
-        raise DataError(f"the teacher ran but wrote no {missing[0]}")
+        raise DataError(f"scene {spec} has no teacher labels ({why}) and the teacher cannot be run: {exc}") from None
+    log.info("no teacher labels for frames %s of %s (%s): running the teacher", frames or "all", spec, why)
+    try:
+        generate(spec, split=split, frames=frames)
+    except StaleOutputError as exc:
+        raise StaleOutputError(f"{exc} (the labels there do not cover frames {frames or 'all'} of {spec}: run "
+                               f"`teacher generate --scene {spec} --frames {frames or '0:'} --overwrite`)") from None
+    why = uncovered()
+    if why is not None:
+        raise DataError(f"the teacher ran but {why}")
     return paths
 
 

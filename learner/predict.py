@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import logging
 import sys
 from dataclasses import dataclass, field
@@ -34,19 +35,22 @@ from data import geometry as geo
 from data.chain import chain_steps
 from data.errors import ConfigError, DataError
 from data.formats import Edge, Trajectory, write_g2o, write_tum
-from data.io import atomic_write, ensure_dir, git_revision, json_safe, write_json
+from data.io import atomic_write, git_revision, json_safe, write_json
 from data.metrics import BASELINES, baseline_reports, se3_l2_errors, trajectory_report
-from data.scenes import open_scene, scene_slug
+from data.runs import Fingerprint, claim, file_digest, frames_id, output_folder, scene_id, stage_dir, write_fingerprint
+from data.scenes import open_scene
 from data.sequence import frame_ranges_overlap
 from learner.calibrate import CALIBRATION_FILE, calibration_for, mahalanobis2, nees_stats
-from learner.config import PredictConfig, check_variant, model_from_dict
+from learner.config import PredictConfig, check_variant, model_from_dict, to_dict
 from learner.dataset import Frames, load_frames
 from learner.model import CTCNet
-from learner.train import load_checkpoint
+from learner.train import CHECKPOINT, load_checkpoint
 
 log = logging.getLogger(__name__)
 
 MC_CSV_COLUMNS = ["i", "j", "gap", "head", "sigma", "outlier", "error_se3_l2", "mahalanobis2"]
+#: what ``learner predict`` writes per sequence (``--overwrite`` removes them first)
+OUTPUT_FILES = ("edges.g2o", "edges_mc.csv", "trajectory.tum", "groundtruth.tum", "config.json", "report.json")
 
 
 @dataclass
@@ -200,14 +204,32 @@ def calibration(edges: EdgeSet, gt: NDArray[np.float64]) -> tuple[dict[str, floa
 
 def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split: str = "all",
             out: Optional[Path] = None, config: PredictConfig = PredictConfig(), preset: Optional[str] = None,
-            progress: Optional[bool] = None, use_calibration: bool = True, device: str = "auto") -> PredictResult:
+            progress: Optional[bool] = None, use_calibration: bool = True, device: str = "auto",
+            overwrite: bool = False) -> PredictResult:
     """Predict edges, trajectory and report for every sequence of ``scene`` (on ``device``:
     auto, cpu or cuda). With ground truth the report carries the trivial baselines'
     figures (``baselines``) beside the learner's.
 
+    Outputs go to ``out`` (default ``runs/<scene-slug>/predict``; never a training run's
+    folder) and follow the rerun rule of :mod:`data.runs`: the same checkpoint,
+    calibration, scene, frames and settings are not predicted again; other inputs replace
+    the old outputs only with ``overwrite``.
+
     ``use_calibration``: apply the ``calibration.json`` beside the checkpoint when there is
     one (an error when it was fitted for other weights or another drop ratio)."""
     checkpoint = Path(checkpoint)
+    base = Path(out) if out is not None else stage_dir(scene, "predict")
+    if (base / CHECKPOINT).exists() or base.resolve() == checkpoint.parent.resolve():
+        raise ConfigError(f"--out {base} is a training run's folder: predict writes elsewhere (default "
+                          f"{stage_dir(scene, 'predict')})")
+    with output_folder(base):
+        return _predict(checkpoint, scene, base, frames=frames, split=split, config=config, preset=preset,
+                        progress=progress, use_calibration=use_calibration, device=device, overwrite=overwrite)
+
+
+def _predict(checkpoint: Path, scene: str, base: Path, *, frames: Optional[str], split: str, config: PredictConfig,
+             preset: Optional[str], progress: Optional[bool], use_calibration: bool, device: str,
+             overwrite: bool) -> PredictResult:
     model, state = load_model(checkpoint, preset, device)
     found = calibration_for(checkpoint, config) if use_calibration else None
     if found is not None:
@@ -220,15 +242,24 @@ def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split
     window = int(state["train_config"]["window_max"])
     mcfg = model.cfg
     seqs = open_scene(scene, split=split, frames=frames)
-    base = Path(out) if out is not None else Path("runs") / scene_slug(scene) / "learner"
     if progress is None:
         progress = sys.stderr.isatty()
     result = PredictResult()
+    ckpt_digest = file_digest(checkpoint)
     for seq in seqs:
         if len(seq) < 2:
             raise DataError(f"sequence {seq.name} needs at least 2 frames to predict edges")
-        out_dir = ensure_dir(base / seq.name if len(seqs) > 1 else base)
-        frames_u8 = load_frames(seq, mcfg.width, mcfg.height, checkpoint.parent / "cache", mcfg.input)
+        out_dir = base / seq.name if len(seqs) > 1 else base
+        fp = Fingerprint("predict", {
+            "scene": scene_id(scene), "sequence": seq.name, "frames": frames_id(seq.ids()), "checkpoint": ckpt_digest,
+            "calibration": file_digest(found[0]) if found is not None else None, "predict": to_dict(config)})
+        finished = (out_dir / "report.json").is_file()
+        if claim(out_dir, fp, done=finished, has_outputs=finished, overwrite=overwrite, outputs=OUTPUT_FILES):
+            log.info("%s: predicted edges of the same inputs in %s: kept", seq.name, out_dir)
+            result.out_dirs.append(out_dir)
+            result.reports.append(json.loads((out_dir / "report.json").read_text()))
+            continue
+        frames_u8 = load_frames(seq, mcfg.width, mcfg.height, base / "cache", mcfg.input)
         edges = mc_edges(model, frames_u8, uses_lstm=uses_lstm, window=window, cfg=config, progress=progress)
         raw = edges
         if (found is not None and seq.name in {str(s.get("sequence")) for s in found[1].info.get("sequences", [])}
@@ -271,6 +302,10 @@ def predict(checkpoint: Path, scene: str, *, frames: Optional[str] = None, split
                                ("coverage_1sigma", "coverage_2sigma", "nees_mean", "spearman_sigma_error")})
         _write_mc_csv(out_dir / "edges_mc.csv", edges, ids, flags, err, d2)
         report = json_safe(report)
+        write_json(out_dir / "config.json", {"scene": scene, "frames": frames, "split": split,
+                                             "checkpoint": str(checkpoint), "predict": to_dict(config),
+                                             "calibration": report["calibration"], "git_revision": git_revision()})
+        write_fingerprint(out_dir, fp)
         write_json(out_dir / "report.json", report)
         log.info("%s: %d edges, %d outliers, %s covariances -> %s", seq.name, len(edges.i), int(flags.sum()),
                  "calibrated" if found is not None else "uncalibrated", out_dir)

@@ -1,1 +1,1 @@
-"""End-to-end pipelines over the stages: the online (frame-by-frame) mode."""
+"""End-to-end pipelines, the only package that imports every stage: the demo (batch) and the online (frame-by-frame) mode."""

@@ -772,7 +772,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.verbose, "%(message)s")
     try:
-        from data.scenes import scene_slug, scene_with_topics
+        from data.runs import stage_dir
+        from data.scenes import scene_with_topics
         from learner.config import PredictConfig
         from teacher.config import PRESETS as TEACHER_PRESETS
 
@@ -786,7 +787,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if args.timeout <= 0 or args.poll <= 0:
             raise ConfigError("--timeout and --poll must be positive")
         ocfg = OnlineConfig(poll_s=args.poll, timeout_s=args.timeout)
-        out = args.out or Path("runs") / scene_slug(scene) / "online"
+        out = args.out or stage_dir(scene, "online")
         source = open_source(scene, args.frames, args.follow, ocfg)
         res = run(source, out, tcfg, args.checkpoint, pcfg, cfg=ocfg, device=args.device)
     except VOError as exc:

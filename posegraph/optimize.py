@@ -24,6 +24,8 @@ from numpy.typing import NDArray
 from data.errors import ConfigError, DataError
 from data.formats import Trajectory, write_tum
 from data.io import atomic_write, ensure_dir, git_revision, write_json, write_text
+from data.runs import (Fingerprint, claim, file_digest, output_folder, scene_id, stage_dir, upstream_digest,
+                       write_fingerprint)
 from posegraph import graph as pg
 from posegraph import report as rep
 from posegraph.calibration import GapScales, read_gap_scales
@@ -33,7 +35,9 @@ from posegraph.sources import (Frames, Source, find_sequence_dirs, load_dir, loa
 
 log = logging.getLogger(__name__)
 
-RUNS_DIR = Path("runs")
+#: what the stage writes per sequence (``--overwrite`` removes them first; plots are
+#: overwritten by name)
+OUTPUT_FILES = ("trajectory.tum", "marginals.npz", "config.json", "report.md", "report.json")
 
 
 @dataclass
@@ -49,20 +53,22 @@ class SequenceOutput:
 
 
 def default_dirs(scene: str) -> tuple[Path, Path, Path]:
-    """(teacher, learner, out) folders of a scene: ``runs/<slug>/{teacher,learner,posegraph}``."""
-    from data.scenes import scene_slug
-
-    base = RUNS_DIR / scene_slug(scene)
-    return base / "teacher", base / "learner", base / "posegraph"
+    """(teacher, learner, out) folders of a scene: ``runs/<slug>/{teacher,predict,posegraph}``."""
+    return stage_dir(scene, "teacher"), stage_dir(scene, "predict"), stage_dir(scene, "posegraph")
 
 
 def optimize(scene: Optional[str] = None, teacher: Optional[Path] = None, learner: Optional[Path] = None,
              edges: Sequence[Path] = (), out: Optional[Path] = None, cfg: PoseGraphConfig = DEFAULT,
-             split: str = "all", teacher_calibration: Optional[Path] = None) -> list[Path]:
+             split: str = "all", frames: Optional[str] = None, overwrite: bool = False,
+             teacher_calibration: Optional[Path] = None) -> list[Path]:
     """Run the stage; return the output folders (one per sequence).
 
-    With only ``scene``, the teacher/learner folders default to ``runs/<slug>/...``
-    (each used if it exists). ``edges`` files are used instead of folders.
+    With only ``scene``, the teacher/learner folders default to ``runs/<slug>/teacher`` and
+    ``runs/<slug>/predict`` (each used if it exists). ``edges`` files are used instead of
+    folders. Every source is cut to ``frames`` (positions in the scene's sequence, or in
+    the sources' frame list without a scene); without ``frames``, to the frames that every
+    source covers, so that a teacher run longer than the learner's never leaves frames
+    that only one source connects. Outputs follow the rerun rule of :mod:`data.runs`.
     ``teacher_calibration``: a per-gap covariance calibration of the teacher's edges
     (``posegraph calibrate``, fitted on validation data) applied before the graph.
     """
@@ -115,13 +121,80 @@ def optimize(scene: Optional[str] = None, teacher: Optional[Path] = None, learne
                     srcs[what] = load_dir(d / name if name else d, what)
             jobs.append((name, srcs))
 
-    results = []
-    for name, srcs in jobs:
-        results.append(optimize_sequence(srcs, out / name if name else out, cfg, scene=scene, split=split,
-                                         seq_name=name, teacher_scales=scales))
-    for r in results:  # write only after every sequence succeeded
-        write_outputs(r, cfg)
-    return [r.out for r in results]
+    with output_folder(out):
+        results = []
+        for name, srcs in jobs:
+            cut = cut_sources(srcs, _frame_selection(srcs, scene, split, name, frames))
+            o = out / name if name else out
+            fp = Fingerprint("posegraph", {
+                "scene": scene_id(scene) if scene else None, "frames": cut, "config": cfg.to_dict(),
+                "inputs": {n: _source_digest(s) for n, s in srcs.items()},
+                "teacher_calibration": file_digest(Path(teacher_calibration)) if teacher_calibration else None})
+            finished = (o / "report.json").is_file()
+            if claim(o, fp, done=finished, has_outputs=finished, overwrite=overwrite, outputs=OUTPUT_FILES):
+                log.info("%s: pose graph of the same inputs: kept", o)
+                continue
+            r = optimize_sequence(srcs, o, cfg, scene=scene, split=split, seq_name=name, frames_cut=cut,
+                                  teacher_scales=scales)
+            results.append((r, fp))
+        for r, fp in results:  # write only after every sequence succeeded
+            write_outputs(r, cfg, fp)
+    return [out / name if name else out for name, _ in jobs]
+
+
+def _source_digest(s: Source) -> str:
+    """A source folder's fingerprint digest (or its edges' content digest), a bare file's content digest."""
+    return upstream_digest(s.path, "edges.g2o") if s.path.is_dir() else file_digest(s.path)
+
+
+def _frame_selection(srcs: dict[str, Source], scene: Optional[str], split: str, seq_name: str,
+                     frames: Optional[str]) -> Optional[set[int]]:
+    """The frame ids to keep: ``frames`` of the scene's sequence (or of the sources' frame
+    list without a scene); without ``frames`` the ids every source covers when they differ
+    (None: keep everything)."""
+    covered = [source_frame_ids(s) for s in srcs.values()]
+    if frames:
+        if scene:
+            from data.scenes import open_scene
+
+            seqs = open_scene(scene, split=split, frames=frames)
+            seqs = [s for s in seqs if s.name == seq_name] or seqs
+            return {int(k) for k in seqs[0].ids()}
+        from data.sequence import parse_frame_range
+
+        a, b, st = parse_frame_range(frames)
+        return set(sorted(set().union(*covered))[slice(a, b, st)])
+    if len(covered) > 1 and any(c != covered[0] for c in covered[1:]):
+        keep = set.intersection(*covered)
+        log.info("the sources cover different frames (%s): the graph uses the %d frames all of them cover "
+                 "(--frames to choose)", ", ".join(f"{n} {len(c)}" for n, c in zip(srcs, covered)), len(keep))
+        return keep
+    return None
+
+
+def source_frame_ids(s: Source) -> set[int]:
+    """The frame ids a source lists (g2o vertices, edges.csv) or its edges use."""
+    return {int(k) for k in s.vertices} | {int(k) for k in s.times} | {int(k) for e in s.edges for k in (e.i, e.j)}
+
+
+def cut_sources(srcs: dict[str, Source], keep: Optional[set[int]]) -> Optional[str]:
+    """Cut every source to the frames ``keep`` (in place); a readable description of the cut."""
+    if keep is None:
+        return None
+    if len(keep) < 2:
+        raise DataError(f"the frame selection leaves {len(keep)} frame(s) for the pose graph; the sources cover "
+                        + ", ".join(f"{n} {_span(source_frame_ids(s))}" for n, s in srcs.items()))
+    for n, s in srcs.items():
+        s.edges = [e for e in s.edges if e.i in keep and e.j in keep]
+        s.vertices = {k: v for k, v in s.vertices.items() if int(k) in keep}
+        s.times = {k: t for k, t in s.times.items() if int(k) in keep}
+        if not s.edges:
+            raise DataError(f"{n} has no edges between the selected frames {_span(keep)}")
+    return _span(keep)
+
+
+def _span(ids: set[int]) -> str:
+    return f"ids {min(ids)}..{max(ids)} ({len(ids)} frames)" if ids else "no frames"
 
 
 def _scene_groundtruth(scene: str, split: str, seq_name: str, frames: Frames) -> Optional[NDArray[np.float64]]:
@@ -144,9 +217,9 @@ def _scene_groundtruth(scene: str, split: str, seq_name: str, frames: Frames) ->
 
 def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig = DEFAULT,
                       scene: Optional[str] = None, split: str = "all", seq_name: str = "",
-                      teacher_scales: Optional[GapScales] = None) -> SequenceOutput:
-    """Solve one sequence and build its outputs in memory (nothing is written).
-
+                      frames_cut: Optional[str] = None, teacher_scales: Optional[GapScales] = None) -> SequenceOutput:
+    """Solve one sequence and build its outputs in memory (nothing is written);
+    ``frames_cut`` says how the sources were cut (:func:`cut_sources`) for the report.
     ``teacher_scales``: per-gap covariance scales of the teacher's edges fitted on
     validation data (:mod:`posegraph.calibration`); the teacher then keeps them in the
     graph (no per-source rescaling)."""
@@ -244,6 +317,7 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
         "graph_sources": used,
         "frames": len(frames.ids),
         "frames_listed_by": frames.listed_by,
+        "frames_cut": frames_cut,
         "synthetic_timestamps": frames.synthetic_times,
         "has_groundtruth": gt is not None,
         "groundtruth_from": gt_from,
@@ -385,8 +459,9 @@ def _initial(srcs: dict[str, Source], used: list[str], frames: Frames, edges, cf
     return pg.chain_poses(frames.ids, edges), "chained edges"
 
 
-def write_outputs(r: SequenceOutput, cfg: PoseGraphConfig) -> None:
-    """Write one sequence's outputs atomically, file by file."""
+def write_outputs(r: SequenceOutput, cfg: PoseGraphConfig, fp: Optional[Fingerprint] = None) -> None:
+    """Write one sequence's outputs atomically, file by file; fingerprint.json, then
+    report.json last (it marks completion)."""
     ensure_dir(r.out)
     write_tum(r.out / "trajectory.tum", r.trajectory)
     for name, data in r.pngs.items():
@@ -397,6 +472,8 @@ def write_outputs(r: SequenceOutput, cfg: PoseGraphConfig) -> None:
             fh.write(r.marginals)
     write_json(r.out / "config.json", {"git": r.report["git"], **cfg.to_dict()})
     write_text(r.out / "report.md", r.markdown)
+    if fp is not None:
+        write_fingerprint(r.out, fp)
     write_json(r.out / "report.json", r.report)
     log.info("wrote %s", r.out)
 

@@ -1,4 +1,4 @@
-"""``teacher`` console script: a thin wrapper around :func:`teacher.generate.generate`."""
+"""``teacher`` console script: a thin wrapper around teacher.generate.generate."""
 
 from __future__ import annotations
 
@@ -8,33 +8,39 @@ import sys
 from pathlib import Path
 from typing import Optional, Sequence
 
-from data.errors import VOError
-from data.io import setup_logging
+from data.cli import add_command, make_parser, run
 from data.scenes import add_topic_options, scene_with_topics
 from teacher import processes
 from teacher.config import PRESETS
 
+PRESET_HELP = ("presets: 'default' - the teacher as benchmarked (K = 5 gaps, 1000 ORB features, two-way "
+               "refinement and dense depth alignment); 'paper' - the paper's kind of teacher (ORB + PnP-RANSAC "
+               "with a least-squares refinement, no dense step; noisier labels); "
+               "'tiny' - 2 gaps and 800 features, for the tests only")
+
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="teacher", description=__doc__)
-    sub = p.add_subparsers(dest="command", required=True)
-    g = sub.add_parser("generate", help="estimate relative-pose labels for a scene")
-    g.add_argument("--scene", required=True, help="sequence/scene folder (7-Scenes, TUM), ROS bag, or synthetic/NAME")
-    g.add_argument("--out", type=Path, default=None, help="output folder (default runs/<scene>/teacher)")
-    g.add_argument("--gaps", type=int, default=None, help="largest frame gap K of the edges (default 5)")
-    g.add_argument("--frames", default=None, help="frame range START:STOP[:STEP] of each sequence")
+    p, sub = make_parser("teacher", "Classical RGB-D odometry that writes noisy relative-pose labels with "
+                                    "covariances.\n\n" + PRESET_HELP + ".")
+    g = add_command(sub, "generate", "estimate relative-pose labels for a scene",
+                    "Estimate relative-pose labels (i, i+g), g = 1..K, of every sequence of a scene. A rerun with the "
+                    "same inputs is skipped; other inputs in the same folder need --overwrite.\n\n"
+                    + PRESET_HELP + ".")
+    g.add_argument("--scene", required=True, help="a 7-Scenes or TUM folder, a ROS bag, or synthetic/NAME")
+    g.add_argument("--out", type=Path, default=None, help="output folder (default: runs/<scene>/teacher)")
+    g.add_argument("--gaps", type=int, default=None, help="largest frame gap K of the edges (default: the preset's)")
+    g.add_argument("--frames", default=None, help="frame range START:STOP[:STEP] of each sequence (default: all)")
     g.add_argument("--split", default="all", choices=["train", "test", "all"], help="split of a 7-Scenes scene folder")
-    g.add_argument("--preset", default="default", choices=sorted(PRESETS), help="teacher preset")
-    g.add_argument("--workers", type=int, default=None, help="worker processes (default 2)")
-    g.add_argument("--overwrite", action="store_true", help="redo sequences whose outputs exist")
-    g.add_argument("-v", "--verbose", action="store_true")
+    g.add_argument("--preset", default="default", choices=sorted(PRESETS), help="teacher preset, see above")
+    g.add_argument("--workers", type=int, default=None,
+                   help="worker processes (default: the preset's, 2)")
+    g.add_argument("--overwrite", action="store_true",
+                   help="replace outputs of other inputs instead of stopping with an error")
     add_topic_options(g)
     return p
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
-    args = build_parser().parse_args(argv)
-    setup_logging(args.verbose, "%(message)s")
+def _generate(args: argparse.Namespace) -> int:
     cfg = PRESETS[args.preset]
     if args.gaps is not None:
         cfg = dataclasses.replace(cfg, gaps=args.gaps)
@@ -44,16 +50,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         processes.start()  # the workers import Open3D and the teacher while this process does
     from teacher.generate import generate
 
-    try:
-        args.scene = scene_with_topics(args.scene, args)
-        generate(args.scene, args.out, args.split, args.frames, cfg, args.overwrite)
-    except VOError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("error: interrupted (finished sequences are kept; rerun to resume)", file=sys.stderr)
-        return 130
+    args.scene = scene_with_topics(args.scene, args)
+    generate(args.scene, args.out, args.split, args.frames, cfg, args.overwrite)
     return 0
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run(args, _generate, "interrupted (finished sequences are kept; rerun to resume)", fmt="%(message)s")
 
 
 if __name__ == "__main__":

@@ -41,7 +41,8 @@ from data.chain import chain_edges
 from data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
 from data.io import ensure_dir, git_revision, json_safe, write_json
 from data.metrics import relative_pose_error, trajectory_report
-from data.scenes import open_scene, scene_slug
+from data.runs import Fingerprint, claim, frames_id, output_folder, scene_id, stage_dir, write_fingerprint
+from data.scenes import open_scene
 from data.sequence import Sequence
 from teacher import processes
 from teacher.config import TeacherConfig
@@ -50,7 +51,7 @@ from teacher.odometry import (KINECT_V1_COLOUR, ColourCamera, EdgeEstimate, Fram
 
 log = logging.getLogger(__name__)
 
-OUTPUT_FILES = ("edges.g2o", "edges.csv", "trajectory.tum", "report.json")
+OUTPUT_FILES = ("edges.g2o", "edges.csv", "trajectory.tum", "groundtruth.tum", "config.json", "report.json")
 
 
 @dataclass
@@ -349,8 +350,10 @@ def _gap(seq: Sequence, e: EdgeEstimate) -> int:
     return int(np.searchsorted(ids, e.j) - np.searchsorted(ids, e.i))
 
 
-def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path, extra: dict) -> dict:
-    """Write every output file atomically; ``report.json`` last (it marks completion)."""
+def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path, extra: dict,
+                  fingerprint: Optional[Fingerprint] = None) -> dict:
+    """Write every output file atomically; then ``fingerprint.json``, and ``report.json``
+    last (it marks completion)."""
     ensure_dir(out)
     ids, times = seq.ids(), seq.times()
     ts = {int(f): float(t) for f, t in zip(ids, times)}
@@ -363,19 +366,29 @@ def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path,
         write_tum(out / "groundtruth.tum", Trajectory(times, gt))
     write_json(out / "config.json", {"teacher": cfg.to_dict(), "git_revision": git_revision(), **extra})
     report = build_report(seq, run, cfg)
+    if fingerprint is not None:
+        write_fingerprint(out, fingerprint)
     write_json(out / "report.json", json_safe(report))
     return report
 
 
-def default_out(spec: str) -> Path:
-    return Path("runs") / scene_slug(spec) / "teacher"
+def fingerprint(spec: str, seq: Sequence, cfg: TeacherConfig) -> Fingerprint:
+    """The inputs of a sequence's teacher outputs: scene, sequence, frames, the config (the
+    number of worker processes only through the chunk bounds, which are what shapes the
+    edges)."""
+    conf = cfg.to_dict()
+    conf.pop("workers")
+    return Fingerprint("teacher", {"scene": scene_id(spec), "sequence": seq.name, "frames": frames_id(seq.ids()),
+                                   "teacher": conf, "chunks": [list(b) for b in _chunks(len(seq), cfg)]})
 
 
 def generate(spec: str, out: Optional[Path] = None, split: str = "all", frames: Optional[str] = None,
              config: TeacherConfig = TeacherConfig(), overwrite: bool = False, progress: bool = True) -> list[Path]:
     """Run the teacher on every sequence of ``spec``; returns one output folder per sequence.
 
-    A sequence whose ``report.json`` already exists is skipped unless ``overwrite``.
+    A sequence whose folder holds the outputs of the same inputs (``fingerprint.json``,
+    :mod:`data.runs`) is skipped; outputs of other inputs are replaced with ``overwrite``,
+    otherwise they are an error that says what differs.
     """
     from data.errors import ConfigError
 
@@ -383,21 +396,23 @@ def generate(spec: str, out: Optional[Path] = None, split: str = "all", frames: 
         raise ConfigError(f"--gaps must be >= 1, got {config.gaps}")
     if config.workers > 1:
         processes.start()  # the workers import while the scene opens (or renders)
-    seqs = open_scene(spec, split=split, frames=frames)
-    base = Path(out) if out is not None else default_out(spec)
-    ensure_dir(base)
-    dirs = []
-    for seq in seqs:
-        d = base if len(seqs) == 1 else base / seq.name
-        dirs.append(d)
-        if (d / "report.json").is_file() and not overwrite:
-            log.info("%s: teacher output exists in %s (use --overwrite to redo)", seq.name, d)
-            continue
-        if len(seq) < 2:
-            raise ConfigError(f"{seq.name}: need at least 2 frames, got {len(seq)}")
-        run = run_sequence(seq, config, progress)
-        rep = write_outputs(seq, run, config, d, {"scene": spec, "split": split, "frames": frames})
-        log.info("%s", summary_line(seq.name, rep))
+    base = Path(out) if out is not None else stage_dir(spec, "teacher")
+    with output_folder(base):
+        seqs = open_scene(spec, split=split, frames=frames)
+        dirs = []
+        for seq in seqs:
+            d = base if len(seqs) == 1 else base / seq.name
+            dirs.append(d)
+            fp = fingerprint(spec, seq, config)
+            finished = (d / "report.json").is_file()
+            if claim(d, fp, done=finished, has_outputs=finished, overwrite=overwrite, outputs=OUTPUT_FILES):
+                log.info("%s: teacher output of the same inputs in %s: kept", seq.name, d)
+                continue
+            if len(seq) < 2:
+                raise ConfigError(f"{seq.name}: need at least 2 frames, got {len(seq)}")
+            run = run_sequence(seq, config, progress)
+            rep = write_outputs(seq, run, config, d, {"scene": spec, "split": split, "frames": frames}, fp)
+            log.info("%s", summary_line(seq.name, rep))
     return dirs
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -14,9 +13,7 @@ from data.errors import VOError
 from data.formats import read_g2o, read_tum
 from teacher import cli
 
-_spec = importlib.util.spec_from_file_location("teacher_noise", Path(__file__).parents[1] / "bench" / "teacher_noise.py")
-tn = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(tn)
+import bench.teacher_noise as tn  # noqa: E402
 
 
 @pytest.fixture(scope="module")

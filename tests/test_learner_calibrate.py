@@ -270,9 +270,10 @@ def test_fit_with_validation_scene_calibrates(data_dirs, tmp_path, caplog) -> No
     assert "also a calibration sequence" not in caplog.text
     predict(res.checkpoint, str(data_dirs["val"]), out=tmp_path / "pred-val", config=PredictConfig(samples=4, max_gap=3))
     assert "val-seq-01 is also a calibration sequence" in caplog.text
-    # training on deletes the calibration of the old weights (and this run refits it)
+    # training on (the saved options, with more steps) refits the calibration for the new weights
     res2 = fit([str(data_dirs["train"])], out=tmp_path / "run", resume=True, **{**kw, "steps": 4})
-    assert res2.calibration is None and not (tmp_path / "run" / CALIBRATION_FILE).exists()
+    assert res2.calibration == res.calibration
+    assert json.loads(res2.calibration.read_text())["checkpoint_epoch"] == 2
     # no validation scene, no calibration
     res3 = fit([str(data_dirs["train"])], out=tmp_path / "run3", **kw)
     assert res3.calibration is None and not (tmp_path / "run3" / CALIBRATION_FILE).exists()

@@ -183,7 +183,7 @@ def test_reversed_pairs_and_windows_keep_labels_and_ctc_exact(reverse_prob) -> N
     frames it is shown has zero regression and CTC loss, also on pairs and windows played
     backwards (frames swapped and re-ordered, labels negated)."""
     from learner.dataset import SequenceData
-    from learner.train import _pairs_step, _windows_step
+    from learner.train import pairs_step, windows_step
     from learner.config import TrainConfig
 
     rng = np.random.default_rng(1)
@@ -205,13 +205,13 @@ def test_reversed_pairs_and_windows_keep_labels_and_ctc_exact(reverse_prob) -> N
     net = _motion_reader(gt)
     rows = np.array([[0, k, g] for g in range(1, G + 1) for k in range(0, N - g, 4)])
     cpu, scale = torch.device("cpu"), torch.full((G + 1, 6), 0.01)  # losses in units of 1 cm / 10 mrad
-    terms = _pairs_step(net, data, rows, cfg, False, gen, cpu, scale)
+    terms = pairs_step(net, data, rows, cfg, False, gen, cpu, scale)
     assert float(terms.reg) < 1e-8
-    terms = _windows_step(net, data, np.array([[0, 0], [0, 7], [0, N - 1 - W]]), W, cfg, False, gen, cpu, scale)
+    terms = windows_step(net, data, np.array([[0, 0], [0, 7], [0, N - 1 - W]]), W, cfg, False, gen, cpu, scale)
     assert float(terms.reg) < 1e-8 and float(terms.ctc) < 1e-6
     # and the check can fail: a network that ignores the direction of time does not fit
     swapped = _motion_reader(gt[::-1].copy())
-    assert float(_pairs_step(swapped, data, rows, cfg, False, gen, cpu, scale).reg) > 1e-2
+    assert float(pairs_step(swapped, data, rows, cfg, False, gen, cpu, scale).reg) > 1e-2
 
 
 def test_input_pairs_rgb_rgbd_flow_and_flowd() -> None:
@@ -397,7 +397,7 @@ def test_resume_with_another_preset_or_variant_fails(fixture_seq, tmp_path) -> N
     reshaped = dataclasses.replace(TINY, model=dataclasses.replace(TINY.model, lstm_hidden=8))
     with pytest.raises(ConfigError, match="another network shape of preset 'tiny'"):
         fit([str(seq)], variant="cnn-unsup", preset=reshaped, out=tmp_path / "run", teacher_root=teacher, resume=True)
-    with pytest.raises(ConfigError, match="already holds a checkpoint"):
+    with pytest.raises(ConfigError, match=r"holds outputs of other inputs \(train.steps: 2 -> 4.*--overwrite"):
         fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher)
 
 
@@ -520,7 +520,9 @@ def test_cli_fit_and_predict(fixture_seq, tmp_path, capsys) -> None:
     (["predict", "--checkpoint", "{ckpt}", "--scene", "{tmp}/nowhere"], "not found"),
     (["predict", "--checkpoint", "{ckpt}", "--scene", "{seq}", "--samples", "0"], "--samples must be >= 1"),
     (["fit", "--scene", "{seq}", "--preset", "tiny", "--out", "{tmp}/r", "--teacher", "{tmp}/none"], "no teacher labels"),
-    (["fit", "--scene", "{seq}", "--preset", "tiny", "--out", "{tmp}/r", "--resume"], "does not exist"),
+    (["fit", "--scene", "{seq}", "--preset", "tiny", "--out", "{tmp}/r", "--resume"], "no training run to resume"),
+    (["fit", "--preset", "tiny", "--out", "{tmp}/r"], "give --scene"),
+    (["fit", "--scene", "{tmp}/nope", "--preset", "tiny", "--out", "{tmp}/runs/nope/learner"], "not found"),
 ])
 def test_cli_bad_inputs_exit_1(args, message, trained, fixture_seq, tmp_path, capsys) -> None:
     seq, _ = fixture_seq
@@ -528,6 +530,7 @@ def test_cli_bad_inputs_exit_1(args, message, trained, fixture_seq, tmp_path, ca
     assert cli.main(argv) == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and message in err and "\n" not in err and "Traceback" not in err
+    assert not (tmp_path / "runs").exists() and not (tmp_path / "r").exists()  # no empty folder left
 
 
 def test_cli_wrong_checkpoint_file(fixture_seq, tmp_path, capsys) -> None:

@@ -103,7 +103,7 @@ def test_scene_defaults_to_runs_folders(dirs, tmp_path, monkeypatch, capsys):
     base = tmp_path / "runs" / "synthetic-tiny"
     base.mkdir(parents=True)
     t.rename(base / "teacher")
-    l.rename(base / "learner")
+    l.rename(base / "predict")
     monkeypatch.chdir(tmp_path)
     rc, err = _run(["optimize", "--scene", "synthetic/tiny", "--no-plots"], capsys)
     assert rc == 0, err
@@ -241,24 +241,3 @@ def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
     # as given, nearly every learner edge is an outlier; calibrated, nearly none is
     assert sum(o["source"] == "learner" for o in raw["outliers"]) >= 0.9 * (4 * N - 10)
     assert sum(o["source"] == "learner" for o in rep["outliers"]) <= 4
-
-
-@pytest.mark.slow
-def test_pipeline_end_to_end_on_tiny_scenes(tmp_path, monkeypatch, capsys):
-    """`python -m posegraph.pipeline` with tiny presets: every stage runs, the learner is
-    calibrated on the validation scene, and the printed table has the three rows and the
-    two baselines (the scene has ground truth)."""
-    from posegraph import pipeline
-
-    monkeypatch.chdir(tmp_path)
-    rc = pipeline.main(["--train", "synthetic/tiny", "--val", "synthetic/tiny-clean", "--test", "synthetic/tiny",
-                        "--frames", "0:12", "--steps", "2", "--preset", "tiny"])
-    assert rc == 0
-    out = capsys.readouterr().out
-    for row in ("| teacher (chained)", "| learner (chained)", "| fused (graph)", "| zero motion",
-                "| constant velocity"):
-        assert row in out, out
-    runs = tmp_path / "runs"
-    assert (runs / "synthetic-tiny" / "learner" / "calibration.json").is_file()
-    rep = json.loads((runs / "synthetic-tiny" / "posegraph" / "report.json").read_text())
-    assert rep["frames"] == 12

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import shutil
 
 import cv2
@@ -327,11 +328,39 @@ def test_cli_generate_writes_every_output(tmp_path):
     assert graph.size() == rep["edges"] and initial.size() == 12
     assert len(read_tum(out / "trajectory.tum")) == 12 and len(read_tum(out / "groundtruth.tum")) == 12
     assert rep["rpe_trans_rmse_m"] < 0.02  # synthetic 'tiny' with Kinect-like noise
-    # finished outputs are kept: a second run without --overwrite does not rewrite them
+    # files honour the umask (0644 under the usual 022), not the temporary file's 0600
+    old_mask = os.umask(0o022)
+    os.umask(old_mask)
+    assert (out / "edges.g2o").stat().st_mode & 0o777 == 0o666 & ~old_mask
+    fp = json.loads((out / "fingerprint.json").read_text())
+    assert fp["stage"] == "teacher" and fp["inputs"]["frames"] == "0..11 (12 frames)"
+    assert fp["inputs"]["teacher"]["gaps"] == 3
+    # the same inputs: kept, nothing rewritten
     mtime = (out / "edges.g2o").stat().st_mtime_ns
-    assert cli.main(["generate", "--scene", "synthetic/tiny", "--out", str(out), "--frames", "0:12"]) == 0
+    assert cli.main(["generate", "--scene", "synthetic/tiny", "--out", str(out), "--gaps", "3", "--frames", "0:12"]) == 0
     assert (out / "edges.g2o").stat().st_mtime_ns == mtime
     assert not list(out.glob(".*.tmp"))
+
+
+def test_cli_rerun_with_other_inputs_needs_overwrite(tmp_path, capsys):
+    """Other arguments over finished outputs: a one-line error naming what differs, the old
+    outputs untouched; with --overwrite they are recomputed."""
+    out = tmp_path / "t"
+    args = ["generate", "--scene", "synthetic/tiny", "--out", str(out), "--preset", "tiny", "--workers", "1"]
+    assert cli.main(args + ["--frames", "0:8"]) == 0
+    capsys.readouterr()
+    before = (out / "edges.g2o").read_bytes()
+    assert cli.main(args + ["--frames", "0:6", "--gaps", "1"]) == 1
+    err = _err(capsys)
+    assert "frames: 0..7 (8 frames) -> 0..5 (6 frames)" in err and "teacher.gaps: 2 -> 1" in err
+    assert "--overwrite" in err and (out / "edges.g2o").read_bytes() == before
+    assert cli.main(args + ["--frames", "0:6", "--gaps", "1", "--overwrite"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["frames"] == 6 and rep["edges"] + rep["failed_edges"] == 5
+    # outputs of an older version (no fingerprint) are not taken for this run's either
+    (out / "fingerprint.json").unlink()
+    assert cli.main(args + ["--frames", "0:6", "--gaps", "1"]) == 1
+    assert "without a fingerprint.json" in _err(capsys)
 
 
 def _err(capsys) -> str:
@@ -341,8 +370,9 @@ def _err(capsys) -> str:
 
 
 def test_cli_missing_folder(tmp_path, capsys):
-    assert cli.main(["generate", "--scene", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 1
+    assert cli.main(["generate", "--scene", str(tmp_path / "nope"), "--out", str(tmp_path / "o" / "t")]) == 1
     assert "not found" in _err(capsys)
+    assert not (tmp_path / "o").exists()  # a failure leaves no empty output folder
 
 
 def test_cli_unknown_synthetic_lists_known(tmp_path, capsys):

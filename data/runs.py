@@ -1,0 +1,256 @@
+"""Where every stage writes, and the one rerun rule they all follow.
+
+Layout: ``runs/<scene-slug>/<stage>`` (:func:`stage_dir`), with the stages
+
+* ``teacher``   - ``teacher generate``
+* ``learner``   - ``learner fit`` (a training run: checkpoint, config, history)
+* ``predict``   - ``learner predict`` (edges of a scene; never a training run's folder)
+* ``posegraph`` - ``posegraph optimize``
+* ``online``    - ``vo-online`` (pipeline/online.py)
+
+Rerun rule. Beside its outputs each stage writes ``fingerprint.json``: the inputs that
+shape its outputs (scene, selected frames, the stage's resolved config, the fingerprints
+or content digests of the upstream outputs it read) and their SHA-256 ``digest``. A
+rerun (:func:`claim`)
+
+* with the same digest skips the work when the stage is done (and resumes it where the
+  stage can, e.g. a killed ``learner fit``);
+* with a different digest recomputes into the same folder only with ``overwrite`` (the
+  stage's old outputs are removed first); otherwise it stops with a one-line
+  :class:`StaleOutputError` naming what differs.
+
+:func:`output_folder` removes the folders a failed stage created while they are still
+empty, so a failure leaves no empty output folder behind.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Iterator, Optional
+
+import numpy as np
+from numpy.typing import NDArray
+
+from data.errors import ConfigError, FormatError
+from data.io import write_json
+
+log = logging.getLogger(__name__)
+
+#: the root of the default output folders (relative to the working directory)
+RUNS_DIR = Path("runs")
+#: the stages, in pipeline order; each one's default folder is ``runs/<scene-slug>/<stage>``
+STAGES = ("teacher", "learner", "predict", "posegraph", "online")
+FINGERPRINT_FILE = "fingerprint.json"
+SYNTHETIC_PREFIX = "synthetic/"
+
+
+class StaleOutputError(ConfigError):
+    """A stage's folder holds outputs of other inputs and ``--overwrite`` was not given."""
+
+
+def scene_slug(spec: str) -> str:
+    """A folder-friendly name for ``spec`` (``synthetic/office`` -> ``synthetic-office``)."""
+    if spec.startswith(SYNTHETIC_PREFIX):
+        return "synthetic-" + spec[len(SYNTHETIC_PREFIX):]
+    path = Path(spec.partition("?")[0])  # a bag's topic options are not part of its name
+    if path.suffix == ".bag":
+        return path.stem or "scene"
+    return path.resolve().name or "scene"
+
+
+def stage_dir(scene: str, stage: str, root: Optional[Path] = None) -> Path:
+    """The default output folder of ``stage`` for ``scene``: ``runs/<scene-slug>/<stage>``."""
+    if stage not in STAGES:
+        raise ValueError(f"unknown stage {stage!r} (one of {', '.join(STAGES)})")
+    return Path(root if root is not None else RUNS_DIR) / scene_slug(scene) / stage
+
+
+# ----------------------------------------------------------------------------------
+# fingerprints
+# ----------------------------------------------------------------------------------
+def scene_id(spec: str) -> str:
+    """How a scene enters a fingerprint: ``synthetic/NAME`` as given, a folder as its
+    absolute path (the same folder named two ways is one scene)."""
+    return spec if spec.startswith(SYNTHETIC_PREFIX) else str(Path(spec).resolve())
+
+
+def frames_id(ids: NDArray[np.int64]) -> str:
+    """The selected frame ids, readable: ``450..599 (150 frames)``, with the step when it is
+    not 1 and a digest when the ids are not evenly spaced."""
+    ids = np.asarray(ids, dtype=np.int64)
+    if len(ids) == 0:
+        return "no frames"
+    s = f"{int(ids[0])}..{int(ids[-1])} ({len(ids)} frames"
+    steps = np.unique(np.diff(ids)) if len(ids) > 1 else np.array([1])
+    if len(steps) == 1 and steps[0] != 1:
+        s += f", step {int(steps[0])}"
+    elif len(steps) > 1:
+        s += f", ids {hashlib.sha256(ids.tobytes()).hexdigest()[:12]}"
+    return s + ")"
+
+
+def file_digest(path: Path) -> str:
+    """SHA-256 of a file's content (``sha256:<hex>``)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return "sha256:" + h.hexdigest()
+
+
+def upstream_digest(folder: Path, main_file: str) -> str:
+    """How an upstream output enters a fingerprint: the digest in the folder's
+    ``fingerprint.json`` when it has one, else the content digest of ``main_file``."""
+    fp = read_fingerprint(folder)
+    if fp is not None:
+        return fp["digest"]
+    return file_digest(Path(folder) / main_file)
+
+
+@dataclass(frozen=True)
+class Fingerprint:
+    """The inputs of one stage's outputs (plain JSON values) and their digest."""
+
+    stage: str
+    inputs: dict[str, Any]
+
+    def __post_init__(self) -> None:  # as fingerprint.json will hold them (tuples become lists)
+        object.__setattr__(self, "inputs", json.loads(json.dumps(self.inputs, allow_nan=False)))
+
+    @property
+    def digest(self) -> str:
+        text = json.dumps({"stage": self.stage, "inputs": self.inputs}, sort_keys=True, allow_nan=False,
+                          separators=(",", ":"))
+        return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"stage": self.stage, "digest": self.digest, "inputs": self.inputs}
+
+
+def read_fingerprint(folder: Path) -> Optional[dict[str, Any]]:
+    """The ``fingerprint.json`` of ``folder`` (None when there is none)."""
+    path = Path(folder) / FINGERPRINT_FILE
+    if not path.is_file():
+        return None
+    try:
+        fp = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise FormatError(f"{path}: not a fingerprint ({exc})") from None
+    if not isinstance(fp, dict) or not isinstance(fp.get("digest"), str) or not isinstance(fp.get("inputs"), dict):
+        raise FormatError(f"{path}: not a fingerprint (needs 'digest' and 'inputs')")
+    return fp
+
+
+def write_fingerprint(folder: Path, fp: Fingerprint) -> None:
+    write_json(Path(folder) / FINGERPRINT_FILE, fp.to_dict())
+
+
+def differences(old: dict[str, Any], new: dict[str, Any], limit: int = 4) -> str:
+    """What differs between two fingerprints' inputs, on one line:
+    ``frames: 0..599 (600 frames) -> 0..15 (16 frames); teacher.gaps: 5 -> 2``."""
+    flat_old, flat_new = _flatten(old), _flatten(new)
+    keys = [k for k in dict.fromkeys([*flat_old, *flat_new]) if flat_old.get(k, _MISSING) != flat_new.get(k, _MISSING)]
+    parts = [f"{k}: {_short(flat_old.get(k, _MISSING))} -> {_short(flat_new.get(k, _MISSING))}" for k in keys[:limit]]
+    if len(keys) > limit:
+        parts.append(f"and {len(keys) - limit} more")
+    return "; ".join(parts) or "nothing listed (another version of the stage)"
+
+
+_MISSING = "(none)"
+
+
+def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(d, dict):
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            out.update(_flatten(v, f"{prefix}{k}."))
+        return out
+    return {prefix[:-1]: d}
+
+
+def _short(v: Any, width: int = 40) -> str:
+    s = v if isinstance(v, str) else json.dumps(v)
+    if s.startswith("sha256:"):
+        s = s[:19]
+    return s if len(s) <= width else s[: width - 3] + "..."
+
+
+def claim(folder: Path, fp: Fingerprint, *, done: bool, has_outputs: bool, overwrite: bool,
+          outputs: Iterable[str] = ()) -> bool:
+    """Apply the rerun rule to ``folder``; True when the work is done and is to be skipped.
+
+    ``done``: the stage's outputs in ``folder`` are complete; ``has_outputs``: it holds
+    finished work of some run (a completed file, a checkpoint). With the same digest the
+    stage skips when ``done`` and otherwise (re)computes or resumes. With another digest,
+    or finished outputs without a fingerprint, ``overwrite`` removes the files named in
+    ``outputs`` (and the fingerprint) and the stage recomputes; without it this raises
+    :class:`StaleOutputError` saying what differs.
+    """
+    folder = Path(folder)
+    old = read_fingerprint(folder)
+    if old is not None and old["digest"] == fp.digest:
+        return done
+    if old is None and not has_outputs:
+        return False
+    if not overwrite:
+        what = (f"outputs of other inputs ({differences(old['inputs'], fp.inputs)})" if old is not None
+                else f"{fp.stage} outputs without a {FINGERPRINT_FILE} (an older version wrote them)")
+        raise StaleOutputError(f"{folder} holds {what}; pass --overwrite to replace them, or choose another --out")
+    log.info("%s: replacing the outputs of other inputs (--overwrite)", folder)
+    for name in [*outputs, FINGERPRINT_FILE]:
+        p = folder / name
+        if p.is_file() or p.is_symlink():
+            p.unlink(missing_ok=True)  # several processes of one run may get here
+    return False
+
+
+# ----------------------------------------------------------------------------------
+# folders
+# ----------------------------------------------------------------------------------
+def check_writable(folder: Path) -> None:
+    """Fail early, creating nothing, when ``folder`` cannot be created or written."""
+    p = Path(folder).absolute()
+    while not p.exists():
+        p = p.parent
+    if not p.is_dir():
+        raise ConfigError(f"cannot create output folder {folder}: {p} is not a folder")
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise ConfigError(f"output folder {folder} is not writable ({p})")
+
+
+@contextlib.contextmanager
+def output_folder(folder: Path) -> Iterator[Path]:
+    """Run a stage that writes under ``folder``; if it fails, remove the folders it created
+    (``folder`` and missing parents, and empty sub-folders) that are still empty."""
+    folder = Path(folder)
+    check_writable(folder)
+    created = []
+    p = folder.absolute()
+    while not p.exists():
+        created.append(p)
+        p = p.parent
+    try:
+        yield folder
+    except BaseException:
+        for top in created[:1]:
+            _remove_empty(top)
+        for p in created[1:]:
+            with contextlib.suppress(OSError):
+                p.rmdir()
+        raise
+
+
+def _remove_empty(folder: Path) -> None:
+    if not folder.is_dir():
+        return
+    for sub in folder.iterdir():
+        if sub.is_dir() and not sub.is_symlink():
+            _remove_empty(sub)
+    with contextlib.suppress(OSError):
+        folder.rmdir()  # only succeeds when empty
