@@ -24,12 +24,20 @@ from data.cli import HelpFormatter, run as run_cli
 log = logging.getLogger("pipeline.demo")  # also when run as __main__
 
 
+#: the demo learner's encoder input: the flow and both frames' inverse depth, no colour.
+#: Chosen on the validation scene lab (ctc, cpu preset, trained on office): 0.81x zero
+#: motion's se(3) L2, against 1.05-1.12x with the cpu preset's RGB + flow input, which fits
+#: the one training room's appearance (bench/README.md, "Learner: does it learn?", 5).
+DEMO_INPUT = "flowd"
+
+
 def run(train: str, test: str, frames: Optional[str], steps: Optional[int],
         preset: str = "cpu", variant: str = "ctc", val: Optional[str] = "synthetic/lab",
-        overwrite: bool = False) -> Path:
+        overwrite: bool = False, input: Optional[str] = DEMO_INPUT) -> Path:
     """Run every stage; return the pose-graph output folder of ``test``. With ``val``, the
     learner's MC-dropout covariances are calibrated on that scene's teacher labels (never
-    on the test scene, never on ground truth)."""
+    on the test scene, never on ground truth). ``input``: the learner's encoder input (None:
+    the preset's)."""
     from learner.predict import predict
     from learner.train import fit
     from posegraph.optimize import optimize
@@ -40,7 +48,7 @@ def run(train: str, test: str, frames: Optional[str], steps: Optional[int],
         generate(scene, None, "all", frames, overwrite=overwrite)
     log.info("learner fit %s (%s, %s)%s", train, preset, variant, f", calibrated on {val}" if val else "")
     res = fit([train], variant=variant, preset=preset, val_scenes=[val] if val else (), frames=frames,
-              steps=steps, overwrite=overwrite)
+              steps=steps, overwrite=overwrite, input=input)
     log.info("learner predict %s", test)
     predict(res.checkpoint, test, frames=frames, overwrite=overwrite)  # -> runs/<test>/predict
     log.info("posegraph optimize %s", test)
@@ -49,7 +57,7 @@ def run(train: str, test: str, frames: Optional[str], steps: Optional[int],
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    from learner.config import PRESETS, VARIANTS
+    from learner.config import INPUTS, PRESETS, VARIANTS
 
     p = argparse.ArgumentParser(prog="python -m pipeline.demo", description=__doc__, formatter_class=HelpFormatter)
     p.add_argument("-v", "--verbose", action="store_true", help="debug messages of this project's modules")
@@ -62,10 +70,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--preset", default="cpu", choices=list(PRESETS), help="learner preset (see `learner fit -h`)")
     p.add_argument("--variant", default="ctc", choices=list(VARIANTS), help="learner variant (see `learner fit -h`)")
     p.add_argument("--overwrite", action="store_true", help="let every stage replace outputs of other inputs")
+    p.add_argument("--input", default=DEMO_INPUT, choices=list(INPUTS),
+                   help="learner encoder input (flowd: optical flow and inverse depth, no colour; chosen on lab)")
     args = p.parse_args(argv)
 
     def body(a: argparse.Namespace) -> int:
-        out = run(a.train, a.test, a.frames, a.steps, a.preset, a.variant, a.val or None, a.overwrite)
+        out = run(a.train, a.test, a.frames, a.steps, a.preset, a.variant, a.val or None, a.overwrite, a.input)
         print((out / "report.md").read_text())
         return 0
 
