@@ -96,6 +96,20 @@ def write_json(path: Path, obj: Any) -> None:
         fh.write("\n")
 
 
+def read_json_file(path: Path, what: str, fmt: int, key: str, kind: type) -> dict[str, Any]:
+    """The JSON object in ``path``, checked to be ``what`` of format ``fmt`` with a ``key`` of
+    type ``kind``; :class:`~data.errors.FormatError` says in one line what is wrong."""
+    from data.errors import FormatError
+
+    try:
+        d = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise FormatError(f"cannot read {what} {path}: {exc}") from None
+    if not isinstance(d, dict) or d.get("format") != fmt or not isinstance(d.get(key), kind):
+        raise FormatError(f"{path} is not a {what} (format {fmt} with {key})")
+    return d
+
+
 def git_revision() -> str:
     """The project's git revision (``unknown`` outside a checkout)."""
     here = Path(__file__).resolve().parent

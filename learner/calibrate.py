@@ -43,7 +43,7 @@ from scipy.stats import chi2
 from data import geometry as geo
 from data.errors import ConfigError, DataError, FormatError
 from data.formats import read_g2o
-from data.io import git_revision, write_json
+from data.io import git_revision, read_json_file, write_json
 from data.scenes import open_scene
 from data.sequence import frame_ranges_overlap
 from data.uncertainty import CHI2_6_1SIGMA, CHI2_6_2SIGMA, mahalanobis2, nees_stats  # noqa: F401
@@ -218,12 +218,7 @@ class Calibration:
 def read_calibration(path: Path) -> Calibration:
     """Read and validate a ``calibration.json``; :class:`FormatError` says what is wrong."""
     path = Path(path)
-    try:
-        d = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise FormatError(f"cannot read calibration {path}: {exc}") from None
-    if not isinstance(d, dict) or d.get("format") != CALIBRATION_FORMAT or not isinstance(d.get("groups"), list):
-        raise FormatError(f"{path} is not a learner calibration (format {CALIBRATION_FORMAT} with groups)")
+    d = read_json_file(path, "learner calibration", CALIBRATION_FORMAT, "groups", list)
     groups = []
     for k, g in enumerate(d["groups"]):
         try:

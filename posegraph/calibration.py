@@ -31,7 +31,6 @@ it to the teacher's edges of another range or scene.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,6 +42,7 @@ from numpy.typing import NDArray
 from data import geometry as geo
 from data.errors import FormatError
 from data.formats import Edge
+from data.io import read_json_file
 from posegraph import graph as pg
 from posegraph.config import DEFAULT, PoseGraphConfig
 
@@ -85,12 +85,7 @@ class GapScales:
 def read_gap_scales(path: Path) -> GapScales:
     """Read and validate a per-gap calibration file (:class:`FormatError` says what is wrong)."""
     path = Path(path)
-    try:
-        d = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise FormatError(f"cannot read covariance calibration {path}: {exc}") from None
-    if not isinstance(d, dict) or d.get("format") != CALIBRATION_FORMAT or not isinstance(d.get("scales"), dict):
-        raise FormatError(f"{path} is not a per-gap covariance calibration (format {CALIBRATION_FORMAT} with scales)")
+    d = read_json_file(path, "per-gap covariance calibration", CALIBRATION_FORMAT, "scales", dict)
     try:
         scales = {int(g): float(s) for g, s in d["scales"].items()}
     except (TypeError, ValueError) as exc:

@@ -205,7 +205,7 @@ def test_calibrate_writes_a_readable_calibration(run, data_dirs, tmp_path, monke
 def test_read_calibration_rejects_bad_files(tmp_path) -> None:
     p = tmp_path / CALIBRATION_FILE
     p.write_text("{not json")
-    with pytest.raises(FormatError, match="cannot read calibration"):
+    with pytest.raises(FormatError, match="cannot read learner calibration"):
         read_calibration(p)
     good = {"format": 1, "groups": [{"head": None, "gap": None, "pairs": 40, "a": [1] * 6, "b": [1e-6] * 6}]}
     p.write_text(json.dumps(good))
