@@ -137,6 +137,9 @@ class Frames:
         flow i -> j, inverse depth i, j)."""
         i = torch.as_tensor(i, device=self.device)
         j = torch.as_tensor(j, device=self.device)
+        if self.mode == "flowd":  # no colour: its frames are never gathered
+            flow = self.flow(i.cpu().numpy(), j.cpu().numpy()).to(self.device)
+            return torch.cat([flow, self._take(self.invdepth, i).float(), self._take(self.invdepth, j).float()], dim=1)
         rgb_i, rgb_j = self._take(self.rgb, i), self._take(self.rgb, j)
         if self.mode == "rgb":
             return torch.cat([rgb_i, rgb_j], dim=1)
@@ -144,8 +147,6 @@ class Frames:
         if self.mode == "rgbd":
             return torch.cat([rgb_i, rgb_j, inv_i, self._take(self.invdepth, j)], dim=1)
         flow = self.flow(i.cpu().numpy(), j.cpu().numpy()).to(self.device)
-        if self.mode == "flowd":
-            return torch.cat([flow, inv_i.float(), self._take(self.invdepth, j).float()], dim=1)
         return torch.cat([rgb_i.float(), rgb_j.float(), flow, inv_i.float()], dim=1)
 
 
