@@ -64,9 +64,12 @@ def _parser() -> argparse.ArgumentParser:
                    help="left-right mirroring augmentation probability (default: the preset's)")
     f.add_argument("--reverse-prob", type=float,
                    help="time-reversal augmentation probability (default: the preset's)")
+    f.add_argument("--scale-aug", type=float,
+                   help="depth-scale augmentation: scale each sample's world by 2**u, u uniform in [-A, A] "
+                        "(inputs with depth only; default: the preset's)")
     f.add_argument("--input", choices=list(INPUTS),
                    help="encoder input: rgb (the paper's RGB pair), rgbd (plus inverse depth) or flow (plus optical "
-                        "flow and inverse depth) (default: the preset's)")
+                        "flow and inverse depth), flowd (flow and both inverse depths, no colour) (default: the preset's)")
     f.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help=DEVICE_HELP)
     f.add_argument("--bf16", action="store_true", default=None, help="bfloat16 autocast of the forward pass (GPU)")
     f.add_argument("--pretrained", type=Path, help="local torchvision vgg11_bn state-dict file to start the "
@@ -131,7 +134,7 @@ def _fit(args: argparse.Namespace) -> int:
                   steps=args.steps, pretrain_steps=args.pretrain_steps, warmup_steps=args.warmup_steps,
                   eval_every=args.eval_every, lr=args.lr, batch_pairs=args.batch_pairs, seed=args.seed,
                   device=args.device, bf16=args.bf16, input=args.input, init=args.init, flip_prob=args.flip_prob,
-                  reverse_prob=args.reverse_prob, calibrate=args.calibrate)
+                  reverse_prob=args.reverse_prob, scale_aug=args.scale_aug, calibrate=args.calibrate)
     except FitInterrupted as exc:
         print(exc, file=sys.stderr)
         return 130

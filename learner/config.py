@@ -19,6 +19,8 @@ from data.errors import ConfigError
 INPUTS: dict[str, int] = {"rgb": 6, "rgbd": 8, "flow": 9, "flowd": 4}
 #: the channel holding the horizontal flow, per input with flow (mirroring negates it)
 FLOW_U_CHANNEL: dict[str, int] = {"flow": 6, "flowd": 0}
+#: the channels holding inverse depth, per input with depth (scale augmentation divides them)
+INVDEPTH_CHANNELS: dict[str, tuple[int, ...]] = {"rgbd": (6, 7), "flow": (8,), "flowd": (2, 3)}
 #: conv widths of the VGG-11 stack (the ``M`` max-pools sit after conv 1, 2, 4, 6 and 8)
 VGG11_WIDTHS: tuple[int, ...] = (64, 128, 256, 256, 512, 512, 512, 512)
 #: the VGG-11 layout: an int is a 3x3 conv (index into the widths), ``"M"`` a 2x2 max-pool
@@ -124,6 +126,15 @@ class TrainConfig:
     ``log(T^-1) = -log(T)``; a window's frames run in reverse order, so its compositions
     stay consistent and the CTC holds. Exact. The label set becomes symmetric, so the
     network cannot learn the training recording's mean motion as a bias."""
+    scale_aug: float = 0.0
+    """Depth-scale augmentation (inputs with depth only; not in the paper): each training
+    pair (phase 1) or window (phase 2) is drawn as if the scene and the camera path were
+    scaled by ``s = 2**u``, ``u`` uniform in [-scale_aug, scale_aug]: its inverse-depth
+    channels are divided by ``s`` and its labels' translations multiplied by ``s``, while
+    images and flow stay the same (a scaled world looks identical). Scaling is an
+    automorphism of SE(3), so compositions stay consistent and the CTC holds. Exact. One
+    room then shows many pairings of depth and step length, so the network has to read
+    the step from the flow and the depth together instead of remembering the room's."""
 
     @property
     def epochs(self) -> int:
@@ -143,6 +154,8 @@ class TrainConfig:
         for name in ("flip_prob", "reverse_prob"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if not 0.0 <= self.scale_aug <= 3.0:
+            raise ConfigError(f"scale_aug must be in [0, 3] (log2 of the largest scale), got {self.scale_aug}")
 
 
 @dataclass(frozen=True)

@@ -66,7 +66,7 @@ from learner import loss as L
 from learner import se3
 from learner.calibrate import CALIBRATION_FILE
 from learner.calibrate import calibrate as run_calibration
-from learner.config import (FLOW_U_CHANNEL, PredictConfig, Preset, TrainConfig, check_variant, get_preset,
+from learner.config import (FLOW_U_CHANNEL, INVDEPTH_CHANNELS, PredictConfig, Preset, TrainConfig, check_variant, get_preset,
                             model_from_dict, to_dict)
 from learner.dataset import Frames, SequenceData, check_labels, find_teacher_edges, hull_range, load_sequences
 from learner.model import CTCNet, load_pretrained_vgg
@@ -318,6 +318,9 @@ def resolve_fit(scenes: TypingSequence[str], *, variant: str = "ctc", preset: st
         cfg = dataclasses.replace(p.train, **overrides)
     except TypeError as exc:
         raise ConfigError(f"unknown training option: {exc}") from None
+    if cfg.scale_aug > 0 and p.model.input not in INVDEPTH_CHANNELS:
+        raise ConfigError(f"--scale-aug needs an input with depth ({', '.join(INVDEPTH_CHANNELS)}), "
+                          f"not {p.model.input!r}")
     if not uses_ctc:
         cfg = dataclasses.replace(cfg, alpha=0.0)
     if not uses_lstm:
@@ -721,6 +724,29 @@ def _mirror(x: Tensor, lab: Tensor, flip: Tensor, mode: str = "rgb") -> tuple[Te
     return x, lab
 
 
+def _rescale(x: Tensor, lab: Tensor, u: Tensor, mode: str) -> tuple[Tensor, Tensor]:
+    """Scale the world of the samples of images ``x`` (B, ..., C, H, W) and labels ``lab``
+    (B, ..., 6) by ``2**u`` (B,) (``TrainConfig.scale_aug``): inverse depth / s, translation
+    * s; colour and flow are unchanged."""
+    s = torch.exp2(u).float()
+    x = x.float().clone()
+    for c in INVDEPTH_CHANNELS[mode]:
+        x[..., c, :, :] /= s.view((len(s),) + (1,) * (x.dim() - 2))
+    lab = lab.clone()
+    lab[..., :3] *= s.view((len(s),) + (1,) * (lab.dim() - 1))
+    return x, lab
+
+
+def _augment(x: Tensor, lab: Tensor, cfg: TrainConfig, gen: torch.Generator, mode: str) -> tuple[Tensor, Tensor]:
+    """Mirror (``flip_prob``) and rescale (``scale_aug``) whole samples: pairs (B, C, H, W)
+    or windows (B, P, C, H, W), with their labels (B, [P,] 6)."""
+    if cfg.flip_prob > 0:
+        x, lab = _mirror(x, lab, torch.rand(len(x), generator=gen) < cfg.flip_prob, mode)
+    if cfg.scale_aug > 0:
+        x, lab = _rescale(x, lab, (2 * torch.rand(len(x), generator=gen) - 1) * cfg.scale_aug, mode)
+    return x, lab
+
+
 def _reversed_pairs(d: SequenceData, i: Tensor, j: Tensor, rev: Tensor) -> Tensor:
     """Inputs of the pairs (i, j), those with ``rev`` played backwards: built as (j, i),
     the later frame first (the flow and depth of the ``flow`` input come out right too)."""
@@ -750,9 +776,7 @@ def pairs_step(net, data, rows: np.ndarray, cfg: TrainConfig, aug: bool, gen, de
         labs.append(lab)
         masks.append(m)
         gaps.append(g)
-    x, lab = torch.cat(x), torch.cat(labs)
-    if cfg.flip_prob > 0:
-        x, lab = _mirror(x, lab, torch.rand(len(x), generator=gen) < cfg.flip_prob, data[0].frames.mode)
+    x, lab = _augment(torch.cat(x), torch.cat(labs), cfg, gen, data[0].frames.mode)
     xi_d, _ = net(x.to(device))
     return L.pair_loss(xi_d.float(), lab.to(device), torch.cat(masks).to(device), torch.cat(gaps).to(device),
                        cfg.beta, scale)
@@ -776,9 +800,8 @@ def windows_step(net, data, rows: np.ndarray, W: int, cfg: TrainConfig, aug: boo
         lab, m = _labels(d, k, pg, aug, gen)
         labs.append(-lab if rev[b] else lab)  # log(T^-1) = -log(T)
         masks.append(m)
-    x, lab = torch.stack(x), torch.stack(labs)  # (B, P, C, H, W), (B, P, 6)
-    if cfg.flip_prob > 0:  # a whole window at a time
-        x, lab = _mirror(x, lab, torch.rand(B, generator=gen) < cfg.flip_prob, data[0].frames.mode)
+    # (B, P, C, H, W), (B, P, 6), augmented a whole window at a time
+    x, lab = _augment(torch.stack(x), torch.stack(labs), cfg, gen, data[0].frames.mode)
     seq_index = (torch.arange(B)[:, None] * P + torch.arange(W)[None, :]).to(device)  # gap-1 block first
     xi_d, xi_s = net(x.flatten(0, 1).to(device), seq_index)
     lab = lab.to(device)

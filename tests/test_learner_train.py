@@ -214,6 +214,51 @@ def test_reversed_pairs_and_windows_keep_labels_and_ctc_exact(reverse_prob) -> N
     assert float(pairs_step(swapped, data, rows, cfg, False, gen, cpu, scale).reg) > 1e-2
 
 
+def test_scale_augmentation_keeps_labels_and_ctc_exact() -> None:
+    """Depth-scale augmentation: a world scaled by s looks the same with inverse depth / s
+    and translations * s. A network that reads the motion and the scale from its input
+    (frame indices in the colour, inverse depth 1 / m before scaling) fits the augmented
+    pairs and windows exactly (regression and CTC loss zero); one that ignores the depth
+    does not."""
+    from learner.config import TrainConfig
+    from learner.dataset import Frames, SequenceData
+    from learner.dataset import gt_labels
+    from learner.train import pairs_step, windows_step
+
+    rng = np.random.default_rng(2)
+    N, G, W = 24, 3, 5
+    gt = [np.eye(4)]
+    for _ in range(N - 1):
+        gt.append(gt[-1] @ geo.se3_exp(rng.normal(0, [0.01, 0.01, 0.01, 0.02, 0.02, 0.02])))
+    gt = np.array(gt)
+    labels, mask = gt_labels(gt, G)
+    rgb = torch.arange(N, dtype=torch.uint8)[:, None, None, None].expand(N, 3, 2, 2).contiguous()
+    inv = torch.full((N, 1, 2, 2), 100, dtype=torch.uint8)  # 1 / m
+    data = [SequenceData("s", np.arange(N), np.arange(N) / 30.0, Frames(rgb, inv, mode="rgbd"), labels, mask, None, gt)]
+
+    def reader(use_depth: bool):
+        def net(x: torch.Tensor, seq_index: torch.Tensor | None = None):
+            a, b = x[:, 0, 0, 0].long().tolist(), x[:, 3, 0, 0].long().tolist()
+            xi = torch.tensor(np.array([geo.se3_log(geo.relative_pose(gt[i], gt[j])) for i, j in zip(a, b)]),
+                              dtype=torch.float32)
+            if use_depth:  # the world is 100 / invdepth times larger
+                xi[:, :3] *= (100.0 / x[:, 6, 0, 0].float())[:, None]
+            return xi, (xi[seq_index] if seq_index is not None else None)
+        return net
+
+    cfg = TrainConfig(max_gap=G, scale_aug=1.0)
+    gen = torch.Generator().manual_seed(0)
+    rows = np.array([[0, k, g] for g in range(1, G + 1) for k in range(0, N - g, 3)])
+    cpu, scale = torch.device("cpu"), torch.full((G + 1, 6), 0.01)
+    assert float(pairs_step(reader(True), data, rows, cfg, False, gen, cpu, scale).reg) < 1e-8
+    terms = windows_step(reader(True), data, np.array([[0, 0], [0, 9], [0, N - 1 - W]]), W, cfg, False, gen, cpu, scale)
+    assert float(terms.reg) < 1e-8 and float(terms.ctc) < 1e-6
+    assert float(pairs_step(reader(False), data, rows, cfg, False, gen, cpu, scale).reg) > 1e-3
+    # without augmentation the depth-blind reader fits: the check above is the augmentation's
+    plain = TrainConfig(max_gap=G)
+    assert float(pairs_step(reader(False), data, rows, plain, False, gen, cpu, scale).reg) < 1e-8
+
+
 def test_input_pairs_rgb_rgbd_flow_and_flowd() -> None:
     """The encoder's inputs of a pair (i, j): RGB i then RGB j (a reversed pair, built as
     (j, i), shows the later frame first), inverse depth of both (``rgbd``), and for ``flow``
@@ -254,17 +299,24 @@ def test_input_pairs_rgb_rgbd_flow_and_flowd() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name, good, bad", [("flip_prob", 1.0, 1.5), ("reverse_prob", 0.5, -0.1)])
+@pytest.mark.parametrize("name, good, bad", [("flip_prob", 1.0, 1.5), ("reverse_prob", 0.5, -0.1),
+                                             ("scale_aug", 1.0, -1.0)])
 def test_augmentation_trains(fixture_seq, tmp_path, name, good, bad) -> None:
-    """Mirroring and time reversal: a tiny fit with each trains both phases, records its
-    probability in config.json, and a probability outside [0, 1] is refused."""
+    """Mirroring, time reversal and depth scaling: a tiny fit with each trains both phases,
+    records its setting in config.json, and a setting out of range is refused."""
     seq, teacher = fixture_seq
-    res = fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=teacher, **{name: good})
+    extra = {"input": "rgbd"} if name == "scale_aug" else {}  # scaling needs depth
+    res = fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=teacher, **{name: good},
+              **extra)
     assert [h["phase"] for h in res.history] == ["pairs", "windows"]
     assert all(np.isfinite(h[f"{ph}_loss"]) and h[f"{ph}_reg"] > 0 for h, ph in zip(res.history, ("pairs", "windows")))
     assert json.loads((tmp_path / "run" / "config.json").read_text())["train"][name] == good
     with pytest.raises(ConfigError, match=name):
-        fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "bad", teacher_root=teacher, **{name: bad})
+        fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "bad", teacher_root=teacher, **{name: bad}, **extra)
+    if name == "scale_aug":  # and an input without depth cannot be scaled
+        with pytest.raises(ConfigError, match="scale-aug needs an input with depth"):
+            fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "rgb", teacher_root=teacher, scale_aug=1.0,
+                input="rgb")
 
 
 @pytest.mark.slow
