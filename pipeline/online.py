@@ -24,6 +24,12 @@ At the end (or on Ctrl-C) the smoothed estimate of every pose is written to
 ``teacher generate`` / ``learner predict``, so ``posegraph optimize --teacher DIR/teacher``
 solves the same edges in batch) and ``report.json`` (fps, latency percentiles, ATE when
 there is ground truth). Formats: docs/formats.md, "Online mode".
+
+:func:`online` (the command) follows the rerun rule of :mod:`data.runs`: beside its outputs
+it writes ``fingerprint.json`` (scene, frames, the teacher, learner and graph settings, the
+checkpoint's digest); a rerun of the same inputs keeps a finished run (with ``--follow``:
+when the folder holds no frame the run did not take), recomputes an interrupted or killed
+one, and stops with a one-line error for other inputs unless ``--overwrite``.
 """
 
 from __future__ import annotations
@@ -51,6 +57,10 @@ log = logging.getLogger(__name__)
 
 TRAJECTORY = "trajectory.tum"
 FINAL_TRAJECTORY = "trajectory_final.tum"
+REPORT = "report.json"
+#: every file a run writes (report.json first: removed first, written last, it marks a finished run)
+OUTPUT_FILES = (REPORT, TRAJECTORY, FINAL_TRAJECTORY, "teacher/edges.g2o", "teacher/trajectory.tum",
+                "teacher/groundtruth.tum", "learner/edges.g2o")
 
 
 @dataclass(frozen=True)
@@ -119,6 +129,13 @@ class FollowFolder(FrameSource):
         ids = [int(m.group(1)) for p in self.folder.iterdir() if (m := _FRAME_RE.match(p.name))]
         later = [k for k in ids if k > after]
         return min(later) if later else None
+
+    def present_ids(self) -> NDArray[np.int64]:
+        """The ids of the frames the folder holds now (colour and depth present)."""
+        names = {p.name for p in self.folder.iterdir()}
+        ids = sorted({int(n[6:12]) for n in names if n.startswith("frame-") and n.endswith(".depth.png")})
+        return np.array([k for k in ids if f"frame-{k:06d}.color.png" in names or f"frame-{k:06d}.color.jpg" in names],
+                        dtype=np.int64)
 
     def __iter__(self) -> Iterator[Frame]:
         from data import sevenscenes
@@ -545,6 +562,8 @@ class OnlineResult:
     latency_ms: dict[str, float]
     interrupted: bool
     report: dict = field(default_factory=dict)
+    kept: bool = False
+    """A finished run of the same inputs was found and kept (nothing was computed)."""
 
 
 class _Progress:
@@ -677,12 +696,91 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
         producer.join(timeout=5.0)
     seconds = time.perf_counter() - t_start
     if n == 0:
+        (out / TRAJECTORY).unlink(missing_ok=True)  # nothing to keep
         raise DataError(f"{source.name}: no frame arrived")
     lat_ms = {f"p{q}": 1000 * float(np.percentile(lat, q)) for q in (50, 95, 99)} | {"max": 1000 * max(lat)}
     work_ms = {f"p{q}": 1000 * float(np.percentile(work, q)) for q in (50, 95, 99)} | {"max": 1000 * max(work)}
     report = _finish(out, source, teacher, graph, t_edges, l_edges, gts, teacher_cfg, seconds,
                      {"latency_ms": lat_ms, "work_ms": work_ms}, interrupted, checkpoint)
     return OnlineResult(out, n, n / seconds, lat_ms, interrupted, report)
+
+
+def fingerprint(spec: str, source: FrameSource, teacher_cfg, checkpoint: Optional[Path] = None, predict_cfg=None,
+                graph_cfg=None):
+    """The inputs of an online run (``data.runs.Fingerprint``): scene, sequence, frames (with
+    ``--follow``: as they arrive), the teacher's config (without its process settings), the
+    checkpoint and the calibration beside it (content digests), the MC-dropout settings and
+    the graph's config."""
+    from data.runs import Fingerprint, file_digest, frames_id, scene_id
+    from posegraph.config import ONLINE
+
+    tconf = teacher_cfg.to_dict()
+    for k in ("workers", "chunk_frames"):  # how batch runs share the work; no effect here
+        tconf.pop(k, None)
+    follow = isinstance(source, FollowFolder)
+    cal = Path(checkpoint).parent / "calibration.json" if checkpoint is not None else None
+    if checkpoint is not None:
+        from learner.config import PredictConfig, to_dict
+
+        pconf = to_dict(predict_cfg or PredictConfig())
+    return Fingerprint("online", {
+        "scene": scene_id(spec), "sequence": source.name,
+        "frames": "as they arrive" if follow else frames_id(source.seq.ids()) if isinstance(source, SequenceSource)
+        else None, "follow": follow, "teacher": tconf,
+        "checkpoint": file_digest(checkpoint) if checkpoint is not None else None,
+        "calibration": file_digest(cal) if cal is not None and cal.is_file() else None,
+        "predict": pconf if checkpoint is not None else None, "graph": (graph_cfg or ONLINE).to_dict()})
+
+
+def online(spec: str, out: Optional[Path] = None, *, frames: Optional[str] = None, follow: bool = False,
+           teacher_cfg=None, checkpoint: Optional[Path] = None, predict_cfg=None, graph_cfg=None,
+           cfg: OnlineConfig = OnlineConfig(), device: str = "cpu", overwrite: bool = False,
+           progress: bool = True) -> OnlineResult:
+    """``vo-online``: :func:`run` over the scene ``spec`` into ``out`` (default
+    ``runs/<scene-slug>/online``), under the rerun rule of :mod:`data.runs`.
+
+    A finished run of the same inputs is kept (returned from its ``report.json``; with
+    ``follow``, only while the folder holds no frame the run did not take); an interrupted
+    or killed one is run again; outputs of other inputs are replaced with ``overwrite``,
+    otherwise :class:`data.runs.StaleOutputError` says what differs. A run is finished when
+    its ``report.json`` (written last) says it was not interrupted."""
+    import json
+
+    from data.runs import FINGERPRINT_FILE, claim, output_folder, stage_dir, write_fingerprint
+    from teacher.config import DEFAULT as TEACHER_DEFAULT
+
+    teacher_cfg = teacher_cfg or TEACHER_DEFAULT
+    out = Path(out) if out is not None else stage_dir(spec, "online")
+    with output_folder(out):
+        source = open_source(spec, frames, follow, cfg)
+        fp = fingerprint(spec, source, teacher_cfg, checkpoint, predict_cfg, graph_cfg)
+        report = None
+        if (out / REPORT).is_file():
+            try:
+                report = json.loads((out / REPORT).read_text())
+            except (OSError, ValueError):
+                report = None  # unreadable: not a finished run
+        done = isinstance(report, dict) and report.get("interrupted") is False
+        if done and follow:
+            from data.runs import frames_id
+
+            done = report.get("frame_ids") == frames_id(source.present_ids())
+        if claim(out, fp, done=done, has_outputs=report is not None, overwrite=overwrite, outputs=OUTPUT_FILES):
+            log.info("%s: online run of the same inputs: kept", out)
+            lat = report.get("latency_ms") or {}
+            return OnlineResult(out, int(report["frames"]), float(report.get("fps") or 0.0), lat, False, report,
+                                kept=True)
+        for name in OUTPUT_FILES:  # an unfinished run of the same inputs: start afresh, report.json first
+            (out / name).unlink(missing_ok=True)
+        from data.io import ensure_dir
+
+        write_fingerprint(ensure_dir(out), fp)
+        try:
+            return run(source, out, teacher_cfg, checkpoint, predict_cfg, graph_cfg, cfg, device, progress=progress)
+        except BaseException:
+            if not (out / TRAJECTORY).exists():  # not one frame taken: leave nothing behind
+                (out / FINGERPRINT_FILE).unlink(missing_ok=True)
+            raise
 
 
 def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: OnlineGraph, t_edges: list,
@@ -692,6 +790,7 @@ def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: Onlin
     from data.formats import Edge, Trajectory, write_g2o, write_tum
     from data.io import ensure_dir, git_revision, json_safe, write_json
     from data.metrics import trajectory_report
+    from data.runs import frames_id
     from teacher.generate import chain_trajectory
 
     ids = np.array(teacher.ids, dtype=np.int64)
@@ -720,7 +819,7 @@ def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: Onlin
         "learner_edges": len(l_edges), "checkpoint": str(checkpoint) if checkpoint else None,
         "covariance_scales": graph.scale, "graph_reviews": graph.reviews, "final_polish": graph.polish,
         "outlier_edges": {"removed": int((graph.status == 2).sum()), "downweighted": int((graph.status == 1).sum())},
-        "teacher": teacher_cfg.to_dict(), "git_revision": git_revision(),
+        "frame_ids": frames_id(ids), "teacher": teacher_cfg.to_dict(), "git_revision": git_revision(),
     }
     if has_gt:
         report["final"] = trajectory_report(gt, Trajectory(times, final))
@@ -728,7 +827,7 @@ def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: Onlin
             report["final_isam2"] = trajectory_report(gt, Trajectory(times, graph.isam2_poses))
         report["online"] = trajectory_report(gt, Trajectory(times, _read_rows(out / TRAJECTORY, n)))
         report["teacher_chain"] = trajectory_report(gt, Trajectory(times, chained))
-    write_json(out / "report.json", json_safe(report))
+    write_json(out / REPORT, json_safe(report))
     return report
 
 
@@ -751,6 +850,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "a 7-Scenes-layout folder being written")
     p.add_argument("--checkpoint", type=Path, help="learner checkpoint: add its MC-dropout edges")
     p.add_argument("--out", type=Path, help="output folder (default runs/<scene>/online)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the outputs of other inputs in --out instead of stopping with an error")
     p.add_argument("--frames", help="frame range START:STOP[:STEP]")
     p.add_argument("--follow", action="store_true", help="the folder is still being written: wait for new frames")
     p.add_argument("--timeout", type=float, default=OnlineConfig.timeout_s,
@@ -772,7 +873,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.verbose, "%(message)s")
     try:
-        from data.runs import stage_dir
         from data.scenes import scene_with_topics
         from learner.config import PredictConfig
         from teacher.config import PRESETS as TEACHER_PRESETS
@@ -787,9 +887,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if args.timeout <= 0 or args.poll <= 0:
             raise ConfigError("--timeout and --poll must be positive")
         ocfg = OnlineConfig(poll_s=args.poll, timeout_s=args.timeout)
-        out = args.out or stage_dir(scene, "online")
-        source = open_source(scene, args.frames, args.follow, ocfg)
-        res = run(source, out, tcfg, args.checkpoint, pcfg, cfg=ocfg, device=args.device)
+        res = online(scene, args.out, frames=args.frames, follow=args.follow, teacher_cfg=tcfg,
+                     checkpoint=args.checkpoint, predict_cfg=pcfg if args.checkpoint else None, cfg=ocfg,
+                     device=args.device, overwrite=args.overwrite)
     except VOError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -804,7 +904,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if res.interrupted:
         print(f"interrupted after {line}; trajectory so far in {res.out / TRAJECTORY}", file=sys.stderr)
         return 130
-    print(f"{line} -> {res.out}")
+    print(f"{line} -> {res.out}" + (" (kept: a finished run of the same inputs)" if res.kept else ""))
     return 0
 
 

@@ -177,3 +177,112 @@ def test_online_learner_edges_equal_predict(batch, tmp_path):
     for key, e in want.items():
         np.testing.assert_allclose(got[key].T_i_j, e.T_i_j, atol=2e-5)
     assert run.report["final"]["ate_rmse_m"] < 1.0
+
+
+# ----------------------------------------------------------------------------------
+# the rerun rule (data/runs.py)
+# ----------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_rerun_keeps_refuses_and_overwrites(tmp_path, monkeypatch, capsys):
+    """A second identical run keeps the finished outputs without computing; other inputs
+    are one line naming what differs, the outputs untouched; --overwrite replaces them."""
+    out = tmp_path / "o"
+    first = online.online("synthetic/tiny", out, teacher_cfg=TCFG, progress=False)
+    assert not first.kept and first.frames == 20
+    fp = json.loads((out / "fingerprint.json").read_text())
+    assert fp["stage"] == "online" and fp["inputs"]["frames"] == "0..19 (20 frames)"
+    assert fp["inputs"]["follow"] is False and fp["inputs"]["checkpoint"] is None
+    stamp = {f: (out / f).stat().st_mtime_ns for f in online.OUTPUT_FILES if (out / f).exists()}
+    assert set(stamp) >= {"report.json", "trajectory.tum", "trajectory_final.tum", "teacher/edges.g2o"}
+
+    def no_run(*a, **k):
+        raise AssertionError("a finished run of the same inputs was computed again")
+
+    monkeypatch.setattr(online, "run", no_run)
+    again = online.online("synthetic/tiny", out, teacher_cfg=TCFG, progress=False)
+    assert again.kept and again.frames == 20 and again.report == first.report
+    argv = ["--scene", "synthetic/tiny", "--preset", "tiny", "--out", str(out)]
+    assert online.main(argv) == 0
+    assert "(kept: a finished run of the same inputs)" in capsys.readouterr().out
+    assert online.main([*argv, "--frames", "0:10"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == (f"error: {out} holds outputs of other inputs (frames: 0..19 (20 frames) -> 0..9 (10 frames)); "
+                   "pass --overwrite to replace them, or choose another --out")
+    assert online.main([*argv, "--gaps", "1"]) == 1
+    assert "teacher.gaps: 2 -> 1" in capsys.readouterr().err
+    assert {f: (out / f).stat().st_mtime_ns for f in stamp} == stamp
+    monkeypatch.undo()
+    assert online.main([*argv, "--frames", "0:10", "--overwrite"]) == 0
+    assert len(read_tum(out / online.TRAJECTORY)) == 10
+    assert json.loads((out / "report.json").read_text())["frame_ids"] == "0..9 (10 frames)"
+
+
+@pytest.mark.slow
+def test_a_killed_run_is_run_again_and_fails_leave_nothing(tmp_path):
+    """SIGKILL mid-run leaves no report.json (the mark of a finished run) and only whole
+    files; the same command again computes the run afresh; other inputs are refused.
+    A run in which no frame arrived leaves no folder behind."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "o"
+    argv = [sys.executable, "-m", "pipeline.online", "--scene", "synthetic/tiny", "--preset", "tiny", "--out", str(out)]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(argv, cwd=Path(__file__).resolve().parents[1], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            traj = out / online.TRAJECTORY
+            if traj.is_file() and len(traj.read_text().splitlines()) >= 4:  # header + 3 frames
+                break
+            time.sleep(0.02)
+        assert proc.poll() is None, "the run ended before it could be killed"
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait()
+    assert (out / "fingerprint.json").is_file() and not (out / "report.json").exists()
+    assert not (out / online.FINAL_TRAJECTORY).exists()
+    rows = read_tum(out / online.TRAJECTORY)  # whole rows only
+    assert 3 <= len(rows) < 20
+    from data.runs import StaleOutputError
+
+    with pytest.raises(StaleOutputError, match="holds outputs of other inputs"):
+        online.online("synthetic/tiny", out, frames="0:10", teacher_cfg=TCFG, progress=False)
+    res = online.online("synthetic/tiny", out, teacher_cfg=TCFG, progress=False)
+    assert not res.kept and res.frames == 20 and len(read_tum(out / online.TRAJECTORY)) == 20
+
+    (tmp_path / "empty").mkdir()
+    from data.errors import DataError
+
+    with pytest.raises(DataError, match="no frame arrived"):
+        online.online(str(tmp_path / "empty"), tmp_path / "runs" / "x", follow=True, teacher_cfg=TCFG,
+                      cfg=online.OnlineConfig(poll_s=0.01, timeout_s=0.2), progress=False)
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.slow
+def test_follow_rerun_is_kept_until_the_folder_grows(tmp_path):
+    """With --follow a finished run is kept while the folder holds no frame it did not
+    take; once frames were added, the same command runs again over all of them."""
+    src = open_scene("synthetic/tiny")[0].root
+    live = tmp_path / "live"
+    live.mkdir()
+
+    def copy(ids):
+        for k in ids:
+            for f in src.glob(f"frame-{k:06d}.*"):
+                shutil.copy(f, live / f.name)
+
+    copy(range(10))
+    cfg = online.OnlineConfig(poll_s=0.01, timeout_s=0.3)
+    kw = dict(follow=True, teacher_cfg=TCFG, cfg=cfg, progress=False)
+    first = online.online(str(live), tmp_path / "o", **kw)
+    assert first.frames == 10 and first.report["frame_ids"] == "0..9 (10 frames)"
+    assert json.loads((tmp_path / "o" / "fingerprint.json").read_text())["inputs"]["frames"] == "as they arrive"
+    assert online.online(str(live), tmp_path / "o", **kw).kept
+    copy(range(10, 14))
+    grown = online.online(str(live), tmp_path / "o", **kw)
+    assert not grown.kept and grown.frames == 14 and len(read_tum(tmp_path / "o" / online.TRAJECTORY)) == 14
