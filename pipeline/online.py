@@ -9,15 +9,19 @@ written (``frame-NNNNNN.color.{png,jpg}`` + ``frame-NNNNNN.depth.png``, optional
 
 For each new frame k:
 
-1. the teacher's per-frame and per-pair functions (:func:`teacher.odometry.extract`,
-   :func:`teacher.odometry.estimate_edge`) give the edges (k-g, k), g = 1..K, with the
-   same feature tracks and constant-velocity prediction as ``teacher generate``;
-2. with ``--checkpoint``, the learner adds MC-dropout edges (k-g, k), g = 1..max_gap
-   (the network and calibration loaded by :mod:`learner.predict`'s functions; the LSTM
-   head over the same chunks of ``window_max`` pairs as ``learner predict``);
-3. GTSAM's ISAM2 is updated with the new pose (predicted through its shortest good edge)
-   and its edges (the robust factors of :mod:`posegraph.graph`);
+1. the teacher's window (:class:`teacher.window.EdgeWindow`, the code ``teacher generate``
+   runs) gives the edges (k-g, k), g = 1..K, with the same feature tracks and
+   constant-velocity prediction;
+2. with ``--checkpoint``, the learner (:class:`learner.online.OnlineLearner`) adds
+   MC-dropout edges (k-g, k), g = 1..max_gap (the network and calibration of ``learner
+   predict``; the LSTM head over the same chunks of ``window_max`` pairs);
+3. GTSAM's ISAM2 (:class:`posegraph.online.OnlineGraph`) is updated with the new pose
+   (predicted through its shortest good edge) and its edges (the robust factors of
+   :mod:`posegraph.graph`);
 4. the new pose's current estimate is appended to ``trajectory.tum`` and flushed.
+
+This module only composes them (frame sources, the hand-over thread, outputs, command
+line); it is, with pipeline/demo.py, where every stage is imported.
 
 At the end (or on Ctrl-C) the smoothed estimate of every pose is written to
 ``trajectory_final.tum``, the edges to ``teacher/`` and ``learner/`` (the layout of
@@ -41,7 +45,6 @@ import queue
 import sys
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Optional, Sequence, TextIO
@@ -52,6 +55,7 @@ from numpy.typing import NDArray
 from data import geometry as geo
 from data.errors import ConfigError, DataError, VOError
 from data.sequence import Frame, Intrinsics
+from posegraph.online import OnlineGraph
 
 log = logging.getLogger(__name__)
 
@@ -187,30 +191,20 @@ def open_source(spec: str, frames: Optional[str] = None, follow: bool = False,
 # ----------------------------------------------------------------------------------
 # teacher edges, frame by frame
 # ----------------------------------------------------------------------------------
-@dataclass
-class _WindowEntry:
-    pos: int
-    feats: object  # teacher.odometry.FrameFeatures
-    link: NDArray[np.int64]  # keypoint of this frame -> keypoint in the newest frame (-1: lost)
-    T_k_cur: NDArray[np.float64]  # chained gap-1 motion from this frame to the newest
-
-
 class OnlineTeacher:
-    """The edges (k-g, k), g = 1..cfg.gaps, of each new frame k, by the same rules as
-    ``teacher generate`` (:func:`teacher.generate._run_chunk`): the gap-1 edge guided by
-    constant velocity, its inliers extending feature tracks, longer edges from the tracks
-    predicted by the chained gap-1 motion."""
+    """The edges (k-g, k), g = 1..cfg.gaps, of each new frame k: the window of ``teacher
+    generate`` (:class:`teacher.window.EdgeWindow`, the same code) over the frames as they
+    arrive, and the frame ids and timestamps so far."""
 
     def __init__(self, intr: Intrinsics, cfg, colour=None) -> None:
         """``colour``: the colour camera model (``teacher.odometry.ColourCamera``; None:
         colour registered to depth), as :func:`teacher.generate.colour_camera_for` picks it."""
         from teacher.odometry import make_orb
+        from teacher.window import EdgeWindow
 
         self.intr, self.cfg, self.colour = intr, cfg, colour
         self.orb = make_orb(cfg)
-        self.window: deque[_WindowEntry] = deque()
-        self.v_prev: Optional[NDArray[np.float64]] = None
-        self.prev_keys = None
+        self.window = EdgeWindow(intr, cfg)
         self.ids: list[int] = []
         self.times: list[float] = []
 
@@ -222,331 +216,9 @@ class OnlineTeacher:
 
     def add(self, frame: Frame, fk) -> list:
         """The edges ending at ``frame`` (``EdgeEstimate``; failed ones included)."""
-        from teacher.odometry import estimate_edge, stale_stream
-
-        cfg, k = self.cfg, len(self.ids)
         self.ids.append(int(frame.frame_id))
         self.times.append(float(frame.timestamp))
-        if self.prev_keys is not None:
-            fk.stale = stale_stream(self.prev_keys, fk.keys)
-        self.prev_keys = fk.keys
-        edges = []
-        if self.window:
-            prev = self.window[-1]
-            dt = self.times[k] - self.times[k - 1]
-            e = estimate_edge(self.ids[k - 1], self.ids[k], prev.feats, fk, self.intr, cfg, dt, T_pred=self.v_prev)
-            edges.append(e)
-            step = e.T_i_j if e.ok else (self.v_prev if self.v_prev is not None else np.eye(4))
-            if e.ok:
-                self.v_prev = e.T_i_j
-            m = np.full(len(prev.feats.uv) + 1, -1, np.int64)  # last slot maps -1 -> -1
-            if e.ok and e.inlier_pairs is not None:
-                m[e.inlier_pairs[:, 0]] = e.inlier_pairs[:, 1]
-            for w in self.window:
-                w.link = m[w.link]
-                w.T_k_cur = w.T_k_cur @ step
-            for w in list(self.window)[:-1]:  # gaps >= 2
-                tracks = np.flatnonzero(w.link >= 0)
-                tracks = np.stack([tracks, w.link[tracks]], axis=1)
-                edges.append(estimate_edge(self.ids[w.pos], self.ids[k], w.feats, fk, self.intr, cfg,
-                                           self.times[k] - self.times[w.pos], w.T_k_cur.copy(), tracks))
-        self.window.append(_WindowEntry(k, fk, np.arange(len(fk.uv)), np.eye(4)))
-        while self.window and k - self.window[0].pos >= cfg.gaps:
-            self.window.popleft()
-        for e in edges:
-            e.inlier_pairs = None
-        return edges
-
-
-# ----------------------------------------------------------------------------------
-# learner edges, frame by frame
-# ----------------------------------------------------------------------------------
-class OnlineLearner:
-    """MC-dropout edges (k-g, k), g = 1..max_gap, of each new frame: the pairs are encoded
-    once, the dropout layers resampled K times; gap 1 from the LSTM head (LSTM variants;
-    chunks of ``window_max`` pairs as in ``learner predict``, the LSTM being causal the
-    newest output equals the batch one), longer gaps from the direct head. Mean and
-    covariance as in :func:`learner.predict.mc_edges`, calibrated with the checkpoint's
-    ``calibration.json`` when there is one."""
-
-    def __init__(self, checkpoint: Path, cfg=None, device: str = "cpu", use_calibration: bool = True,
-                 seed: int = 0) -> None:
-        import torch
-
-        from learner.calibrate import calibration_for
-        from learner.config import PredictConfig, check_variant
-        from learner.predict import load_model
-
-        self.cfg = cfg or PredictConfig()
-        self.model, state = load_model(Path(checkpoint), None, device)
-        found = calibration_for(Path(checkpoint), self.cfg) if use_calibration else None
-        self.calibration = found[1] if found is not None else None
-        if found is None and use_calibration:
-            log.info("no calibration.json beside %s: MC-dropout covariances used as they are", checkpoint)
-        self.uses_lstm = check_variant(state["variant"])[0]
-        self.window = int(state["train_config"]["window_max"])
-        m = self.model.cfg
-        self.width, self.height, self.mode = m.width, m.height, m.input
-        self.buf: deque[tuple] = deque(maxlen=self.cfg.max_gap + 1)
-        self.z1: list = []  # gap-1 latents of the current LSTM chunk
-        self.n = 0
-        torch.manual_seed(seed)
-
-    def inputs(self, frame: Frame) -> tuple:
-        """Per-frame network inputs (resized RGB, inverse depth, grey at 2x), as the learner caches them."""
-        import cv2
-
-        from learner.config import FLOW_U_CHANNEL
-        from learner.dataset import _invdepth, _resize
-
-        rgb = _resize(frame.rgb, self.width, self.height).transpose(2, 0, 1)
-        inv = _invdepth(frame.depth, self.width, self.height) if self.mode != "rgb" else None
-        grey = (cv2.cvtColor(_resize(frame.rgb, 2 * self.width, 2 * self.height), cv2.COLOR_RGB2GRAY)
-                if self.mode in FLOW_U_CHANNEL else None)  # the inputs with optical flow
-        return rgb, inv, grey
-
-    def add(self, inputs: tuple) -> list[tuple[int, NDArray[np.float64], NDArray[np.float64], str]]:
-        """(gap, mean twist (6,), covariance (6, 6), head) of the edges ending at the new frame."""
-        import torch
-
-        from learner.dataset import Frames
-
-        self.buf.append(inputs)
-        k, self.n = self.n, self.n + 1
-        G = min(self.cfg.max_gap, len(self.buf) - 1)
-        if G < 1:
-            return []
-        stack = [None if self.buf[0][c] is None else np.stack([b[c] for b in self.buf]) for c in range(3)]
-        frames = Frames(stack[0], stack[1], stack[2], self.mode)
-        last = len(self.buf) - 1
-        gaps = np.arange(1, G + 1)
-        with torch.no_grad():
-            z = self.model.encode(frames.pairs(torch.as_tensor(last - gaps), torch.full((G,), last)).to(
-                self.model.output_scale.device))
-            out: list[tuple[str, torch.Tensor]] = []
-            if self.uses_lstm:
-                if (k - 1) % self.window == 0:
-                    self.z1 = []
-                self.z1.append(z[0])
-                out.append(("lstm", self.model.sequential_mc(torch.stack(self.z1)[None], self.cfg.samples,
-                                                             self.cfg.drop)[:, 0, -1]))
-                rest = z[1:]
-            else:
-                rest = z
-            if len(rest):
-                d = self.model.direct_mc(rest, self.cfg.samples, self.cfg.drop)  # (K, n, 6)
-                out += [("direct", d[:, n]) for n in range(d.shape[1])]
-        res = []
-        for g, (head, samples) in zip(gaps.tolist(), out):
-            s = samples.double().cpu().numpy()
-            mean = s.mean(0)
-            dev = s - mean
-            cov = dev.T @ dev / max(self.cfg.samples - 1, 1)
-            cov = 0.5 * (cov + cov.T) + self.cfg.cov_floor * np.eye(6)
-            if self.calibration is not None:
-                cov = self.calibration.apply(cov[None], [head], np.array([g]))[0]
-            res.append((g, mean, cov, head))
-        return res
-
-
-# ----------------------------------------------------------------------------------
-# the incremental pose graph
-# ----------------------------------------------------------------------------------
-class OnlineGraph:
-    """ISAM2 over frame ids: a prior fixes the first pose at the identity; each new pose
-    starts at its prediction through its shortest good edge (else constant velocity, as
-    the teacher's chained trajectory) and enters with its edges.
-
-    The graph is reviewed as ``posegraph optimize`` reviews it - covariance scale per
-    edge source (:func:`posegraph.graph._scale_factors`: median squared whitened residual
-    against chi-square(6), corrected for the graph's redundancy) and outlier edges
-    (:func:`posegraph.graph._apply_action`) - online: when it reaches ``review_from`` frames,
-    at every doubling after that, and at the end until nothing changes. Factors whose scale
-    or status changed are swapped in one ISAM2 update (log2(N) reviews over a run, so the
-    cost stays amortised), so the robust kernel sees the residuals at the scale the batch
-    solve sees them."""
-
-    def __init__(self, cfg=None, review_from: int = 16) -> None:
-        import gtsam
-
-        from posegraph.config import ONLINE
-
-        self.cfg = cfg or ONLINE
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(self.cfg.isam2_relinearize_threshold)
-        params.relinearizeSkip = 1
-        self.isam = gtsam.ISAM2(params)
-        self.ids: list[int] = []
-        self.pos: dict[int, int] = {}
-        self.latest: dict[int, NDArray[np.float64]] = {}
-        self.v_prev = np.eye(4)
-        self.edges: list = []  # data.formats.Edge in the graph
-        self.slots: list[int] = []  # ISAM2 factor index of each edge
-        self.sources: list[str] = []
-        self.status = np.zeros(0, np.int64)  # per edge: 0 in the graph, 1 down-weighted, 2 removed
-        self.scale: dict[str, float] = {}
-        self.next_review = review_from
-        self.reviews = 0
-        self.live: dict[int, object] = {}  # ISAM2 factor index -> factor, of the factors in the graph
-        self.polish: Optional[dict] = None
-
-    def _edge_factors(self, edges: list, weak: Optional[NDArray[np.bool_]] = None) -> list:
-        """Robust factors of ``edges`` under the current source scales (``weak``: times
-        ``cfg.downweight_factor``), built by :func:`posegraph.graph._factors`."""
-        from posegraph.graph import _factors
-
-        if not edges:
-            return []
-        ids = np.array([[e.i, e.j] for e in edges], dtype=np.int64)
-        meas = [geo.to_gtsam_pose3(geo.orthonormalize(e.T_i_j)) for e in edges]
-        mult = np.array([self.scale.get(e.extra.get("source", ""), 1.0) for e in edges])
-        if weak is not None:
-            mult = mult * np.where(weak, self.cfg.downweight_factor, 1.0)
-        covs = np.stack([e.cov for e in edges]) * mult[:, None, None]
-        return _factors(ids, meas, covs, self.cfg)
-
-    def add(self, frame_id: int, edges: list) -> NDArray[np.float64]:
-        """Add frame ``frame_id`` with its ``data.formats.Edge`` list (edges (i, frame_id),
-        i already in the graph; ``edge.extra["source"]`` names the source); return its
-        current estimate ``T_world_cam``."""
-        import gtsam
-
-        from posegraph.graph import _prior
-
-        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        if not self.ids:
-            T0 = np.eye(4)
-            graph.add(_prior(frame_id, T0, self.cfg))
-        else:
-            prev = self.ids[-1]
-            best = max(edges, key=lambda e: self.pos[e.i], default=None)  # the shortest gap
-            if best is not None:
-                T0 = self.latest[best.i] @ best.T_i_j
-                if best.i == prev:
-                    self.v_prev = best.T_i_j
-            else:
-                T0 = self.latest[prev] @ self.v_prev
-                log.debug("frame %d: no edge, placed by constant velocity", frame_id)
-                # an unconnected pose needs a factor: the constant-velocity guess, weakly
-                graph.add(gtsam.BetweenFactorPose3(prev, frame_id, geo.to_gtsam_pose3(self.v_prev),
-                                                   gtsam.noiseModel.Diagonal.Sigmas(np.full(6, 0.1))))
-        values.insert(int(frame_id), geo.to_gtsam_pose3(T0))
-        first_edge = graph.size()
-        for f in self._edge_factors(edges):
-            graph.add(f)
-        res = self._update(graph, values)
-        all_slots = list(res.getNewFactorsIndices())
-        self.live.update({int(k): graph.at(n) for n, k in enumerate(all_slots)})
-        slots = all_slots[first_edge:]
-        self.edges += edges
-        self.slots += slots
-        self.status = np.concatenate([self.status, np.zeros(len(edges), np.int64)])
-        self.pos[int(frame_id)] = len(self.ids)
-        self.ids.append(int(frame_id))
-        if len(self.ids) >= self.next_review:
-            self.next_review *= 2
-            self._review()
-        for k in self.ids[-8:]:  # refresh the newest estimates (anchors of the next predictions)
-            self.latest[k] = geo.from_gtsam_pose3(self.isam.calculateEstimatePose3(k))
-        return self.latest[int(frame_id)]
-
-    def _update(self, graph, values, remove: Sequence[int] = ()):
-        try:
-            return self.isam.update(graph, values, list(remove))
-        except RuntimeError as exc:
-            from posegraph.graph import _indeterminant
-
-            raise _indeterminant(exc) from None
-
-    def poses(self) -> NDArray[np.float64]:
-        """(N, 4, 4) current estimate of every pose."""
-        est = self.isam.calculateEstimate()
-        return np.stack([geo.from_gtsam_pose3(est.atPose3(k)) for k in self.ids])
-
-    def _review(self, poses: Optional[NDArray[np.float64]] = None) -> bool:
-        """Re-estimate the per-source covariance scales and the outlier edges as ``posegraph
-        optimize`` does (whitened residual above ``cfg.residual_threshold`` under the new
-        scales: removed, or down-weighted where removal would disconnect the graph); swap
-        the factors whose scale or status changed. Returns whether anything changed."""
-        import gtsam
-
-        from posegraph.graph import _apply_action, _scale_factors, edge_residuals
-
-        if not self.edges:
-            return False
-        names = list(dict.fromkeys(e.extra.get("source", "") for e in self.edges))
-        src = np.array([names.index(e.extra.get("source", "")) for e in self.edges])
-        pos = np.array([[self.pos[e.i], self.pos[e.j]] for e in self.edges], dtype=np.int64)
-        T = np.stack([e.T_i_j for e in self.edges])
-        scale = np.array([self.scale.get(n, 1.0) for n in names])
-        info = np.linalg.inv(np.stack([e.cov for e in self.edges]) * scale[src, None, None])
-        res = edge_residuals(self.poses() if poses is None else poses, pos, T, info)
-        new = scale
-        if self.cfg.calibrate:
-            redundancy = 1.0 - (len(self.ids) - 1) / max(len(self.edges), 1)
-            # over every edge, flagged ones included (robust median), as the batch solve does
-            factor, _ = _scale_factors(res, src, np.ones(len(res), bool), len(names), redundancy, self.cfg)
-            new = np.clip(scale * factor, *self.cfg.calibration_scale_range)
-            moved = np.abs(np.log(new / scale)) > np.log1p(self.cfg.calibration_tolerance)
-            new = np.where(moved, new, scale)
-        res = res * np.sqrt(scale / new)[src]  # under the new scales
-        flagged = res > self.cfg.residual_threshold
-        drop, weak = _apply_action(len(self.ids), pos, flagged, np.argsort(res), self.cfg)
-        status = np.where(drop, 2, np.where(weak, 1, 0))
-        changed = np.flatnonzero((status != self.status) | (new != scale)[src])
-        if len(changed) == 0:
-            return False
-        self.scale.update({n: float(v) for n, v in zip(names, new)})
-        remove = [self.slots[n] for n in changed if self.slots[n] >= 0]
-        add = [n for n in changed if status[n] != 2]
-        graph = gtsam.NonlinearFactorGraph()
-        for f in self._edge_factors([self.edges[n] for n in add], status[add] == 1):
-            graph.add(f)
-        res_u = self._update(graph, gtsam.Values(), remove)
-        for n in changed:
-            self.live.pop(int(self.slots[n]), None)
-            self.slots[n] = -1
-        for m, (n, slot) in enumerate(zip(add, res_u.getNewFactorsIndices())):
-            self.slots[n] = int(slot)
-            self.live[int(slot)] = graph.at(m)
-        self.status = status
-        self.reviews += 1
-        log.debug("frame %d: covariance scales %s, %d outlier edges", self.ids[-1], self.scale, int(flagged.sum()))
-        return True
-
-    def final(self, polish: bool = True) -> NDArray[np.float64]:
-        """(N, 4, 4) smoothed poses. A last review and ``cfg.isam2_final_updates`` ISAM2
-        updates give the ISAM2 estimate (kept in ``isam2_poses``); with ``polish`` the
-        batch solve of ``posegraph optimize`` (:func:`posegraph.graph.solve`, LM, its
-        covariance calibration and outlier pass from scratch) then runs on the same edges,
-        warm-started from it.
-
-        Why the polish: with the robust kernel ISAM2's Gauss-Newton steps stop at a higher
-        cost than LM reaches on the same factors (synthetic/tiny, Huber, no calibration:
-        945 vs 886, ATE 15.8 vs 14.1 mm; the project's batch ``--solver isam2`` stops there
-        too), and more updates or a zero relinearisation threshold do not move it; and the
-        reviews made online on partial graphs can settle on other outliers than the batch
-        pass. One solve at the end costs what ``posegraph optimize`` costs (bench/README.md,
-        "Online mode")."""
-        self._review()
-        for _ in range(self.cfg.isam2_final_updates):
-            self.isam.update()
-        self.isam2_poses = self.poses()
-        if not polish or len(self.ids) < 2 or not self.edges:
-            return self.isam2_poses
-        from posegraph.graph import GraphError, solve
-
-        t0 = time.perf_counter()
-        try:
-            res = solve(np.array(self.ids, dtype=np.int64), self.edges, self.isam2_poses,
-                        dataclasses.replace(self.cfg, solver="lm"))
-        except GraphError as exc:  # e.g. a frame no edge reaches: keep the ISAM2 estimate
-            log.warning("final batch solve skipped (%s); the ISAM2 estimate is the final trajectory", exc)
-            return self.isam2_poses
-        order = np.argsort(np.argsort(np.array(self.ids)))  # solve sorts by id
-        self.polish = {"seconds": time.perf_counter() - t0, "iterations": res.iterations,
-                       "outliers": len(res.outliers), "source_scales": res.source_scales}
-        return res.poses[order]
+        return self.window.add(self.ids[-1], self.times[-1], fk)
 
 
 # ----------------------------------------------------------------------------------
@@ -614,7 +286,11 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     teacher_cfg = teacher_cfg or TEACHER_DEFAULT
     out = ensure_dir(Path(out))
     teacher = OnlineTeacher(source.intrinsics, teacher_cfg, _colour_camera(source, teacher_cfg))
-    learner = OnlineLearner(checkpoint, predict_cfg, device) if checkpoint is not None else None
+    learner = None
+    if checkpoint is not None:
+        from learner.online import OnlineLearner  # torch: only with a checkpoint
+
+        learner = OnlineLearner(checkpoint, predict_cfg, device)
     graph = OnlineGraph(graph_cfg)
     t_edges: list = []
     l_edges: list[Edge] = []
