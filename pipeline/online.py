@@ -3,9 +3,11 @@
     vo-online --scene SCENE [--checkpoint CKPT] [--out DIR] [--frames A:B] [--follow]
 
 Frames come from any ``--scene`` (a folder, a ROS bag, ``synthetic/NAME``), read one at a
-time in order, or, with ``--follow``, from a 7-Scenes-layout folder that is still being
-written (``frame-NNNNNN.color.{png,jpg}`` + ``frame-NNNNNN.depth.png``, optional
-``.pose.txt``; polled every ``--poll`` s, ending after ``--timeout`` s without a new frame).
+time in order, or, with ``--follow``, from a folder that is still being written, polled
+every ``--poll`` s and ending after ``--timeout`` s without a new frame: a 7-Scenes-layout
+folder (``frame-NNNNNN.color.{png,jpg}`` + ``frame-NNNNNN.depth.png``, optional
+``.pose.txt``) or a TUM RGB-D folder (``rgb.txt`` and ``depth.txt`` growing, colour and
+depth paired by timestamp as for a finished TUM folder).
 
 For each new frame k:
 
@@ -107,70 +109,186 @@ class SequenceSource(FrameSource):
 
 
 class FollowFolder(FrameSource):
-    """A 7-Scenes-layout folder still being written: frame ids in increasing order as their
-    colour and depth files appear (timestamps ``id / 30`` s; ground truth from
-    ``.pose.txt`` when every frame has one). A file that exists but does not decode yet
-    (still being written without a rename) is retried until ``timeout_s``."""
+    """A folder still being written (:func:`follow_folder` picks the layout): frames are
+    taken in order as they become complete; a frame whose files exist but do not decode
+    yet (written without a rename) is retried until ``timeout_s``; the run ends when no
+    new frame came for ``timeout_s``. Subclasses say what the next frame is."""
 
     def __init__(self, folder: Path, cfg: OnlineConfig) -> None:
-        from data import sevenscenes
-
         self.folder, self.cfg = Path(folder), cfg
-        if not self.folder.is_dir():
-            raise DataError(f"--follow needs a folder, {folder} is not one")
         self.name = self.folder.resolve().name
-        intr = sevenscenes.DEFAULT_INTRINSICS
-        for cand in (self.folder / "camera-intrinsics.txt", self.folder.parent / "camera-intrinsics.txt"):
-            if cand.is_file():
-                intr = sevenscenes.read_intrinsics_file(cand)
-                break
-        self.intrinsics = intr
         self.stop = threading.Event()
 
-    def _next_id(self, after: int) -> Optional[int]:
-        from data.sevenscenes import _FRAME_RE
+    def _next(self, taken: int, final: bool) -> Optional[object]:
+        """What frame ``taken`` (0-based) is, when the folder holds it complete (None: not
+        yet). ``final``: the folder has stopped growing (frames held back until later
+        files settle them are final now)."""
+        raise NotImplementedError
 
-        ids = [int(m.group(1)) for p in self.folder.iterdir() if (m := _FRAME_RE.match(p.name))]
-        later = [k for k in ids if k > after]
-        return min(later) if later else None
+    def _read(self, taken: int, item: object) -> Frame:
+        """The frame ``item`` (from :meth:`_next`); :class:`DataError` while it does not decode."""
+        raise NotImplementedError
 
     def present_ids(self) -> NDArray[np.int64]:
-        """The ids of the frames the folder holds now (colour and depth present)."""
-        names = {p.name for p in self.folder.iterdir()}
-        ids = sorted({int(n[6:12]) for n in names if n.startswith("frame-") and n.endswith(".depth.png")})
-        return np.array([k for k in ids if f"frame-{k:06d}.color.png" in names or f"frame-{k:06d}.color.jpg" in names],
-                        dtype=np.int64)
+        """The frame ids the folder holds now: what a run starting now would take."""
+        raise NotImplementedError
 
     def __iter__(self) -> Iterator[Frame]:
-        from data import sevenscenes
-        from data.sequence import read_depth, read_rgb
-
-        last, waited_since = -1, time.monotonic()
+        taken, final, waited_since = 0, False, time.monotonic()
         while not self.stop.is_set():
-            k = self._next_id(last)
-            color = None
-            if k is not None:
-                color = next((c for ext in (".color.png", ".color.jpg")
-                              if (c := self.folder / f"frame-{k:06d}{ext}").is_file()), None)
-            if k is not None and color is not None:
+            item = self._next(taken, final)
+            if item is not None:
                 try:
-                    rgb = read_rgb(color, self.intrinsics)
-                    depth = read_depth(self.folder / f"frame-{k:06d}.depth.png", sevenscenes.DEPTH_SCALE,
-                                       self.intrinsics, invalid=(0, 65535))
-                    pose_file = self.folder / f"frame-{k:06d}.pose.txt"
-                    pose = sevenscenes.read_pose_file(pose_file) if pose_file.is_file() else None
+                    frame = self._read(taken, item)
                 except DataError:
                     if time.monotonic() - waited_since > self.cfg.timeout_s:
                         raise
                     time.sleep(self.cfg.poll_s)
                     continue
-                yield Frame(k, k / sevenscenes.FPS, rgb, depth, pose)
-                last, waited_since = k, time.monotonic()
+                yield frame
+                taken, waited_since = taken + 1, time.monotonic()
                 continue
+            if final:
+                return
             if time.monotonic() - waited_since > self.cfg.timeout_s:
                 log.info("%s: no new frame for %.1f s, ending", self.folder, self.cfg.timeout_s)
-                return
+                final = True  # what is there now is all there is
+                continue
             time.sleep(self.cfg.poll_s)
+
+
+class FollowSevenScenes(FollowFolder):
+    """A 7-Scenes-layout folder being written: frame ids in increasing order as their
+    ``frame-NNNNNN.color.{png,jpg}`` and ``frame-NNNNNN.depth.png`` appear (timestamps
+    ``id / 30`` s; ground truth from ``.pose.txt``; intrinsics from
+    ``camera-intrinsics.txt`` of the folder or its parent, else the 7-Scenes default)."""
+
+    def __init__(self, folder: Path, cfg: OnlineConfig) -> None:
+        from data import sevenscenes
+
+        super().__init__(folder, cfg)
+        self.intrinsics = sevenscenes.folder_intrinsics(self.folder)
+        self.last = -1
+
+    def _next(self, taken: int, final: bool) -> Optional[object]:
+        from data import sevenscenes
+
+        later = [k for k in sevenscenes.frame_ids(self.folder) if k > self.last]
+        if not later:
+            return None
+        colour = sevenscenes.colour_file(self.folder, later[0])
+        return (later[0], colour) if colour is not None else None
+
+    def _read(self, taken: int, item: object) -> Frame:
+        from data import sevenscenes
+        from data.sequence import read_rgb
+
+        k, colour = item
+        rgb = read_rgb(colour, self.intrinsics)
+        depth = sevenscenes.read_depth_file(sevenscenes.depth_file(self.folder, k), self.intrinsics)
+        pose_file = self.folder / f"frame-{k:06d}.pose.txt"
+        pose = sevenscenes.read_pose_file(pose_file) if pose_file.is_file() else None
+        self.last = k
+        return Frame(k, k / sevenscenes.FPS, rgb, depth, pose)
+
+    def present_ids(self) -> NDArray[np.int64]:
+        from data import sevenscenes
+
+        return np.array([k for k in sevenscenes.frame_ids(self.folder)
+                         if sevenscenes.colour_file(self.folder, k) is not None], dtype=np.int64)
+
+
+class FollowTum(FollowFolder):
+    """A TUM RGB-D folder being written: ``rgb.txt`` and ``depth.txt`` grow (a line counts
+    once its newline is written; the image it names may appear later). RGB and depth are
+    paired as for a TUM folder (:func:`data.tum.associate`, nearest first within 0.02 s);
+    a pairing is final once both lists reach ``2 * 0.02`` s past the RGB timestamp (no
+    later line can change it), and every pairing is final when the folder has stopped
+    growing. Frame ids count the frames taken (``0..N-1``, as for a TUM folder), the
+    timestamp is the RGB one; ground truth is ``groundtruth.txt`` interpolated to it when
+    that file already spans it (frames outside are kept, without ground truth);
+    intrinsics as for a TUM folder (``camera.txt``, else the Freiburg camera its name names)."""
+
+    def __init__(self, folder: Path, cfg: OnlineConfig) -> None:
+        from data import tum
+
+        super().__init__(folder, cfg)
+        self.intrinsics = tum.intrinsics_for(self.folder)
+        self.last_t = -np.inf
+        self._pairs_key: Optional[tuple] = None
+        self._pairs_cache: list[tuple[float, str, str]] = []
+        self._gt_key: Optional[tuple] = None
+        self._gt: Optional[tuple] = None
+
+    def _pairs(self, final: bool) -> list[tuple[float, str, str]]:
+        """(RGB timestamp, RGB file, depth file) of the settled pairings, in time order."""
+        from data import tum
+
+        lists = [self.folder / "rgb.txt", self.folder / "depth.txt"]
+        key = (final, *(f.stat().st_size if f.is_file() else -1 for f in lists))
+        if key == self._pairs_key:  # polled again, nothing written since
+            return self._pairs_cache
+        (t_rgb, rgb), (t_dep, dep) = (tum.read_image_list(f, growing=True) for f in lists)
+        pairs = []
+        if len(t_rgb) and len(t_dep):
+            ia, ib = tum.associate(t_rgb, t_dep)
+            horizon = np.inf if final else min(t_rgb[-1], t_dep[-1]) - 2 * tum.MAX_ASSOC_DT
+            pairs = [(float(t_rgb[a]), rgb[a], dep[b]) for a, b in zip(ia.tolist(), ib.tolist()) if t_rgb[a] <= horizon]
+        self._pairs_key, self._pairs_cache = key, pairs
+        return pairs
+
+    def _next(self, taken: int, final: bool) -> Optional[object]:
+        return next((p for p in self._pairs(final) if p[0] > self.last_t), None)
+
+    def _groundtruth(self, t: float) -> Optional[NDArray[np.float64]]:
+        from data import tum
+
+        path = self.folder / "groundtruth.txt"
+        if not path.is_file():
+            return None
+        st = path.stat()
+        if self._gt_key != (st.st_mtime_ns, st.st_size):
+            self._gt = tum.read_groundtruth(path)
+            self._gt_key = (st.st_mtime_ns, st.st_size)
+        t_gt, T_gt = self._gt
+        if not t_gt[0] <= t <= t_gt[-1]:
+            return None
+        return tum.interpolate_poses(t_gt, T_gt, np.array([t]))[0]
+
+    def _read(self, taken: int, item: object) -> Frame:
+        from data import tum
+        from data.sequence import read_rgb
+
+        t, rgb_file, depth_file = item
+        rgb = read_rgb(self.folder / rgb_file, self.intrinsics)
+        depth = tum.read_depth_file(self.folder / depth_file, self.intrinsics)
+        pose = self._groundtruth(t)
+        self.last_t = t
+        return Frame(taken, t, rgb, depth, pose)
+
+    def present_ids(self) -> NDArray[np.int64]:
+        return np.arange(len(self._pairs(final=True)), dtype=np.int64)
+
+
+def follow_folder(folder: Path, cfg: OnlineConfig) -> FollowFolder:
+    """The source of a folder being written: a TUM RGB-D folder once it has ``rgb.txt`` or
+    ``depth.txt``, a 7-Scenes-layout one once it has a ``frame-NNNNNN.depth.png``; a folder
+    with neither yet is watched for up to ``cfg.timeout_s``."""
+    from data import sevenscenes
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DataError(f"--follow needs a folder, {folder} is not one")
+    since = time.monotonic()
+    while True:
+        if (folder / "rgb.txt").is_file() or (folder / "depth.txt").is_file():
+            return FollowTum(folder, cfg)
+        if sevenscenes.frame_ids(folder):
+            return FollowSevenScenes(folder, cfg)
+        if time.monotonic() - since > cfg.timeout_s:
+            raise DataError(f"{folder}: no frame arrived within {cfg.timeout_s:g} s (neither a TUM rgb.txt / "
+                            "depth.txt nor 7-Scenes frame-NNNNNN.depth.png files)")
+        time.sleep(cfg.poll_s)
 
 
 def open_source(spec: str, frames: Optional[str] = None, follow: bool = False,
@@ -179,7 +297,7 @@ def open_source(spec: str, frames: Optional[str] = None, follow: bool = False,
     if follow:
         if frames:
             raise ConfigError("--frames does not apply with --follow (frames are taken as they arrive)")
-        return FollowFolder(Path(spec), cfg)
+        return follow_folder(Path(spec), cfg)
     from data.scenes import open_scene
 
     seqs = open_scene(spec, frames=frames)
@@ -269,7 +387,7 @@ def _colour_camera(source: FrameSource, teacher_cfg):
 
     if isinstance(source, SequenceSource):
         return colour_camera_for(source.seq, teacher_cfg)
-    if isinstance(source, FollowFolder) and teacher_cfg.colour_camera == "auto":
+    if isinstance(source, FollowSevenScenes) and teacher_cfg.colour_camera == "auto":
         return colour_camera_of_folder(source.folder)
     return colour_camera_for(None, teacher_cfg) if teacher_cfg.colour_camera != "auto" else None
 
@@ -523,7 +641,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="vo-online", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scene", required=True, help="sequence folder, ROS bag or synthetic/NAME; with --follow "
-                   "a 7-Scenes-layout folder being written")
+                   "a 7-Scenes-layout or TUM RGB-D folder being written")
     p.add_argument("--checkpoint", type=Path, help="learner checkpoint: add its MC-dropout edges")
     p.add_argument("--out", type=Path, help="output folder (default runs/<scene>/online)")
     p.add_argument("--overwrite", action="store_true",
