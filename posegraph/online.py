@@ -25,9 +25,9 @@ class OnlineGraph:
     the teacher's chained trajectory) and enters with its edges.
 
     The graph is reviewed as ``posegraph optimize`` reviews it - covariance scale per
-    edge source (:func:`posegraph.graph._scale_factors`: median squared whitened residual
+    edge source (:func:`posegraph.graph.source_scale_factors`: median squared whitened residual
     against chi-square(6), corrected for the graph's redundancy) and outlier edges
-    (:func:`posegraph.graph._apply_action`) - online: when it reaches ``review_from`` frames,
+    (:func:`posegraph.graph.outlier_masks`) - online: when it reaches ``review_from`` frames,
     at every doubling after that, and at the end until nothing changes. Factors whose scale
     or status changed are swapped in one ISAM2 update (log2(N) reviews over a run, so the
     cost stays amortised), so the robust kernel sees the residuals at the scale the batch
@@ -59,8 +59,8 @@ class OnlineGraph:
 
     def _edge_factors(self, edges: list, weak: Optional[NDArray[np.bool_]] = None) -> list:
         """Robust factors of ``edges`` under the current source scales (``weak``: times
-        ``cfg.downweight_factor``), built by :func:`posegraph.graph._factors`."""
-        from posegraph.graph import _factors
+        ``cfg.downweight_factor``), built by :func:`posegraph.graph.between_factors`."""
+        from posegraph.graph import between_factors
 
         if not edges:
             return []
@@ -70,7 +70,7 @@ class OnlineGraph:
         if weak is not None:
             mult = mult * np.where(weak, self.cfg.downweight_factor, 1.0)
         covs = np.stack([e.cov for e in edges]) * mult[:, None, None]
-        return _factors(ids, meas, covs, self.cfg)
+        return between_factors(ids, meas, covs, self.cfg)
 
     def add(self, frame_id: int, edges: list) -> NDArray[np.float64]:
         """Add frame ``frame_id`` with its ``data.formats.Edge`` list (edges (i, frame_id),
@@ -78,12 +78,12 @@ class OnlineGraph:
         current estimate ``T_world_cam``."""
         import gtsam
 
-        from posegraph.graph import _prior
+        from posegraph.graph import prior_factor
 
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         if not self.ids:
             T0 = np.eye(4)
-            graph.add(_prior(frame_id, T0, self.cfg))
+            graph.add(prior_factor(frame_id, T0, self.cfg))
         else:
             prev = self.ids[-1]
             best = max(edges, key=lambda e: self.pos[e.i], default=None)  # the shortest gap
@@ -121,9 +121,9 @@ class OnlineGraph:
         try:
             return self.isam.update(graph, values, list(remove))
         except RuntimeError as exc:
-            from posegraph.graph import _indeterminant
+            from posegraph.graph import gtsam_error
 
-            raise _indeterminant(exc) from None
+            raise gtsam_error(exc) from None
 
     def poses(self) -> NDArray[np.float64]:
         """(N, 4, 4) current estimate of every pose."""
@@ -137,7 +137,7 @@ class OnlineGraph:
         the factors whose scale or status changed. Returns whether anything changed."""
         import gtsam
 
-        from posegraph.graph import _apply_action, _scale_factors, edge_residuals
+        from posegraph.graph import outlier_masks, source_scale_factors, edge_residuals
 
         if not self.edges:
             return False
@@ -152,13 +152,13 @@ class OnlineGraph:
         if self.cfg.calibrate:
             redundancy = 1.0 - (len(self.ids) - 1) / max(len(self.edges), 1)
             # over every edge, flagged ones included (robust median), as the batch solve does
-            factor, _ = _scale_factors(res, src, np.ones(len(res), bool), len(names), redundancy, self.cfg)
+            factor, _ = source_scale_factors(res, src, np.ones(len(res), bool), len(names), redundancy, self.cfg)
             new = np.clip(scale * factor, *self.cfg.calibration_scale_range)
             moved = np.abs(np.log(new / scale)) > np.log1p(self.cfg.calibration_tolerance)
             new = np.where(moved, new, scale)
         res = res * np.sqrt(scale / new)[src]  # under the new scales
         flagged = res > self.cfg.residual_threshold
-        drop, weak = _apply_action(len(self.ids), pos, flagged, np.argsort(res), self.cfg)
+        drop, weak = outlier_masks(len(self.ids), pos, flagged, np.argsort(res), self.cfg)
         status = np.where(drop, 2, np.where(weak, 1, 0))
         changed = np.flatnonzero((status != self.status) | (new != scale)[src])
         if len(changed) == 0:
