@@ -19,6 +19,11 @@ rerun (:func:`claim`)
   stage's old outputs are removed first); otherwise it stops with a one-line
   :class:`StaleOutputError` naming what differs.
 
+``learner calibrate`` writes one file into a training run's folder, whose
+``fingerprint.json`` is the training's: it keeps its fingerprint inside that file
+(``calibration.json``'s ``fingerprint``; ``claim(..., inside=...)``), written in the same
+atomic step as its results.
+
 :func:`output_folder` removes the folders a failed stage created while they are still
 empty, so a failure leaves no empty output folder behind.
 """
