@@ -22,7 +22,7 @@ rerun (:func:`claim`)
 ``learner calibrate`` writes one file into a training run's folder, whose
 ``fingerprint.json`` is the training's: it keeps its fingerprint inside that file
 (``calibration.json``'s ``fingerprint``; ``claim(..., inside=...)``), written in the same
-atomic step as its results.
+atomic step as its results; ``posegraph calibrate`` does the same in its ``--out`` file.
 
 :func:`output_folder` removes the folders a failed stage created while they are still
 empty, so a failure leaves no empty output folder behind.
