@@ -17,13 +17,16 @@ For each scene, on the same frames:
 
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.online [--checkpoint CKPT] [--frames 0:300]
 
-Results go to stdout (a Markdown table) and to ``--json`` if given.
+Results go to stdout (a Markdown table) and to ``--json`` if given, with the machine's 1-min
+load average at the start and end of each scene and the cores the online run got (its CPU
+time over its wall time): on a shared machine the figures mean little without them.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -67,11 +70,14 @@ def bench_scene(spec: str, frames: str, checkpoint: Path | None, tmp: Path) -> d
     from teacher.generate import run_sequence
 
     seq = open_scene(spec, frames=frames)[0]
-    row: dict = {"scene": seq.name, "frames": len(seq)}
+    row: dict = {"scene": seq.name, "frames": len(seq), "load_avg_1min": [os.getloadavg()[0]]}
     run = run_sequence(seq, DEFAULT, progress=False)  # batch, 2 processes
     row["batch_fps"] = len(seq) / run.seconds
     for name, src in (("online", online.SequenceSource(seq)), ("online_30hz", Paced(seq, 30.0))):
+        wall, cpu = time.perf_counter(), time.process_time()
         res = online.run(src, tmp / seq.name / name, DEFAULT, progress=False)
+        # the cores this process got (all its threads): on a shared machine, what the figures had
+        row[f"{name}_cores_used"] = (time.process_time() - cpu) / (time.perf_counter() - wall)
         row[f"{name}_fps"] = res.fps
         row[f"{name}_latency_ms"] = res.latency_ms
         row[f"{name}_work_ms"] = res.report["work_ms"]
@@ -90,20 +96,23 @@ def bench_scene(spec: str, frames: str, checkpoint: Path | None, tmp: Path) -> d
             row[f"{name}_fps"] = res.fps
             row[f"{name}_latency_ms"] = res.latency_ms
             row[f"{name}_work_ms"] = res.report["work_ms"]
+    row["load_avg_1min"].append(os.getloadavg()[0])
     return row
 
 
 def table(rows: list[dict]) -> str:
-    out = ["| scene | frames | batch teacher fps | online fps (ratio) | online latency p50/p95 ms "
+    out = ["| scene | frames | load avg (start, end); cores the online run got | batch teacher fps "
+           "| online fps (ratio) | online latency p50/p95 ms "
            "| own work p50/p95 ms | 30 Hz latency p50/p95 ms "
            "| ATE final / ISAM2 / causal vs batch pose graph | with learner fps, 30 Hz p95 ms |",
-           "|---|---|---|---|---|---|---|---|---|"]
+           "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         a = r["ate_m"]
         b = a["batch_posegraph"]
         lrn = (f"{r['learner_fps']:.1f}, {r['learner_30hz_latency_ms']['p95']:.0f}" if "learner_fps" in r else "-")
         out.append(
-            f"| {r['scene']} | {r['frames']} | {r['batch_fps']:.1f} | {r['online_fps']:.1f} "
+            f"| {r['scene']} | {r['frames']} | {r['load_avg_1min'][0]:.1f}, {r['load_avg_1min'][-1]:.1f}; "
+            f"{r['online_cores_used']:.2f} | {r['batch_fps']:.1f} | {r['online_fps']:.1f} "
             f"({r['online_fps'] / r['batch_fps']:.2f}x) | {r['online_latency_ms']['p50']:.0f} / "
             f"{r['online_latency_ms']['p95']:.0f} | "
             + (f"{r['online_work_ms']['p50']:.0f} / {r['online_work_ms']['p95']:.0f}" if "online_work_ms" in r else "-")

@@ -39,7 +39,7 @@ def stage_breakdown(cfg: syn.SceneConfig, n: int = 5) -> dict[str, float]:
     """CPU milliseconds per frame of each stage, one thread, ``n`` frames."""
     import cv2
 
-    from data.synthetic import _PNG_PARAMS, depth_to_png_mm
+    from data.synthetic import PNG_PARAMS, depth_to_png_mm
     from data.synthetic.sensor import depth_sensor
 
     scene, poses = syn.build(cfg)
@@ -59,8 +59,8 @@ def stage_breakdown(cfg: syn.SceneConfig, n: int = 5) -> dict[str, float]:
         rgb, jpeg = fr.colour_sensor.encoded(padded.colour, 1.0, fr.image_flow(int(k), ex), rng, padded.depth)
         t3 = time.process_time()
         if jpeg is None:  # the colour file is the sensor's JPEG, else a PNG (see data.synthetic)
-            cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), _PNG_PARAMS)
-        cv2.imencode(".png", depth_to_png_mm(d), _PNG_PARAMS)
+            cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), PNG_PARAMS)
+        cv2.imencode(".png", depth_to_png_mm(d), PNG_PARAMS)
         t4 = time.process_time()
         for key, dt in zip(acc, (t1 - t, t2 - t1, t3 - t2, t4 - t3)):
             acc[key] += dt

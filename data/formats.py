@@ -90,7 +90,7 @@ def read_tum(path: Path) -> Trajectory:
 
 
 def read_tum_rows(path: Path, fields: str, what: str, numbers: int = 1,
-                  check: Optional[Callable[[str, NDArray[np.float64]], None]] = None
+                  check: Optional[Callable[[str, NDArray[np.float64]], None]] = None, growing: bool = False
                   ) -> list[tuple[str, list[str], NDArray[np.float64]]]:
     """The rows of a TUM-style text file (trajectories, TUM RGB-D ``rgb.txt`` /
     ``depth.txt``): blank and ``#`` lines skipped, each row ``len(fields.split())``
@@ -99,12 +99,17 @@ def read_tum_rows(path: Path, fields: str, what: str, numbers: int = 1,
 
     Returns ``("path:line", entries, the leading numbers)`` per row; raises
     :class:`~data.errors.FormatError` naming the file and line (``fields`` spells the
-    expected row, ``what`` the rows, for the message of an empty file)."""
+    expected row, ``what`` the rows, for the message of an empty file). ``growing``: the
+    file is still being appended to: a last line without its newline is not read yet, and
+    no rows is no error."""
     path = Path(path)
     try:
-        lines = path.read_text().splitlines()
+        text = path.read_text()
     except (OSError, UnicodeDecodeError) as exc:
         raise FormatError(f"{path}: cannot read as text ({exc})") from None
+    if growing:
+        text = text[: text.rfind("\n") + 1]
+    lines = text.splitlines()
     rows, prev = [], -math.inf
     n = len(fields.split())
     for lineno, line in enumerate(lines, 1):
@@ -123,7 +128,7 @@ def read_tum_rows(path: Path, fields: str, what: str, numbers: int = 1,
             raise FormatError(f"{where}: timestamps must be strictly increasing ({t:.6f} after {prev:.6f})")
         prev = t
         rows.append((where, toks, vals))
-    if not rows:
+    if not rows and not growing:
         raise FormatError(f"{path}: no {what}")
     return rows
 

@@ -19,6 +19,11 @@ rerun (:func:`claim`)
   stage's old outputs are removed first); otherwise it stops with a one-line
   :class:`StaleOutputError` naming what differs.
 
+``learner calibrate`` writes one file into a training run's folder, whose
+``fingerprint.json`` is the training's: it keeps its fingerprint inside that file
+(``calibration.json``'s ``fingerprint``; ``claim(..., inside=...)``), written in the same
+atomic step as its results; ``posegraph calibrate`` does the same in its ``--out`` file.
+
 :func:`output_folder` removes the folders a failed stage created while they are still
 empty, so a failure leaves no empty output folder behind.
 """
@@ -133,15 +138,23 @@ class Fingerprint:
         return {"stage": self.stage, "digest": self.digest, "inputs": self.inputs}
 
 
-def read_fingerprint(folder: Path) -> Optional[dict[str, Any]]:
-    """The ``fingerprint.json`` of ``folder`` (None when there is none)."""
-    path = Path(folder) / FINGERPRINT_FILE
+def read_fingerprint(folder: Path, inside: Optional[str] = None) -> Optional[dict[str, Any]]:
+    """The fingerprint recorded in ``folder`` (None when there is none): its
+    ``fingerprint.json``, or with ``inside`` the ``"fingerprint"`` entry of that JSON output
+    file (a stage whose one output records its own inputs, written in one atomic step with
+    them, e.g. ``calibration.json`` in a training run's folder, whose ``fingerprint.json`` is
+    the training's)."""
+    path = Path(folder) / (inside or FINGERPRINT_FILE)
     if not path.is_file():
         return None
     try:
         fp = json.loads(path.read_text())
     except (OSError, ValueError) as exc:
-        raise FormatError(f"{path}: not a fingerprint ({exc})") from None
+        raise FormatError(f"{path}: not a {'JSON file' if inside else 'fingerprint'} ({exc})") from None
+    if inside is not None:
+        fp = fp.get("fingerprint") if isinstance(fp, dict) else None
+        if fp is None:
+            return None
     if not isinstance(fp, dict) or not isinstance(fp.get("digest"), str) or not isinstance(fp.get("inputs"), dict):
         raise FormatError(f"{path}: not a fingerprint (needs 'digest' and 'inputs')")
     return fp
@@ -182,28 +195,33 @@ def _short(v: Any, width: int = 40) -> str:
 
 
 def claim(folder: Path, fp: Fingerprint, *, done: bool, has_outputs: bool, overwrite: bool,
-          outputs: Iterable[str] = ()) -> bool:
+          outputs: Iterable[str] = (), inside: Optional[str] = None,
+          hint: str = "pass --overwrite to replace them, or choose another --out") -> bool:
     """Apply the rerun rule to ``folder``; True when the work is done and is to be skipped.
 
     ``done``: the stage's outputs in ``folder`` are complete; ``has_outputs``: it holds
     finished work of some run (a completed file, a checkpoint). With the same digest the
     stage skips when ``done`` and otherwise (re)computes or resumes. With another digest,
     or finished outputs without a fingerprint, ``overwrite`` removes the files named in
-    ``outputs`` (and the fingerprint) and the stage recomputes; without it this raises
-    :class:`StaleOutputError` saying what differs.
+    ``outputs`` (paths relative to ``folder``; and ``fingerprint.json``) and the stage
+    recomputes; without it this raises :class:`StaleOutputError` saying what differs,
+    then ``hint``. ``inside``: the fingerprint is recorded in that output file rather than
+    in ``fingerprint.json`` (:func:`read_fingerprint`), which is then left alone.
     """
     folder = Path(folder)
-    old = read_fingerprint(folder)
+    old = read_fingerprint(folder, inside)
     if old is not None and old["digest"] == fp.digest:
         return done
     if old is None and not has_outputs:
         return False
+    where = folder / inside if inside else folder
     if not overwrite:
         what = (f"outputs of other inputs ({differences(old['inputs'], fp.inputs)})" if old is not None
-                else f"{fp.stage} outputs without a {FINGERPRINT_FILE} (an older version wrote them)")
-        raise StaleOutputError(f"{folder} holds {what}; pass --overwrite to replace them, or choose another --out")
-    log.info("%s: replacing the outputs of other inputs (--overwrite)", folder)
-    for name in [*outputs, FINGERPRINT_FILE]:
+                else f"{fp.stage} outputs without {'a fingerprint' if inside else 'a ' + FINGERPRINT_FILE} "
+                     "(an older version wrote them)")
+        raise StaleOutputError(f"{where} holds {what}; {hint}")
+    log.info("%s: replacing the outputs of other inputs (--overwrite)", where)
+    for name in [*outputs, *([] if inside else [FINGERPRINT_FILE])]:
         p = folder / name
         if p.is_file() or p.is_symlink():
             p.unlink(missing_ok=True)  # several processes of one run may get here

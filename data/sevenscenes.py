@@ -63,6 +63,36 @@ def read_pose_file(path: Path) -> NDArray[np.float64]:
     return orthonormalize(T)
 
 
+def frame_ids(seq_dir: Path) -> list[int]:
+    """The ids of the ``frame-NNNNNN.depth.png`` files in ``seq_dir``, sorted."""
+    return sorted(int(m.group(1)) for p in Path(seq_dir).iterdir() if (m := _FRAME_RE.match(p.name)))
+
+
+def colour_file(seq_dir: Path, frame_id: int) -> Optional[Path]:
+    """Frame ``frame_id``'s colour image (``.color.png``, else ``.color.jpg``); None when neither exists."""
+    for ext in (".color.png", ".color.jpg"):
+        if (path := Path(seq_dir) / f"frame-{frame_id:06d}{ext}").is_file():
+            return path
+    return None
+
+
+def depth_file(seq_dir: Path, frame_id: int) -> Path:
+    return Path(seq_dir) / f"frame-{frame_id:06d}.depth.png"
+
+
+def read_depth_file(path: Path, intr: Intrinsics) -> NDArray[np.float32]:
+    """A 7-Scenes depth PNG in metres (millimetres on file; 0 and 65535 invalid)."""
+    return read_depth(path, DEPTH_SCALE, intr, invalid=(0, 65535))
+
+
+def folder_intrinsics(seq_dir: Path) -> Intrinsics:
+    """``camera-intrinsics.txt`` of the sequence folder or its parent, else the 7-Scenes default."""
+    for cand in (Path(seq_dir) / "camera-intrinsics.txt", Path(seq_dir).parent / "camera-intrinsics.txt"):
+        if cand.is_file():
+            return read_intrinsics_file(cand)
+    return DEFAULT_INTRINSICS
+
+
 class SevenScenesSequence(Sequence):
     """One ``seq-XX`` folder of a 7-Scenes-layout scene."""
 
@@ -70,28 +100,20 @@ class SevenScenesSequence(Sequence):
         seq_dir = Path(seq_dir)
         if not seq_dir.is_dir():
             raise DataError(f"sequence folder {seq_dir} does not exist")
-        ids = sorted(int(m.group(1)) for p in seq_dir.iterdir() if (m := _FRAME_RE.match(p.name)))
+        ids = frame_ids(seq_dir)
         if not ids:
             raise DataError(f"sequence folder {seq_dir} has no frame-NNNNNN.depth.png files")
         self.root = seq_dir
-        self._color_ext = self._find_color_ext(seq_dir, ids[0])
-        intr = DEFAULT_INTRINSICS
-        for cand in (seq_dir / "camera-intrinsics.txt", seq_dir.parent / "camera-intrinsics.txt"):
-            if cand.is_file():
-                intr = read_intrinsics_file(cand)
-                break
+        first = colour_file(seq_dir, ids[0])
+        if first is None:
+            raise DataError(f"no colour image frame-{ids[0]:06d}.color.png/.jpg in {seq_dir}")
+        self._color_ext = first.name[len(f"frame-{ids[0]:06d}"):]
+        intr = folder_intrinsics(seq_dir)
         gt = None
         if (seq_dir / f"frame-{ids[0]:06d}.pose.txt").is_file():
             gt = np.stack([read_pose_file(seq_dir / f"frame-{k:06d}.pose.txt") for k in ids])
         ids_arr = np.asarray(ids, dtype=np.int64)
         super().__init__(name or f"{seq_dir.parent.name}-{seq_dir.name}", intr, ids_arr / FPS, ids_arr, gt)
-
-    @staticmethod
-    def _find_color_ext(seq_dir: Path, first: int) -> str:
-        for ext in (".color.png", ".color.jpg"):
-            if (seq_dir / f"frame-{first:06d}{ext}").is_file():
-                return ext
-        raise DataError(f"no colour image frame-{first:06d}.color.png/.jpg in {seq_dir}")
 
     def _read_rgb(self, pos: int) -> NDArray[np.uint8]:
         fid = int(self.frame_ids[pos])
@@ -99,7 +121,7 @@ class SevenScenesSequence(Sequence):
 
     def _read_depth(self, pos: int) -> NDArray[np.float32]:
         fid = int(self.frame_ids[pos])
-        return read_depth(self.root / f"frame-{fid:06d}.depth.png", DEPTH_SCALE, self.intrinsics, invalid=(0, 65535))
+        return read_depth_file(depth_file(self.root, fid), self.intrinsics)
 
 
 def _split_names(scene_dir: Path, split: str) -> list[str]:

@@ -67,16 +67,20 @@ _CAMERA_RE = re.compile(r"(?:freiburg|(?<![a-z])fr)([123])(?![0-9])")
 # ----------------------------------------------------------------------------------
 # file parsing
 # ----------------------------------------------------------------------------------
-def read_image_list(path: Path) -> tuple[NDArray[np.float64], list[str]]:
-    """Parse ``rgb.txt`` / ``depth.txt``: timestamps (N,) and relative file names."""
+def read_image_list(path: Path, growing: bool = False) -> tuple[NDArray[np.float64], list[str]]:
+    """Parse ``rgb.txt`` / ``depth.txt``: timestamps (N,) and relative file names.
+    ``growing``: the file is still being written (see :func:`data.formats.read_tum_rows`;
+    a file not there yet has no rows)."""
     path = Path(path)
     if not path.is_file():
+        if growing:
+            return np.zeros(0), []
         raise DataError(f"missing TUM file {path}")
     try:
-        rows = read_tum_rows(path, "timestamp filename", "images")
+        rows = read_tum_rows(path, "timestamp filename", "images", growing=growing)
     except FormatError as exc:
         raise DataError(str(exc)) from None
-    return np.array([vals[0] for _, _, vals in rows]), [toks[1] for _, toks, _ in rows]
+    return np.array([vals[0] for _, _, vals in rows], dtype=np.float64), [toks[1] for _, toks, _ in rows]
 
 
 def read_groundtruth(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -224,4 +228,9 @@ class TumSequence(Sequence):
         return read_rgb(self.root / self._rgb_files[pos], self.intrinsics)
 
     def _read_depth(self, pos: int) -> NDArray[np.float32]:
-        return read_depth(self.root / self._depth_files[pos], DEPTH_SCALE, self.intrinsics, invalid=(0,))
+        return read_depth_file(self.root / self._depth_files[pos], self.intrinsics)
+
+
+def read_depth_file(path: Path, intr: Intrinsics) -> NDArray[np.float32]:
+    """A TUM RGB-D depth PNG in metres (5000 units per metre on file; 0 invalid)."""
+    return read_depth(path, DEPTH_SCALE, intr, invalid=(0,))

@@ -22,7 +22,10 @@ The teacher's covariance only explains part of the residual during the fit; it i
 added to the learner's edges.
 
 The result is written atomically as ``calibration.json`` beside the checkpoint
-(docs/formats.md, "Learner"); ``learner predict`` applies it when present.
+(docs/formats.md, "Learner"); ``learner predict`` applies it when present. The file records
+the fingerprint of its inputs (checkpoint, validation sequences and frames, teacher labels,
+settings): a rerun of the same inputs keeps it, other inputs replace it only with
+``overwrite`` (the rerun rule of :mod:`data.runs`).
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from data import geometry as geo
 from data.errors import ConfigError, DataError, FormatError
 from data.formats import read_g2o
 from data.io import git_revision, read_json_file, write_json
+from data.runs import Fingerprint, claim, file_digest, frames_id, scene_id, upstream_digest
 from data.scenes import open_scene
 from data.sequence import frame_ranges_overlap
 from data.uncertainty import CHI2_6_1SIGMA, CHI2_6_2SIGMA, mahalanobis2, nees_stats  # noqa: F401
@@ -348,7 +352,7 @@ class CalibrationResult:
 def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional[str] = None, split: str = "all",
               teacher_root: Optional[Path] = None, config: PredictConfig = PredictConfig(),
               cal_config: CalibrationConfig = CalibrationConfig(), progress: Optional[bool] = None,
-              device: str = "auto") -> CalibrationResult:
+              device: str = "auto", overwrite: bool = False) -> CalibrationResult:
     """Fit the covariance calibration of ``checkpoint`` on validation ``scenes`` and write
     ``calibration.json`` beside it (the network runs on ``device``: auto, cpu or cuda).
 
@@ -356,6 +360,10 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
     same sample count, drop ratio and gaps ``learner predict`` uses); residuals are taken
     against the teacher's good edges (``teacher_root`` as in ``learner fit``: without it,
     missing labels are generated). Ground truth is never read.
+
+    Rerun rule: a ``calibration.json`` fitted on the same inputs (its ``fingerprint``) is
+    kept and returned; one of other inputs is replaced only with ``overwrite``, otherwise
+    this raises :class:`data.runs.StaleOutputError` naming what differs.
     """
     from learner.dataset import find_teacher_edges, load_frames
     from learner.predict import load_model, mc_edges
@@ -368,37 +376,47 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
         raise ConfigError(f"calibration scales MC-dropout variances: needs --drop > 0 and --samples >= 2, "
                           f"got {config.drop} and {config.samples}")
     model, state = load_model(checkpoint, device=device)
+    opened = []  # (scene, sequence, teacher edges.g2o)
+    for spec in scenes:
+        seqs = open_scene(spec, split=split, frames=frames)
+        opened += [(spec, seq, g2o) for seq, g2o in zip(seqs, find_teacher_edges(spec, seqs, split, frames,
+                                                                                  teacher_root))]
+    path = checkpoint.parent / CALIBRATION_FILE
+    fp = fingerprint(checkpoint, opened, config, cal_config)
+    # with overwrite the old file stays until the new one replaces it (one atomic write)
+    if claim(checkpoint.parent, fp, done=path.is_file(), has_outputs=path.is_file(), overwrite=overwrite,
+             inside=CALIBRATION_FILE, hint="pass --overwrite to replace it"):
+        log.info("%s: calibration of the same inputs: kept", path)
+        cal = read_calibration(path)
+        return CalibrationResult(path, cal, cal.to_dict())
     uses_lstm, _, _ = check_variant(state["variant"])
     window = int(state["train_config"]["window_max"])
     train_seqs = _training_sequences(checkpoint)
     if progress is None:
         progress = sys.stderr.isatty()
     covs, res, tcovs, heads, gaps, used, l2, l2_zero, l2_cv = [], [], [], [], [], [], [], [], []
-    for spec in scenes:
-        seqs = open_scene(spec, split=split, frames=frames)
-        g2os = find_teacher_edges(spec, seqs, split, frames, teacher_root)
-        for seq, g2o in zip(seqs, g2os):
-            if seq.name in train_seqs and frame_ranges_overlap(train_seqs[seq.name], frames):
-                log.warning("%s is also a training sequence of %s (trained on frames %s, calibrating on %s): "
-                            "residuals on trained frames under-estimate the error", seq.name, checkpoint,
-                            train_seqs[seq.name] or "all", frames or "all")
-            if len(seq) < 2:
-                raise DataError(f"sequence {seq.name} needs at least 2 frames to calibrate")
-            x = load_frames(seq, model.cfg.width, model.cfg.height, checkpoint.parent / "cache", model.cfg.input)
-            edges = mc_edges(model, x, uses_lstm=uses_lstm, window=window, cfg=config, progress=progress)
-            idx, T_t, C_t = teacher_matches(edges.i, edges.j, seq.ids(), g2o)
-            log.info("%s: %d of %d edges have teacher labels", seq.name, len(idx), len(edges.i))
-            covs.append(edges.cov[idx])
-            res.append(residuals(edges.mean[idx], T_t))
-            log_t = np.array([geo.se3_log(T) for T in T_t]).reshape(-1, 6)
-            l2.append(np.linalg.norm(log_t - edges.mean[idx], axis=1))
-            l2_zero.append(np.linalg.norm(log_t, axis=1))
-            l2_cv.append(constant_velocity_l2(edges.i[idx], edges.j[idx], log_t))
-            tcovs.append(C_t)
-            heads += [edges.head[e] for e in idx]
-            gaps.append(edges.j[idx] - edges.i[idx])
-            used.append({"scene": spec, "sequence": seq.name, "frames": len(seq), "edges": len(edges.i),
-                         "pairs": len(idx), "teacher": str(g2o)})
+    for spec, seq, g2o in opened:
+        if seq.name in train_seqs and frame_ranges_overlap(train_seqs[seq.name], frames):
+            log.warning("%s is also a training sequence of %s (trained on frames %s, calibrating on %s): "
+                        "residuals on trained frames under-estimate the error", seq.name, checkpoint,
+                        train_seqs[seq.name] or "all", frames or "all")
+        if len(seq) < 2:
+            raise DataError(f"sequence {seq.name} needs at least 2 frames to calibrate")
+        x = load_frames(seq, model.cfg.width, model.cfg.height, checkpoint.parent / "cache", model.cfg.input)
+        edges = mc_edges(model, x, uses_lstm=uses_lstm, window=window, cfg=config, progress=progress)
+        idx, T_t, C_t = teacher_matches(edges.i, edges.j, seq.ids(), g2o)
+        log.info("%s: %d of %d edges have teacher labels", seq.name, len(idx), len(edges.i))
+        covs.append(edges.cov[idx])
+        res.append(residuals(edges.mean[idx], T_t))
+        log_t = np.array([geo.se3_log(T) for T in T_t]).reshape(-1, 6)
+        l2.append(np.linalg.norm(log_t - edges.mean[idx], axis=1))
+        l2_zero.append(np.linalg.norm(log_t, axis=1))
+        l2_cv.append(constant_velocity_l2(edges.i[idx], edges.j[idx], log_t))
+        tcovs.append(C_t)
+        heads += [edges.head[e] for e in idx]
+        gaps.append(edges.j[idx] - edges.i[idx])
+        used.append({"scene": spec, "sequence": seq.name, "frames": len(seq), "edges": len(edges.i),
+                     "pairs": len(idx), "teacher": str(g2o)})
     cov, r, tcov, gap = np.concatenate(covs), np.concatenate(res), np.concatenate(tcovs), np.concatenate(gaps)
     t_model = tcov if cal_config.teacher_variance else None
     groups = fit_groups(cov, r, heads, gap, t_model, cal_config)
@@ -417,7 +435,7 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
                           "after": nees_stats(mahalanobis2(r, after_cov + extra)),
                           "skill": skill_figures(np.concatenate(l2), np.concatenate(l2_zero), gap,
                                                  np.concatenate(l2_cv))}
-    path = checkpoint.parent / CALIBRATION_FILE
+    info["fingerprint"] = fp.to_dict()  # in the file itself: written in the same atomic step
     report = cal.to_dict()
     write_json(path, report)
     v = info["validation"]
@@ -426,6 +444,19 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: Optional
              v["before"]["coverage_1sigma"], v["after"]["coverage_1sigma"], v["before"]["coverage_2sigma"],
              v["after"]["coverage_2sigma"], v["skill"]["ratio"], path)
     return CalibrationResult(path, cal, report)
+
+
+def fingerprint(checkpoint: Path, opened: list[tuple[str, Any, Path]], config: PredictConfig,
+                cal_config: CalibrationConfig) -> Fingerprint:
+    """The inputs of a calibration: the checkpoint's content, the validation sequences
+    (scene, sequence, frames) with their teacher labels' digests, the MC-dropout and the
+    calibration settings (not the device)."""
+    return Fingerprint("calibrate", {
+        "checkpoint": file_digest(checkpoint),
+        "sequences": {f"{scene_id(spec)}:{seq.name}": frames_id(seq.ids()) for spec, seq, _ in opened},
+        "labels": {f"{scene_id(spec)}:{seq.name}": upstream_digest(g2o.parent, "edges.g2o")
+                   for spec, seq, g2o in opened},
+        "predict": to_dict(config), "calibration": to_dict(cal_config)})
 
 
 def _training_sequences(checkpoint: Path) -> dict[str, Optional[str]]:

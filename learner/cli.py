@@ -84,7 +84,10 @@ def _parser() -> argparse.ArgumentParser:
     add_topic_options(f)
 
     c = add_command(sub, "calibrate", "fit calibration.json (MC-dropout covariances vs teacher labels) "
-                                      "of a checkpoint on a validation scene")
+                                      "of a checkpoint on a validation scene",
+                    "Fit calibration.json (MC-dropout covariances vs teacher labels) of a checkpoint on a validation "
+                    "scene, beside the checkpoint. A rerun with the same checkpoint, scenes, frames, teacher labels "
+                    "and settings keeps it; other inputs need --overwrite.")
     c.add_argument("--checkpoint", type=Path, required=True, help="learner checkpoint.pt")
     c.add_argument("--scene", action="append", required=True,
                    help="validation scene (repeatable); never a training or test scene")
@@ -93,6 +96,8 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--teacher", type=Path,
                    help="teacher output folder to read labels from (never generated); "
                         "default: runs/<scene>/teacher, generated when missing")
+    c.add_argument("--overwrite", action="store_true",
+                   help="replace a calibration.json of other inputs instead of stopping with an error")
     _mc_options(c)
     c.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help=DEVICE_HELP)
     add_topic_options(c)
@@ -147,7 +152,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 
     cfg = PredictConfig(samples=args.samples, drop=args.drop, max_gap=args.max_gap)
     cres = calibrate(args.checkpoint, args.scene, frames=args.frames, split=args.split,
-                     teacher_root=args.teacher, config=cfg, device=args.device)
+                     teacher_root=args.teacher, config=cfg, device=args.device, overwrite=args.overwrite)
     print(cres.path)
     return 0
 

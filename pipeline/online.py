@@ -3,27 +3,39 @@
     vo-online --scene SCENE [--checkpoint CKPT] [--out DIR] [--frames A:B] [--follow]
 
 Frames come from any ``--scene`` (a folder, a ROS bag, ``synthetic/NAME``), read one at a
-time in order, or, with ``--follow``, from a 7-Scenes-layout folder that is still being
-written (``frame-NNNNNN.color.{png,jpg}`` + ``frame-NNNNNN.depth.png``, optional
-``.pose.txt``; polled every ``--poll`` s, ending after ``--timeout`` s without a new frame).
+time in order, or, with ``--follow``, from a folder that is still being written, polled
+every ``--poll`` s and ending after ``--timeout`` s without a new frame: a 7-Scenes-layout
+folder (``frame-NNNNNN.color.{png,jpg}`` + ``frame-NNNNNN.depth.png``, optional
+``.pose.txt``) or a TUM RGB-D folder (``rgb.txt`` and ``depth.txt`` growing, colour and
+depth paired by timestamp as for a finished TUM folder).
 
 For each new frame k:
 
-1. the teacher's per-frame and per-pair functions (:func:`teacher.odometry.extract`,
-   :func:`teacher.odometry.estimate_edge`) give the edges (k-g, k), g = 1..K, with the
-   same feature tracks and constant-velocity prediction as ``teacher generate``;
-2. with ``--checkpoint``, the learner adds MC-dropout edges (k-g, k), g = 1..max_gap
-   (the network and calibration loaded by :mod:`learner.predict`'s functions; the LSTM
-   head over the same chunks of ``window_max`` pairs as ``learner predict``);
-3. GTSAM's ISAM2 is updated with the new pose (predicted through its shortest good edge)
-   and its edges (the robust factors of :mod:`posegraph.graph`);
+1. the teacher's window (:class:`teacher.window.EdgeWindow`, the code ``teacher generate``
+   runs) gives the edges (k-g, k), g = 1..K, with the same feature tracks and
+   constant-velocity prediction;
+2. with ``--checkpoint``, the learner (:class:`learner.online.OnlineLearner`) adds
+   MC-dropout edges (k-g, k), g = 1..max_gap (the network and calibration of ``learner
+   predict``; the LSTM head over the same chunks of ``window_max`` pairs);
+3. GTSAM's ISAM2 (:class:`posegraph.online.OnlineGraph`) is updated with the new pose
+   (predicted through its shortest good edge) and its edges (the robust factors of
+   :mod:`posegraph.graph`);
 4. the new pose's current estimate is appended to ``trajectory.tum`` and flushed.
+
+This module only composes them (frame sources, the hand-over thread, outputs, command
+line); it is, with pipeline/demo.py, where every stage is imported.
 
 At the end (or on Ctrl-C) the smoothed estimate of every pose is written to
 ``trajectory_final.tum``, the edges to ``teacher/`` and ``learner/`` (the layout of
 ``teacher generate`` / ``learner predict``, so ``posegraph optimize --teacher DIR/teacher``
 solves the same edges in batch) and ``report.json`` (fps, latency percentiles, ATE when
 there is ground truth). Formats: docs/formats.md, "Online mode".
+
+:func:`online` (the command) follows the rerun rule of :mod:`data.runs`: beside its outputs
+it writes ``fingerprint.json`` (scene, frames, the teacher, learner and graph settings, the
+checkpoint's digest); a rerun of the same inputs keeps a finished run (with ``--follow``:
+when the folder holds no frame the run did not take), recomputes an interrupted or killed
+one, and stops with a one-line error for other inputs unless ``--overwrite``.
 """
 
 from __future__ import annotations
@@ -35,7 +47,6 @@ import queue
 import sys
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Optional, Sequence, TextIO
@@ -46,11 +57,16 @@ from numpy.typing import NDArray
 from data import geometry as geo
 from data.errors import ConfigError, DataError, VOError
 from data.sequence import Frame, Intrinsics
+from posegraph.online import OnlineGraph
 
 log = logging.getLogger(__name__)
 
 TRAJECTORY = "trajectory.tum"
 FINAL_TRAJECTORY = "trajectory_final.tum"
+REPORT = "report.json"
+#: every file a run writes (report.json first: removed first, written last, it marks a finished run)
+OUTPUT_FILES = (REPORT, TRAJECTORY, FINAL_TRAJECTORY, "teacher/edges.g2o", "teacher/trajectory.tum",
+                "teacher/groundtruth.tum", "learner/edges.g2o")
 
 
 @dataclass(frozen=True)
@@ -93,63 +109,186 @@ class SequenceSource(FrameSource):
 
 
 class FollowFolder(FrameSource):
-    """A 7-Scenes-layout folder still being written: frame ids in increasing order as their
-    colour and depth files appear (timestamps ``id / 30`` s; ground truth from
-    ``.pose.txt`` when every frame has one). A file that exists but does not decode yet
-    (still being written without a rename) is retried until ``timeout_s``."""
+    """A folder still being written (:func:`follow_folder` picks the layout): frames are
+    taken in order as they become complete; a frame whose files exist but do not decode
+    yet (written without a rename) is retried until ``timeout_s``; the run ends when no
+    new frame came for ``timeout_s``. Subclasses say what the next frame is."""
 
     def __init__(self, folder: Path, cfg: OnlineConfig) -> None:
-        from data import sevenscenes
-
         self.folder, self.cfg = Path(folder), cfg
-        if not self.folder.is_dir():
-            raise DataError(f"--follow needs a folder, {folder} is not one")
         self.name = self.folder.resolve().name
-        intr = sevenscenes.DEFAULT_INTRINSICS
-        for cand in (self.folder / "camera-intrinsics.txt", self.folder.parent / "camera-intrinsics.txt"):
-            if cand.is_file():
-                intr = sevenscenes.read_intrinsics_file(cand)
-                break
-        self.intrinsics = intr
         self.stop = threading.Event()
 
-    def _next_id(self, after: int) -> Optional[int]:
-        from data.sevenscenes import _FRAME_RE
+    def _next(self, taken: int, final: bool) -> Optional[object]:
+        """What frame ``taken`` (0-based) is, when the folder holds it complete (None: not
+        yet). ``final``: the folder has stopped growing (frames held back until later
+        files settle them are final now)."""
+        raise NotImplementedError
 
-        ids = [int(m.group(1)) for p in self.folder.iterdir() if (m := _FRAME_RE.match(p.name))]
-        later = [k for k in ids if k > after]
-        return min(later) if later else None
+    def _read(self, taken: int, item: object) -> Frame:
+        """The frame ``item`` (from :meth:`_next`); :class:`DataError` while it does not decode."""
+        raise NotImplementedError
+
+    def present_ids(self) -> NDArray[np.int64]:
+        """The frame ids the folder holds now: what a run starting now would take."""
+        raise NotImplementedError
 
     def __iter__(self) -> Iterator[Frame]:
-        from data import sevenscenes
-        from data.sequence import read_depth, read_rgb
-
-        last, waited_since = -1, time.monotonic()
+        taken, final, waited_since = 0, False, time.monotonic()
         while not self.stop.is_set():
-            k = self._next_id(last)
-            color = None
-            if k is not None:
-                color = next((c for ext in (".color.png", ".color.jpg")
-                              if (c := self.folder / f"frame-{k:06d}{ext}").is_file()), None)
-            if k is not None and color is not None:
+            item = self._next(taken, final)
+            if item is not None:
                 try:
-                    rgb = read_rgb(color, self.intrinsics)
-                    depth = read_depth(self.folder / f"frame-{k:06d}.depth.png", sevenscenes.DEPTH_SCALE,
-                                       self.intrinsics, invalid=(0, 65535))
-                    pose_file = self.folder / f"frame-{k:06d}.pose.txt"
-                    pose = sevenscenes.read_pose_file(pose_file) if pose_file.is_file() else None
+                    frame = self._read(taken, item)
                 except DataError:
                     if time.monotonic() - waited_since > self.cfg.timeout_s:
                         raise
                     time.sleep(self.cfg.poll_s)
                     continue
-                yield Frame(k, k / sevenscenes.FPS, rgb, depth, pose)
-                last, waited_since = k, time.monotonic()
+                yield frame
+                taken, waited_since = taken + 1, time.monotonic()
                 continue
+            if final:
+                return
             if time.monotonic() - waited_since > self.cfg.timeout_s:
                 log.info("%s: no new frame for %.1f s, ending", self.folder, self.cfg.timeout_s)
-                return
+                final = True  # what is there now is all there is
+                continue
             time.sleep(self.cfg.poll_s)
+
+
+class FollowSevenScenes(FollowFolder):
+    """A 7-Scenes-layout folder being written: frame ids in increasing order as their
+    ``frame-NNNNNN.color.{png,jpg}`` and ``frame-NNNNNN.depth.png`` appear (timestamps
+    ``id / 30`` s; ground truth from ``.pose.txt``; intrinsics from
+    ``camera-intrinsics.txt`` of the folder or its parent, else the 7-Scenes default)."""
+
+    def __init__(self, folder: Path, cfg: OnlineConfig) -> None:
+        from data import sevenscenes
+
+        super().__init__(folder, cfg)
+        self.intrinsics = sevenscenes.folder_intrinsics(self.folder)
+        self.last = -1
+
+    def _next(self, taken: int, final: bool) -> Optional[object]:
+        from data import sevenscenes
+
+        later = [k for k in sevenscenes.frame_ids(self.folder) if k > self.last]
+        if not later:
+            return None
+        colour = sevenscenes.colour_file(self.folder, later[0])
+        return (later[0], colour) if colour is not None else None
+
+    def _read(self, taken: int, item: object) -> Frame:
+        from data import sevenscenes
+        from data.sequence import read_rgb
+
+        k, colour = item
+        rgb = read_rgb(colour, self.intrinsics)
+        depth = sevenscenes.read_depth_file(sevenscenes.depth_file(self.folder, k), self.intrinsics)
+        pose_file = self.folder / f"frame-{k:06d}.pose.txt"
+        pose = sevenscenes.read_pose_file(pose_file) if pose_file.is_file() else None
+        self.last = k
+        return Frame(k, k / sevenscenes.FPS, rgb, depth, pose)
+
+    def present_ids(self) -> NDArray[np.int64]:
+        from data import sevenscenes
+
+        return np.array([k for k in sevenscenes.frame_ids(self.folder)
+                         if sevenscenes.colour_file(self.folder, k) is not None], dtype=np.int64)
+
+
+class FollowTum(FollowFolder):
+    """A TUM RGB-D folder being written: ``rgb.txt`` and ``depth.txt`` grow (a line counts
+    once its newline is written; the image it names may appear later). RGB and depth are
+    paired as for a TUM folder (:func:`data.tum.associate`, nearest first within 0.02 s);
+    a pairing is final once both lists reach ``2 * 0.02`` s past the RGB timestamp (no
+    later line can change it), and every pairing is final when the folder has stopped
+    growing. Frame ids count the frames taken (``0..N-1``, as for a TUM folder), the
+    timestamp is the RGB one; ground truth is ``groundtruth.txt`` interpolated to it when
+    that file already spans it (frames outside are kept, without ground truth);
+    intrinsics as for a TUM folder (``camera.txt``, else the Freiburg camera its name names)."""
+
+    def __init__(self, folder: Path, cfg: OnlineConfig) -> None:
+        from data import tum
+
+        super().__init__(folder, cfg)
+        self.intrinsics = tum.intrinsics_for(self.folder)
+        self.last_t = -np.inf
+        self._pairs_key: Optional[tuple] = None
+        self._pairs_cache: list[tuple[float, str, str]] = []
+        self._gt_key: Optional[tuple] = None
+        self._gt: Optional[tuple] = None
+
+    def _pairs(self, final: bool) -> list[tuple[float, str, str]]:
+        """(RGB timestamp, RGB file, depth file) of the settled pairings, in time order."""
+        from data import tum
+
+        lists = [self.folder / "rgb.txt", self.folder / "depth.txt"]
+        key = (final, *(f.stat().st_size if f.is_file() else -1 for f in lists))
+        if key == self._pairs_key:  # polled again, nothing written since
+            return self._pairs_cache
+        (t_rgb, rgb), (t_dep, dep) = (tum.read_image_list(f, growing=True) for f in lists)
+        pairs = []
+        if len(t_rgb) and len(t_dep):
+            ia, ib = tum.associate(t_rgb, t_dep)
+            horizon = np.inf if final else min(t_rgb[-1], t_dep[-1]) - 2 * tum.MAX_ASSOC_DT
+            pairs = [(float(t_rgb[a]), rgb[a], dep[b]) for a, b in zip(ia.tolist(), ib.tolist()) if t_rgb[a] <= horizon]
+        self._pairs_key, self._pairs_cache = key, pairs
+        return pairs
+
+    def _next(self, taken: int, final: bool) -> Optional[object]:
+        return next((p for p in self._pairs(final) if p[0] > self.last_t), None)
+
+    def _groundtruth(self, t: float) -> Optional[NDArray[np.float64]]:
+        from data import tum
+
+        path = self.folder / "groundtruth.txt"
+        if not path.is_file():
+            return None
+        st = path.stat()
+        if self._gt_key != (st.st_mtime_ns, st.st_size):
+            self._gt = tum.read_groundtruth(path)
+            self._gt_key = (st.st_mtime_ns, st.st_size)
+        t_gt, T_gt = self._gt
+        if not t_gt[0] <= t <= t_gt[-1]:
+            return None
+        return tum.interpolate_poses(t_gt, T_gt, np.array([t]))[0]
+
+    def _read(self, taken: int, item: object) -> Frame:
+        from data import tum
+        from data.sequence import read_rgb
+
+        t, rgb_file, depth_file = item
+        rgb = read_rgb(self.folder / rgb_file, self.intrinsics)
+        depth = tum.read_depth_file(self.folder / depth_file, self.intrinsics)
+        pose = self._groundtruth(t)
+        self.last_t = t
+        return Frame(taken, t, rgb, depth, pose)
+
+    def present_ids(self) -> NDArray[np.int64]:
+        return np.arange(len(self._pairs(final=True)), dtype=np.int64)
+
+
+def follow_folder(folder: Path, cfg: OnlineConfig) -> FollowFolder:
+    """The source of a folder being written: a TUM RGB-D folder once it has ``rgb.txt`` or
+    ``depth.txt``, a 7-Scenes-layout one once it has a ``frame-NNNNNN.depth.png``; a folder
+    with neither yet is watched for up to ``cfg.timeout_s``."""
+    from data import sevenscenes
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DataError(f"--follow needs a folder, {folder} is not one")
+    since = time.monotonic()
+    while True:
+        if (folder / "rgb.txt").is_file() or (folder / "depth.txt").is_file():
+            return FollowTum(folder, cfg)
+        if sevenscenes.frame_ids(folder):
+            return FollowSevenScenes(folder, cfg)
+        if time.monotonic() - since > cfg.timeout_s:
+            raise DataError(f"{folder}: no frame arrived within {cfg.timeout_s:g} s (neither a TUM rgb.txt / "
+                            "depth.txt nor 7-Scenes frame-NNNNNN.depth.png files)")
+        time.sleep(cfg.poll_s)
 
 
 def open_source(spec: str, frames: Optional[str] = None, follow: bool = False,
@@ -158,7 +297,7 @@ def open_source(spec: str, frames: Optional[str] = None, follow: bool = False,
     if follow:
         if frames:
             raise ConfigError("--frames does not apply with --follow (frames are taken as they arrive)")
-        return FollowFolder(Path(spec), cfg)
+        return follow_folder(Path(spec), cfg)
     from data.scenes import open_scene
 
     seqs = open_scene(spec, frames=frames)
@@ -170,30 +309,20 @@ def open_source(spec: str, frames: Optional[str] = None, follow: bool = False,
 # ----------------------------------------------------------------------------------
 # teacher edges, frame by frame
 # ----------------------------------------------------------------------------------
-@dataclass
-class _WindowEntry:
-    pos: int
-    feats: object  # teacher.odometry.FrameFeatures
-    link: NDArray[np.int64]  # keypoint of this frame -> keypoint in the newest frame (-1: lost)
-    T_k_cur: NDArray[np.float64]  # chained gap-1 motion from this frame to the newest
-
-
 class OnlineTeacher:
-    """The edges (k-g, k), g = 1..cfg.gaps, of each new frame k, by the same rules as
-    ``teacher generate`` (:func:`teacher.generate._run_chunk`): the gap-1 edge guided by
-    constant velocity, its inliers extending feature tracks, longer edges from the tracks
-    predicted by the chained gap-1 motion."""
+    """The edges (k-g, k), g = 1..cfg.gaps, of each new frame k: the window of ``teacher
+    generate`` (:class:`teacher.window.EdgeWindow`, the same code) over the frames as they
+    arrive, and the frame ids and timestamps so far."""
 
     def __init__(self, intr: Intrinsics, cfg, colour=None) -> None:
         """``colour``: the colour camera model (``teacher.odometry.ColourCamera``; None:
         colour registered to depth), as :func:`teacher.generate.colour_camera_for` picks it."""
         from teacher.odometry import make_orb
+        from teacher.window import EdgeWindow
 
         self.intr, self.cfg, self.colour = intr, cfg, colour
         self.orb = make_orb(cfg)
-        self.window: deque[_WindowEntry] = deque()
-        self.v_prev: Optional[NDArray[np.float64]] = None
-        self.prev_keys = None
+        self.window = EdgeWindow(intr, cfg)
         self.ids: list[int] = []
         self.times: list[float] = []
 
@@ -205,331 +334,9 @@ class OnlineTeacher:
 
     def add(self, frame: Frame, fk) -> list:
         """The edges ending at ``frame`` (``EdgeEstimate``; failed ones included)."""
-        from teacher.odometry import estimate_edge, stale_stream
-
-        cfg, k = self.cfg, len(self.ids)
         self.ids.append(int(frame.frame_id))
         self.times.append(float(frame.timestamp))
-        if self.prev_keys is not None:
-            fk.stale = stale_stream(self.prev_keys, fk.keys)
-        self.prev_keys = fk.keys
-        edges = []
-        if self.window:
-            prev = self.window[-1]
-            dt = self.times[k] - self.times[k - 1]
-            e = estimate_edge(self.ids[k - 1], self.ids[k], prev.feats, fk, self.intr, cfg, dt, T_pred=self.v_prev)
-            edges.append(e)
-            step = e.T_i_j if e.ok else (self.v_prev if self.v_prev is not None else np.eye(4))
-            if e.ok:
-                self.v_prev = e.T_i_j
-            m = np.full(len(prev.feats.uv) + 1, -1, np.int64)  # last slot maps -1 -> -1
-            if e.ok and e.inlier_pairs is not None:
-                m[e.inlier_pairs[:, 0]] = e.inlier_pairs[:, 1]
-            for w in self.window:
-                w.link = m[w.link]
-                w.T_k_cur = w.T_k_cur @ step
-            for w in list(self.window)[:-1]:  # gaps >= 2
-                tracks = np.flatnonzero(w.link >= 0)
-                tracks = np.stack([tracks, w.link[tracks]], axis=1)
-                edges.append(estimate_edge(self.ids[w.pos], self.ids[k], w.feats, fk, self.intr, cfg,
-                                           self.times[k] - self.times[w.pos], w.T_k_cur.copy(), tracks))
-        self.window.append(_WindowEntry(k, fk, np.arange(len(fk.uv)), np.eye(4)))
-        while self.window and k - self.window[0].pos >= cfg.gaps:
-            self.window.popleft()
-        for e in edges:
-            e.inlier_pairs = None
-        return edges
-
-
-# ----------------------------------------------------------------------------------
-# learner edges, frame by frame
-# ----------------------------------------------------------------------------------
-class OnlineLearner:
-    """MC-dropout edges (k-g, k), g = 1..max_gap, of each new frame: the pairs are encoded
-    once, the dropout layers resampled K times; gap 1 from the LSTM head (LSTM variants;
-    chunks of ``window_max`` pairs as in ``learner predict``, the LSTM being causal the
-    newest output equals the batch one), longer gaps from the direct head. Mean and
-    covariance as in :func:`learner.predict.mc_edges`, calibrated with the checkpoint's
-    ``calibration.json`` when there is one."""
-
-    def __init__(self, checkpoint: Path, cfg=None, device: str = "cpu", use_calibration: bool = True,
-                 seed: int = 0) -> None:
-        import torch
-
-        from learner.calibrate import calibration_for
-        from learner.config import PredictConfig, check_variant
-        from learner.predict import load_model
-
-        self.cfg = cfg or PredictConfig()
-        self.model, state = load_model(Path(checkpoint), None, device)
-        found = calibration_for(Path(checkpoint), self.cfg) if use_calibration else None
-        self.calibration = found[1] if found is not None else None
-        if found is None and use_calibration:
-            log.info("no calibration.json beside %s: MC-dropout covariances used as they are", checkpoint)
-        self.uses_lstm = check_variant(state["variant"])[0]
-        self.window = int(state["train_config"]["window_max"])
-        m = self.model.cfg
-        self.width, self.height, self.mode = m.width, m.height, m.input
-        self.buf: deque[tuple] = deque(maxlen=self.cfg.max_gap + 1)
-        self.z1: list = []  # gap-1 latents of the current LSTM chunk
-        self.n = 0
-        torch.manual_seed(seed)
-
-    def inputs(self, frame: Frame) -> tuple:
-        """Per-frame network inputs (resized RGB, inverse depth, grey at 2x), as the learner caches them."""
-        import cv2
-
-        from learner.config import FLOW_U_CHANNEL
-        from learner.dataset import _invdepth, _resize
-
-        rgb = _resize(frame.rgb, self.width, self.height).transpose(2, 0, 1)
-        inv = _invdepth(frame.depth, self.width, self.height) if self.mode != "rgb" else None
-        grey = (cv2.cvtColor(_resize(frame.rgb, 2 * self.width, 2 * self.height), cv2.COLOR_RGB2GRAY)
-                if self.mode in FLOW_U_CHANNEL else None)  # the inputs with optical flow
-        return rgb, inv, grey
-
-    def add(self, inputs: tuple) -> list[tuple[int, NDArray[np.float64], NDArray[np.float64], str]]:
-        """(gap, mean twist (6,), covariance (6, 6), head) of the edges ending at the new frame."""
-        import torch
-
-        from learner.dataset import Frames
-
-        self.buf.append(inputs)
-        k, self.n = self.n, self.n + 1
-        G = min(self.cfg.max_gap, len(self.buf) - 1)
-        if G < 1:
-            return []
-        stack = [None if self.buf[0][c] is None else np.stack([b[c] for b in self.buf]) for c in range(3)]
-        frames = Frames(stack[0], stack[1], stack[2], self.mode)
-        last = len(self.buf) - 1
-        gaps = np.arange(1, G + 1)
-        with torch.no_grad():
-            z = self.model.encode(frames.pairs(torch.as_tensor(last - gaps), torch.full((G,), last)).to(
-                self.model.output_scale.device))
-            out: list[tuple[str, torch.Tensor]] = []
-            if self.uses_lstm:
-                if (k - 1) % self.window == 0:
-                    self.z1 = []
-                self.z1.append(z[0])
-                out.append(("lstm", self.model.sequential_mc(torch.stack(self.z1)[None], self.cfg.samples,
-                                                             self.cfg.drop)[:, 0, -1]))
-                rest = z[1:]
-            else:
-                rest = z
-            if len(rest):
-                d = self.model.direct_mc(rest, self.cfg.samples, self.cfg.drop)  # (K, n, 6)
-                out += [("direct", d[:, n]) for n in range(d.shape[1])]
-        res = []
-        for g, (head, samples) in zip(gaps.tolist(), out):
-            s = samples.double().cpu().numpy()
-            mean = s.mean(0)
-            dev = s - mean
-            cov = dev.T @ dev / max(self.cfg.samples - 1, 1)
-            cov = 0.5 * (cov + cov.T) + self.cfg.cov_floor * np.eye(6)
-            if self.calibration is not None:
-                cov = self.calibration.apply(cov[None], [head], np.array([g]))[0]
-            res.append((g, mean, cov, head))
-        return res
-
-
-# ----------------------------------------------------------------------------------
-# the incremental pose graph
-# ----------------------------------------------------------------------------------
-class OnlineGraph:
-    """ISAM2 over frame ids: a prior fixes the first pose at the identity; each new pose
-    starts at its prediction through its shortest good edge (else constant velocity, as
-    the teacher's chained trajectory) and enters with its edges.
-
-    The graph is reviewed as ``posegraph optimize`` reviews it - covariance scale per
-    edge source (:func:`posegraph.graph._scale_factors`: median squared whitened residual
-    against chi-square(6), corrected for the graph's redundancy) and outlier edges
-    (:func:`posegraph.graph._apply_action`) - online: when it reaches ``review_from`` frames,
-    at every doubling after that, and at the end until nothing changes. Factors whose scale
-    or status changed are swapped in one ISAM2 update (log2(N) reviews over a run, so the
-    cost stays amortised), so the robust kernel sees the residuals at the scale the batch
-    solve sees them."""
-
-    def __init__(self, cfg=None, review_from: int = 16) -> None:
-        import gtsam
-
-        from posegraph.config import ONLINE
-
-        self.cfg = cfg or ONLINE
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(self.cfg.isam2_relinearize_threshold)
-        params.relinearizeSkip = 1
-        self.isam = gtsam.ISAM2(params)
-        self.ids: list[int] = []
-        self.pos: dict[int, int] = {}
-        self.latest: dict[int, NDArray[np.float64]] = {}
-        self.v_prev = np.eye(4)
-        self.edges: list = []  # data.formats.Edge in the graph
-        self.slots: list[int] = []  # ISAM2 factor index of each edge
-        self.sources: list[str] = []
-        self.status = np.zeros(0, np.int64)  # per edge: 0 in the graph, 1 down-weighted, 2 removed
-        self.scale: dict[str, float] = {}
-        self.next_review = review_from
-        self.reviews = 0
-        self.live: dict[int, object] = {}  # ISAM2 factor index -> factor, of the factors in the graph
-        self.polish: Optional[dict] = None
-
-    def _edge_factors(self, edges: list, weak: Optional[NDArray[np.bool_]] = None) -> list:
-        """Robust factors of ``edges`` under the current source scales (``weak``: times
-        ``cfg.downweight_factor``), built by :func:`posegraph.graph._factors`."""
-        from posegraph.graph import _factors
-
-        if not edges:
-            return []
-        ids = np.array([[e.i, e.j] for e in edges], dtype=np.int64)
-        meas = [geo.to_gtsam_pose3(geo.orthonormalize(e.T_i_j)) for e in edges]
-        mult = np.array([self.scale.get(e.extra.get("source", ""), 1.0) for e in edges])
-        if weak is not None:
-            mult = mult * np.where(weak, self.cfg.downweight_factor, 1.0)
-        covs = np.stack([e.cov for e in edges]) * mult[:, None, None]
-        return _factors(ids, meas, covs, self.cfg)
-
-    def add(self, frame_id: int, edges: list) -> NDArray[np.float64]:
-        """Add frame ``frame_id`` with its ``data.formats.Edge`` list (edges (i, frame_id),
-        i already in the graph; ``edge.extra["source"]`` names the source); return its
-        current estimate ``T_world_cam``."""
-        import gtsam
-
-        from posegraph.graph import _prior
-
-        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        if not self.ids:
-            T0 = np.eye(4)
-            graph.add(_prior(frame_id, T0, self.cfg))
-        else:
-            prev = self.ids[-1]
-            best = max(edges, key=lambda e: self.pos[e.i], default=None)  # the shortest gap
-            if best is not None:
-                T0 = self.latest[best.i] @ best.T_i_j
-                if best.i == prev:
-                    self.v_prev = best.T_i_j
-            else:
-                T0 = self.latest[prev] @ self.v_prev
-                log.debug("frame %d: no edge, placed by constant velocity", frame_id)
-                # an unconnected pose needs a factor: the constant-velocity guess, weakly
-                graph.add(gtsam.BetweenFactorPose3(prev, frame_id, geo.to_gtsam_pose3(self.v_prev),
-                                                   gtsam.noiseModel.Diagonal.Sigmas(np.full(6, 0.1))))
-        values.insert(int(frame_id), geo.to_gtsam_pose3(T0))
-        first_edge = graph.size()
-        for f in self._edge_factors(edges):
-            graph.add(f)
-        res = self._update(graph, values)
-        all_slots = list(res.getNewFactorsIndices())
-        self.live.update({int(k): graph.at(n) for n, k in enumerate(all_slots)})
-        slots = all_slots[first_edge:]
-        self.edges += edges
-        self.slots += slots
-        self.status = np.concatenate([self.status, np.zeros(len(edges), np.int64)])
-        self.pos[int(frame_id)] = len(self.ids)
-        self.ids.append(int(frame_id))
-        if len(self.ids) >= self.next_review:
-            self.next_review *= 2
-            self._review()
-        for k in self.ids[-8:]:  # refresh the newest estimates (anchors of the next predictions)
-            self.latest[k] = geo.from_gtsam_pose3(self.isam.calculateEstimatePose3(k))
-        return self.latest[int(frame_id)]
-
-    def _update(self, graph, values, remove: Sequence[int] = ()):
-        try:
-            return self.isam.update(graph, values, list(remove))
-        except RuntimeError as exc:
-            from posegraph.graph import _indeterminant
-
-            raise _indeterminant(exc) from None
-
-    def poses(self) -> NDArray[np.float64]:
-        """(N, 4, 4) current estimate of every pose."""
-        est = self.isam.calculateEstimate()
-        return np.stack([geo.from_gtsam_pose3(est.atPose3(k)) for k in self.ids])
-
-    def _review(self, poses: Optional[NDArray[np.float64]] = None) -> bool:
-        """Re-estimate the per-source covariance scales and the outlier edges as ``posegraph
-        optimize`` does (whitened residual above ``cfg.residual_threshold`` under the new
-        scales: removed, or down-weighted where removal would disconnect the graph); swap
-        the factors whose scale or status changed. Returns whether anything changed."""
-        import gtsam
-
-        from posegraph.graph import _apply_action, _scale_factors, edge_residuals
-
-        if not self.edges:
-            return False
-        names = list(dict.fromkeys(e.extra.get("source", "") for e in self.edges))
-        src = np.array([names.index(e.extra.get("source", "")) for e in self.edges])
-        pos = np.array([[self.pos[e.i], self.pos[e.j]] for e in self.edges], dtype=np.int64)
-        T = np.stack([e.T_i_j for e in self.edges])
-        scale = np.array([self.scale.get(n, 1.0) for n in names])
-        info = np.linalg.inv(np.stack([e.cov for e in self.edges]) * scale[src, None, None])
-        res = edge_residuals(self.poses() if poses is None else poses, pos, T, info)
-        new = scale
-        if self.cfg.calibrate:
-            redundancy = 1.0 - (len(self.ids) - 1) / max(len(self.edges), 1)
-            # over every edge, flagged ones included (robust median), as the batch solve does
-            factor, _ = _scale_factors(res, src, np.ones(len(res), bool), len(names), redundancy, self.cfg)
-            new = np.clip(scale * factor, *self.cfg.calibration_scale_range)
-            moved = np.abs(np.log(new / scale)) > np.log1p(self.cfg.calibration_tolerance)
-            new = np.where(moved, new, scale)
-        res = res * np.sqrt(scale / new)[src]  # under the new scales
-        flagged = res > self.cfg.residual_threshold
-        drop, weak = _apply_action(len(self.ids), pos, flagged, np.argsort(res), self.cfg)
-        status = np.where(drop, 2, np.where(weak, 1, 0))
-        changed = np.flatnonzero((status != self.status) | (new != scale)[src])
-        if len(changed) == 0:
-            return False
-        self.scale.update({n: float(v) for n, v in zip(names, new)})
-        remove = [self.slots[n] for n in changed if self.slots[n] >= 0]
-        add = [n for n in changed if status[n] != 2]
-        graph = gtsam.NonlinearFactorGraph()
-        for f in self._edge_factors([self.edges[n] for n in add], status[add] == 1):
-            graph.add(f)
-        res_u = self._update(graph, gtsam.Values(), remove)
-        for n in changed:
-            self.live.pop(int(self.slots[n]), None)
-            self.slots[n] = -1
-        for m, (n, slot) in enumerate(zip(add, res_u.getNewFactorsIndices())):
-            self.slots[n] = int(slot)
-            self.live[int(slot)] = graph.at(m)
-        self.status = status
-        self.reviews += 1
-        log.debug("frame %d: covariance scales %s, %d outlier edges", self.ids[-1], self.scale, int(flagged.sum()))
-        return True
-
-    def final(self, polish: bool = True) -> NDArray[np.float64]:
-        """(N, 4, 4) smoothed poses. A last review and ``cfg.isam2_final_updates`` ISAM2
-        updates give the ISAM2 estimate (kept in ``isam2_poses``); with ``polish`` the
-        batch solve of ``posegraph optimize`` (:func:`posegraph.graph.solve`, LM, its
-        covariance calibration and outlier pass from scratch) then runs on the same edges,
-        warm-started from it.
-
-        Why the polish: with the robust kernel ISAM2's Gauss-Newton steps stop at a higher
-        cost than LM reaches on the same factors (synthetic/tiny, Huber, no calibration:
-        945 vs 886, ATE 15.8 vs 14.1 mm; the project's batch ``--solver isam2`` stops there
-        too), and more updates or a zero relinearisation threshold do not move it; and the
-        reviews made online on partial graphs can settle on other outliers than the batch
-        pass. One solve at the end costs what ``posegraph optimize`` costs (bench/README.md,
-        "Online mode")."""
-        self._review()
-        for _ in range(self.cfg.isam2_final_updates):
-            self.isam.update()
-        self.isam2_poses = self.poses()
-        if not polish or len(self.ids) < 2 or not self.edges:
-            return self.isam2_poses
-        from posegraph.graph import GraphError, solve
-
-        t0 = time.perf_counter()
-        try:
-            res = solve(np.array(self.ids, dtype=np.int64), self.edges, self.isam2_poses,
-                        dataclasses.replace(self.cfg, solver="lm"))
-        except GraphError as exc:  # e.g. a frame no edge reaches: keep the ISAM2 estimate
-            log.warning("final batch solve skipped (%s); the ISAM2 estimate is the final trajectory", exc)
-            return self.isam2_poses
-        order = np.argsort(np.argsort(np.array(self.ids)))  # solve sorts by id
-        self.polish = {"seconds": time.perf_counter() - t0, "iterations": res.iterations,
-                       "outliers": len(res.outliers), "source_scales": res.source_scales}
-        return res.poses[order]
+        return self.window.add(self.ids[-1], self.times[-1], fk)
 
 
 # ----------------------------------------------------------------------------------
@@ -545,6 +352,8 @@ class OnlineResult:
     latency_ms: dict[str, float]
     interrupted: bool
     report: dict = field(default_factory=dict)
+    kept: bool = False
+    """A finished run of the same inputs was found and kept (nothing was computed)."""
 
 
 class _Progress:
@@ -578,7 +387,7 @@ def _colour_camera(source: FrameSource, teacher_cfg):
 
     if isinstance(source, SequenceSource):
         return colour_camera_for(source.seq, teacher_cfg)
-    if isinstance(source, FollowFolder) and teacher_cfg.colour_camera == "auto":
+    if isinstance(source, FollowSevenScenes) and teacher_cfg.colour_camera == "auto":
         return colour_camera_of_folder(source.folder)
     return colour_camera_for(None, teacher_cfg) if teacher_cfg.colour_camera != "auto" else None
 
@@ -595,7 +404,11 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     teacher_cfg = teacher_cfg or TEACHER_DEFAULT
     out = ensure_dir(Path(out))
     teacher = OnlineTeacher(source.intrinsics, teacher_cfg, _colour_camera(source, teacher_cfg))
-    learner = OnlineLearner(checkpoint, predict_cfg, device) if checkpoint is not None else None
+    learner = None
+    if checkpoint is not None:
+        from learner.online import OnlineLearner  # torch: only with a checkpoint
+
+        learner = OnlineLearner(checkpoint, predict_cfg, device)
     graph = OnlineGraph(graph_cfg)
     t_edges: list = []
     l_edges: list[Edge] = []
@@ -677,12 +490,91 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
         producer.join(timeout=5.0)
     seconds = time.perf_counter() - t_start
     if n == 0:
+        (out / TRAJECTORY).unlink(missing_ok=True)  # nothing to keep
         raise DataError(f"{source.name}: no frame arrived")
     lat_ms = {f"p{q}": 1000 * float(np.percentile(lat, q)) for q in (50, 95, 99)} | {"max": 1000 * max(lat)}
     work_ms = {f"p{q}": 1000 * float(np.percentile(work, q)) for q in (50, 95, 99)} | {"max": 1000 * max(work)}
     report = _finish(out, source, teacher, graph, t_edges, l_edges, gts, teacher_cfg, seconds,
                      {"latency_ms": lat_ms, "work_ms": work_ms}, interrupted, checkpoint)
     return OnlineResult(out, n, n / seconds, lat_ms, interrupted, report)
+
+
+def fingerprint(spec: str, source: FrameSource, teacher_cfg, checkpoint: Optional[Path] = None, predict_cfg=None,
+                graph_cfg=None):
+    """The inputs of an online run (``data.runs.Fingerprint``): scene, sequence, frames (with
+    ``--follow``: as they arrive), the teacher's config (without its process settings), the
+    checkpoint and the calibration beside it (content digests), the MC-dropout settings and
+    the graph's config."""
+    from data.runs import Fingerprint, file_digest, frames_id, scene_id
+    from posegraph.config import ONLINE
+
+    tconf = teacher_cfg.to_dict()
+    for k in ("workers", "chunk_frames"):  # how batch runs share the work; no effect here
+        tconf.pop(k, None)
+    follow = isinstance(source, FollowFolder)
+    cal = Path(checkpoint).parent / "calibration.json" if checkpoint is not None else None
+    if checkpoint is not None:
+        from learner.config import PredictConfig, to_dict
+
+        pconf = to_dict(predict_cfg or PredictConfig())
+    return Fingerprint("online", {
+        "scene": scene_id(spec), "sequence": source.name,
+        "frames": "as they arrive" if follow else frames_id(source.seq.ids()) if isinstance(source, SequenceSource)
+        else None, "follow": follow, "teacher": tconf,
+        "checkpoint": file_digest(checkpoint) if checkpoint is not None else None,
+        "calibration": file_digest(cal) if cal is not None and cal.is_file() else None,
+        "predict": pconf if checkpoint is not None else None, "graph": (graph_cfg or ONLINE).to_dict()})
+
+
+def online(spec: str, out: Optional[Path] = None, *, frames: Optional[str] = None, follow: bool = False,
+           teacher_cfg=None, checkpoint: Optional[Path] = None, predict_cfg=None, graph_cfg=None,
+           cfg: OnlineConfig = OnlineConfig(), device: str = "cpu", overwrite: bool = False,
+           progress: bool = True) -> OnlineResult:
+    """``vo-online``: :func:`run` over the scene ``spec`` into ``out`` (default
+    ``runs/<scene-slug>/online``), under the rerun rule of :mod:`data.runs`.
+
+    A finished run of the same inputs is kept (returned from its ``report.json``; with
+    ``follow``, only while the folder holds no frame the run did not take); an interrupted
+    or killed one is run again; outputs of other inputs are replaced with ``overwrite``,
+    otherwise :class:`data.runs.StaleOutputError` says what differs. A run is finished when
+    its ``report.json`` (written last) says it was not interrupted."""
+    import json
+
+    from data.runs import FINGERPRINT_FILE, claim, output_folder, stage_dir, write_fingerprint
+    from teacher.config import DEFAULT as TEACHER_DEFAULT
+
+    teacher_cfg = teacher_cfg or TEACHER_DEFAULT
+    out = Path(out) if out is not None else stage_dir(spec, "online")
+    with output_folder(out):
+        source = open_source(spec, frames, follow, cfg)
+        fp = fingerprint(spec, source, teacher_cfg, checkpoint, predict_cfg, graph_cfg)
+        report = None
+        if (out / REPORT).is_file():
+            try:
+                report = json.loads((out / REPORT).read_text())
+            except (OSError, ValueError):
+                report = None  # unreadable: not a finished run
+        done = isinstance(report, dict) and report.get("interrupted") is False
+        if done and follow:
+            from data.runs import frames_id
+
+            done = report.get("frame_ids") == frames_id(source.present_ids())
+        if claim(out, fp, done=done, has_outputs=report is not None, overwrite=overwrite, outputs=OUTPUT_FILES):
+            log.info("%s: online run of the same inputs: kept", out)
+            lat = report.get("latency_ms") or {}
+            return OnlineResult(out, int(report["frames"]), float(report.get("fps") or 0.0), lat, False, report,
+                                kept=True)
+        for name in OUTPUT_FILES:  # an unfinished run of the same inputs: start afresh, report.json first
+            (out / name).unlink(missing_ok=True)
+        from data.io import ensure_dir
+
+        write_fingerprint(ensure_dir(out), fp)
+        try:
+            return run(source, out, teacher_cfg, checkpoint, predict_cfg, graph_cfg, cfg, device, progress=progress)
+        except BaseException:
+            if not (out / TRAJECTORY).exists():  # not one frame taken: leave nothing behind
+                (out / FINGERPRINT_FILE).unlink(missing_ok=True)
+            raise
 
 
 def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: OnlineGraph, t_edges: list,
@@ -692,6 +584,7 @@ def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: Onlin
     from data.formats import Edge, Trajectory, write_g2o, write_tum
     from data.io import ensure_dir, git_revision, json_safe, write_json
     from data.metrics import trajectory_report
+    from data.runs import frames_id
     from teacher.generate import chain_trajectory
 
     ids = np.array(teacher.ids, dtype=np.int64)
@@ -720,7 +613,7 @@ def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: Onlin
         "learner_edges": len(l_edges), "checkpoint": str(checkpoint) if checkpoint else None,
         "covariance_scales": graph.scale, "graph_reviews": graph.reviews, "final_polish": graph.polish,
         "outlier_edges": {"removed": int((graph.status == 2).sum()), "downweighted": int((graph.status == 1).sum())},
-        "teacher": teacher_cfg.to_dict(), "git_revision": git_revision(),
+        "frame_ids": frames_id(ids), "teacher": teacher_cfg.to_dict(), "git_revision": git_revision(),
     }
     if has_gt:
         report["final"] = trajectory_report(gt, Trajectory(times, final))
@@ -728,7 +621,7 @@ def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: Onlin
             report["final_isam2"] = trajectory_report(gt, Trajectory(times, graph.isam2_poses))
         report["online"] = trajectory_report(gt, Trajectory(times, _read_rows(out / TRAJECTORY, n)))
         report["teacher_chain"] = trajectory_report(gt, Trajectory(times, chained))
-    write_json(out / "report.json", json_safe(report))
+    write_json(out / REPORT, json_safe(report))
     return report
 
 
@@ -748,9 +641,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="vo-online", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scene", required=True, help="sequence folder, ROS bag or synthetic/NAME; with --follow "
-                   "a 7-Scenes-layout folder being written")
+                   "a 7-Scenes-layout or TUM RGB-D folder being written")
     p.add_argument("--checkpoint", type=Path, help="learner checkpoint: add its MC-dropout edges")
     p.add_argument("--out", type=Path, help="output folder (default runs/<scene>/online)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the outputs of other inputs in --out instead of stopping with an error")
     p.add_argument("--frames", help="frame range START:STOP[:STEP]")
     p.add_argument("--follow", action="store_true", help="the folder is still being written: wait for new frames")
     p.add_argument("--timeout", type=float, default=OnlineConfig.timeout_s,
@@ -772,7 +667,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.verbose, "%(message)s")
     try:
-        from data.runs import stage_dir
         from data.scenes import scene_with_topics
         from learner.config import PredictConfig
         from teacher.config import PRESETS as TEACHER_PRESETS
@@ -787,9 +681,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if args.timeout <= 0 or args.poll <= 0:
             raise ConfigError("--timeout and --poll must be positive")
         ocfg = OnlineConfig(poll_s=args.poll, timeout_s=args.timeout)
-        out = args.out or stage_dir(scene, "online")
-        source = open_source(scene, args.frames, args.follow, ocfg)
-        res = run(source, out, tcfg, args.checkpoint, pcfg, cfg=ocfg, device=args.device)
+        res = online(scene, args.out, frames=args.frames, follow=args.follow, teacher_cfg=tcfg,
+                     checkpoint=args.checkpoint, predict_cfg=pcfg if args.checkpoint else None, cfg=ocfg,
+                     device=args.device, overwrite=args.overwrite)
     except VOError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -804,7 +698,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     if res.interrupted:
         print(f"interrupted after {line}; trajectory so far in {res.out / TRAJECTORY}", file=sys.stderr)
         return 130
-    print(f"{line} -> {res.out}")
+    print(f"{line} -> {res.out}" + (" (kept: a finished run of the same inputs)" if res.kept else ""))
     return 0
 
 

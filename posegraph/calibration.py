@@ -251,17 +251,24 @@ def groundtruth_gap_scales(frame_ids: NDArray[np.int64], edges: Sequence[Edge], 
 
 
 def calibrate_teacher(teachers: Sequence[Path], out: Path, max_gap: Optional[int] = None,
-                      cfg: PoseGraphConfig = DEFAULT, method: str = "consistency") -> GapScales:
+                      cfg: PoseGraphConfig = DEFAULT, method: str = "consistency",
+                      overwrite: bool = False) -> GapScales:
     """``posegraph calibrate``: fit per-gap scales on the teacher folders ``teachers``
     (validation ranges or scenes, never test data) and write them atomically to ``out``.
 
     ``consistency`` (no ground truth): :func:`fit_gap_scales` per folder, pooled per gap
     weighted by each folder's redundancy there. ``groundtruth``: the folders' own
     ``groundtruth.tum`` (for synthetic scenes, whose ground truth is exact), pooled NEES
-    per gap (:func:`groundtruth_gap_scales`)."""
+    per gap (:func:`groundtruth_gap_scales`).
+
+    Rerun rule (:mod:`data.runs`): ``out`` records the fingerprint of its inputs (the
+    teacher folders' digests, method, max_gap, config) under ``fingerprint``; an ``out``
+    of the same inputs is kept and returned, one of other inputs is replaced only with
+    ``overwrite``, otherwise :class:`data.runs.StaleOutputError` says what differs."""
     from data.errors import DataError
     from data.io import git_revision, write_json
-    from posegraph.sources import find_sequence_dirs, load_dir, poses_for_frames, resolve_frames
+    from data.runs import Fingerprint, claim, output_folder, upstream_digest
+    from posegraph.sources import find_sequence_dirs
 
     if method not in METHODS:
         raise DataError(f"calibration method must be one of {', '.join(METHODS)}, got {method!r}")
@@ -270,6 +277,30 @@ def calibrate_teacher(teachers: Sequence[Path], out: Path, max_gap: Optional[int
         t = Path(t)
         names = find_sequence_dirs(t)
         folders += [t / n for n in names] if names else [t]
+    out = Path(out)
+    for f in folders:
+        if not (f / "edges.g2o").is_file():
+            raise DataError(f"teacher folder {f} " + ("has no edges.g2o" if f.is_dir() else "does not exist"))
+    fp = Fingerprint("posegraph-calibrate", {
+        "teachers": {str(f.resolve()): upstream_digest(f, "edges.g2o") for f in folders},
+        "method": method, "max_gap": max_gap, "config": cfg.to_dict()})
+    with output_folder(out.parent):
+        if claim(out.parent, fp, done=out.is_file(), has_outputs=out.is_file(), overwrite=overwrite,
+                 inside=out.name, hint="pass --overwrite to replace it, or choose another --out"):
+            log.info("%s: calibration of the same teacher edges and settings: kept", out)
+            return read_gap_scales(out)
+        res = _fit_teacher_scales(folders, max_gap, cfg, method)
+        res.info["fingerprint"] = fp.to_dict()  # in the file itself: written in the same atomic step
+        res.info["git"] = git_revision()
+        write_json(out, res.to_dict())
+    return res
+
+
+def _fit_teacher_scales(folders: list[Path], max_gap: Optional[int], cfg: PoseGraphConfig, method: str) -> GapScales:
+    """The fit of :func:`calibrate_teacher` over the sequence folders ``folders``."""
+    from data.errors import DataError
+    from posegraph.sources import load_dir, poses_for_frames, resolve_frames
+
     sums: dict[int, list[float]] = {}
     pooled: dict[int, list] = {}
     per = []
@@ -309,9 +340,7 @@ def calibrate_teacher(teachers: Sequence[Path], out: Path, max_gap: Optional[int
         scales = {g: a / w for g, (a, w) in sums.items() if w > 0}
     if not scales:
         raise DataError("no gap had enough edges to calibrate")
-    res = GapScales(scales, {"fitted_on": per, "method": method, "max_gap": max_gap, "git": git_revision()})
-    write_json(Path(out), res.to_dict())
-    return res
+    return GapScales(scales, {"fitted_on": per, "method": method, "max_gap": max_gap})
 
 
 __all__ = ["GapScales", "calibrate_teacher", "fit_gap_scales", "read_gap_scales", "redundancy_numbers"]

@@ -73,6 +73,8 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--teacher", type=Path, nargs="+", required=True,
                    help="teacher output folder(s) of validation ranges or scenes (never the test data)")
     c.add_argument("--out", type=Path, required=True, help="calibration JSON to write")
+    c.add_argument("--overwrite", action="store_true",
+                   help="replace an --out fitted on other inputs instead of stopping with an error")
     c.add_argument("--max-gap", type=int, help="use edges up to this gap (frame positions; default: all)")
     c.add_argument("--method", choices=["consistency", "groundtruth"], default="consistency",
                    help="consistency: from the multi-gap edges alone (no ground truth); groundtruth: NEES against "
@@ -83,7 +85,8 @@ def _parser() -> argparse.ArgumentParser:
 def _calibrate(args: argparse.Namespace) -> int:
     from posegraph.calibration import calibrate_teacher
 
-    res = calibrate_teacher(args.teacher, args.out, max_gap=args.max_gap, method=args.method)
+    res = calibrate_teacher(args.teacher, args.out, max_gap=args.max_gap, method=args.method,
+                            overwrite=args.overwrite)
     print(", ".join(f"gap {g}: x{v:.3g}" for g, v in sorted(res.scales.items())), "->", args.out)
     return 0
 

@@ -337,14 +337,16 @@ def _robust(base, cfg: PoseGraphConfig):
     return gtsam.noiseModel.Robust.Create(kernel, base)
 
 
-def _prior(frame_id: int, T: NDArray[np.float64], cfg: PoseGraphConfig):
+def prior_factor(frame_id: int, T: NDArray[np.float64], cfg: PoseGraphConfig):
+    """The prior that fixes frame ``frame_id`` at ``T`` (sigmas ``cfg.prior_sigma_*``)."""
     import gtsam
 
     sig = np.array([cfg.prior_sigma_rot_rad] * 3 + [cfg.prior_sigma_trans_m] * 3)  # GTSAM order (w, v)
     return gtsam.PriorFactorPose3(int(frame_id), geo.to_gtsam_pose3(T), gtsam.noiseModel.Diagonal.Sigmas(sig))
 
 
-def _factors(ids: NDArray[np.int64], measured: Sequence, covs: NDArray[np.float64], cfg: PoseGraphConfig) -> list:
+def between_factors(ids: NDArray[np.int64], measured: Sequence, covs: NDArray[np.float64],
+                    cfg: PoseGraphConfig) -> list:
     """One robust ``BetweenFactorPose3`` per edge (``ids`` (E, 2) frame ids, ``measured``
     their ``gtsam.Pose3``, ``covs`` (E, 6, 6) project order); noise models are shared
     between edges with identical covariances."""
@@ -374,8 +376,8 @@ def build_graph(frame_ids: NDArray[np.int64], edges: Sequence[Edge], covs: Seque
     a = edge_arrays(np.asarray(frame_ids, dtype=np.int64), edges)
     measured = measured if measured is not None else _pose3s(a.T)
     graph = gtsam.NonlinearFactorGraph()
-    graph.add(_prior(frame_ids[0], initial[0], cfg))
-    for f in _factors(a.ids, measured, np.asarray(covs, dtype=np.float64).reshape(-1, 6, 6), cfg):
+    graph.add(prior_factor(frame_ids[0], initial[0], cfg))
+    for f in between_factors(a.ids, measured, np.asarray(covs, dtype=np.float64).reshape(-1, 6, 6), cfg):
         graph.add(f)
     return graph, _values(frame_ids, initial)
 
@@ -403,7 +405,8 @@ def _poses_from_values(frame_ids: NDArray[np.int64], values) -> NDArray[np.float
     return out
 
 
-def _indeterminant(exc: RuntimeError) -> GraphError:
+def gtsam_error(exc: RuntimeError) -> GraphError:
+    """The one-line :class:`GraphError` of a GTSAM ``RuntimeError`` (an indeterminant system named as such)."""
     msg = str(exc)
     if "Indeterminant" in msg or "Indeterminate" in msg or "indeterminant" in msg:
         first = " ".join(msg.split())
@@ -436,7 +439,7 @@ def _run_lm(graph, values, cfg: PoseGraphConfig, check: bool = True):
         if check:
             check_determinate(graph, result)
     except RuntimeError as exc:
-        raise _indeterminant(exc) from None
+        raise gtsam_error(exc) from None
     return result, int(opt.iterations())
 
 
@@ -445,7 +448,7 @@ def check_determinate(graph, values) -> None:
     try:
         graph.linearize(values).eliminateMultifrontal()
     except RuntimeError as exc:
-        raise _indeterminant(exc) from None
+        raise gtsam_error(exc) from None
 
 
 def _run_isam2(frame_ids: NDArray[np.int64], pos: NDArray[np.int64], T_meas: NDArray[np.float64], factors: list,
@@ -476,7 +479,7 @@ def _run_isam2(frame_ids: NDArray[np.int64], pos: NDArray[np.int64], T_meas: NDA
         for p in range(len(frame_ids)):
             graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
             if p == 0:
-                graph.add(_prior(frame_ids[0], initial[0], cfg))
+                graph.add(prior_factor(frame_ids[0], initial[0], cfg))
                 values.insert(int(frame_ids[0]), geo.to_gtsam_pose3(initial[0]))
                 inserted[0] = True
                 est[0] = initial[0]
@@ -515,7 +518,7 @@ def _run_isam2(frame_ids: NDArray[np.int64], pos: NDArray[np.int64], T_meas: NDA
             isam.update()
         result = isam.calculateEstimate()
     except RuntimeError as exc:
-        raise _indeterminant(exc) from None
+        raise gtsam_error(exc) from None
     finally:
         bar.close()
     if not inserted.all() or not added.all():
@@ -562,7 +565,7 @@ def _keep_connected(n_frames: int, pos: NDArray[np.int64], drop: NDArray[np.bool
     return keep
 
 
-def _apply_action(n_frames: int, pos: NDArray[np.int64], flagged: NDArray[np.bool_], order: NDArray[np.int64],
+def outlier_masks(n_frames: int, pos: NDArray[np.int64], flagged: NDArray[np.bool_], order: NDArray[np.int64],
                   cfg: PoseGraphConfig) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """(drop, downweight) masks for the flagged edges under ``cfg.outlier_action``."""
     if cfg.outlier_action == "downweight":
@@ -580,7 +583,7 @@ class _Problem:
         self.frame_ids, self.a, self.cfg = frame_ids, a, cfg
         self.T = geo.orthonormalize(a.T)
         self.measured = _pose3s(self.T)  # the one per-edge conversion
-        self.prior = _prior(frame_ids[0], initial[0], cfg)
+        self.prior = prior_factor(frame_ids[0], initial[0], cfg)
         self.info = np.linalg.inv(a.cov) if len(a.cov) else np.zeros((0, 6, 6))
         """(E, 6, 6) inverse covariances, project order."""
         self._base: list = [None] * len(a.ids)  # factors with the given covariances, built on demand
@@ -599,7 +602,7 @@ class _Problem:
         return out
 
     def _make(self, idx: NDArray[np.int64], covs: NDArray[np.float64]) -> list:
-        return _factors(self.a.ids[idx], [self.measured[n] for n in idx.tolist()], covs, self.cfg)
+        return between_factors(self.a.ids[idx], [self.measured[n] for n in idx.tolist()], covs, self.cfg)
 
     def solve(self, use: NDArray[np.bool_], scale: NDArray[np.float64], start):
         """(graph, start values, result values, iterations); ``start`` is a ``gtsam.Values``
@@ -630,7 +633,7 @@ class _Problem:
 CHI2_6_MEDIAN = uncertainty.CHI2_6_MEDIAN
 
 
-def _scale_factors(res: NDArray[np.float64], src: NDArray[np.int64], est: NDArray[np.bool_], n_src: int,
+def source_scale_factors(res: NDArray[np.float64], src: NDArray[np.int64], est: NDArray[np.bool_], n_src: int,
                    redundancy: float, cfg: PoseGraphConfig) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Per source: (factor by which its covariances should grow, number of edges used).
 
@@ -695,7 +698,7 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional
         for n in np.flatnonzero((sr > cfg.max_rot_sigma_deg) & (st <= cfg.max_trans_sigma_m)).tolist():
             reason[n] = ("covariance_rot_sigma_deg", float(sr[n]))
         flagged = np.array([n in reason for n in range(n_edges)], bool)
-    drop, weak = _apply_action(n_frames, a.pos, flagged, np.arange(n_edges), cfg)
+    drop, weak = outlier_masks(n_frames, a.pos, flagged, np.arange(n_edges), cfg)
 
     names = list(dict.fromkeys(a.source))
     index = {n: k for k, n in enumerate(names)}
@@ -715,7 +718,7 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional
                  "redundancy": 1.0 - (n_frames - 1) / max(int((~drop).sum()), 1)}
         est = ~drop & ~weak
         for it in range(cfg.calibration_iterations + 1):
-            factor, counts = _scale_factors(prob.residuals(poses, src_scale[src]), src, est, len(names),
+            factor, counts = source_scale_factors(prob.residuals(poses, src_scale[src]), src, est, len(names),
                                             calib["redundancy"], cfg)
             factor[[k for k, n in enumerate(names) if n in fixed_sources]] = 1.0
             new = np.clip(src_scale * factor, *cfg.calibration_scale_range)
@@ -742,7 +745,7 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: Optional
             for n in np.flatnonzero(bad).tolist():
                 reason[n] = ("residual", float(first_res[n]))
             flagged = flagged | bad
-            drop, weak = _apply_action(n_frames, a.pos, flagged, np.argsort(first_res), cfg)
+            drop, weak = outlier_masks(n_frames, a.pos, flagged, np.argsort(first_res), cfg)
             log.info("re-solving without %d outlier edge(s)", int(bad.sum()))
             # warm start from the first solution (the prior stays on the first frame)
             graph, _, result, iters2 = prob.solve(~drop, scale_of(weak), result)
@@ -776,7 +779,7 @@ def marginal_covariances(graph, result, frame_ids: NDArray[np.int64]) -> NDArray
         m = gtsam.Marginals(graph, result)
         return np.stack([geo.cov_from_gtsam(m.marginalCovariance(int(k))) for k in frame_ids])
     except RuntimeError as exc:
-        raise _indeterminant(exc) from None
+        raise gtsam_error(exc) from None
 
 
 __all__ = ["EdgeArrays", "GraphError", "OutlierRecord", "SolveResult", "bridge_cov", "bridge_edges", "build_graph", "chain_poses", "joining_edges",

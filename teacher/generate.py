@@ -46,20 +46,12 @@ from data.scenes import open_scene
 from data.sequence import Sequence
 from teacher import processes
 from teacher.config import TeacherConfig
-from teacher.odometry import (KINECT_V1_COLOUR, ColourCamera, EdgeEstimate, FrameFeatures, estimate_edge, extract,
-                              image_keys, make_orb, stale_stream)
+from teacher.odometry import KINECT_V1_COLOUR, ColourCamera, EdgeEstimate, FrameFeatures, extract, image_keys, make_orb
+from teacher.window import EdgeWindow
 
 log = logging.getLogger(__name__)
 
 OUTPUT_FILES = ("edges.g2o", "edges.csv", "trajectory.tum", "groundtruth.tum", "config.json", "report.json")
-
-
-@dataclass
-class _WindowEntry:
-    k: int  # position in the sequence
-    feats: FrameFeatures
-    link: NDArray[np.int64]  # keypoint of frame k -> keypoint in the newest frame (-1: lost)
-    T_k_cur: Optional[NDArray[np.float64]]  # chained gap-1 motion from frame k to the newest
 
 
 @dataclass
@@ -169,10 +161,10 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     """Edges (i, j) whose first frame position lies in [k0, k1), with j - i <= gaps.
 
     Frames k0 .. k1 + gaps - 1 are streamed once: one helper thread decodes and extracts
-    features ahead; the main thread estimates the gap-1 edge of each new frame (matching
-    guided by constant velocity), extends the feature tracks with its inliers, and then the
-    longer edges ending at that frame (from the tracks, predicted by the chained motion).
-    ``threads`` limits the OpenMP / BLAS threads of both threads (None: no limit).
+    features ahead; the main thread hands each frame to a :class:`teacher.window.EdgeWindow`
+    (the gap-1 edge guided by constant velocity, its inliers extending the feature tracks,
+    then the longer edges ending at that frame from the tracks, predicted by the chained
+    motion). ``threads`` limits the OpenMP / BLAS threads of both threads (None: no limit).
     """
     n = len(seq)
     ids, times = seq.ids(), seq.times()
@@ -187,48 +179,18 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
 
     # fingerprints of the frame before the chunk, to tell whether frame k0 repeats it
     prev_keys = image_keys(seq.rgb(k0 - 1), seq.depth(k0 - 1)) if k0 > 0 else None
+    window = EdgeWindow(intr, cfg, prev_keys, until=k1 - k0)
     # OpenMP's thread count is per calling thread: limit this one and the helper
     with threadpool_limits(threads), ThreadPoolExecutor(1, initializer=threadpool_limits, initargs=(threads,)) as pool:
         ahead = 3
         feat_futs: dict[int, Future] = {k: pool.submit(_extract, k) for k in range(k0, min(k_end, k0 + ahead))}
-        window: deque[_WindowEntry] = deque()
-        v_prev: Optional[NDArray] = None  # last good gap-1 motion (constant-velocity prior)
         for k in range(k0, k_end):
             fk = feat_futs.pop(k).result()
             if k + ahead < k_end:
                 feat_futs[k + ahead] = pool.submit(_extract, k + ahead)
-            if prev_keys is not None:
-                fk.stale = stale_stream(prev_keys, fk.keys)
-            prev_keys = fk.keys
-            if k > k0:
-                prev = window[-1]
-                dt = float(times[k] - times[k - 1])
-                e = estimate_edge(int(ids[k - 1]), int(ids[k]), prev.feats, fk, intr, cfg, dt, T_pred=v_prev)
-                if k - 1 < k1:
-                    edges.append(e)
-                step = e.T_i_j if e.ok else (v_prev if v_prev is not None else np.eye(4))
-                if e.ok:
-                    v_prev = e.T_i_j
-                m = np.full(len(prev.feats.uv) + 1, -1, np.int64)  # last slot maps -1 -> -1
-                if e.ok and e.inlier_pairs is not None:
-                    m[e.inlier_pairs[:, 0]] = e.inlier_pairs[:, 1]
-                for w in window:
-                    w.link = m[w.link]
-                    w.T_k_cur = w.T_k_cur @ step
-                for w in list(window)[:-1]:  # gaps >= 2
-                    if w.k >= k1:
-                        continue
-                    tracks = np.flatnonzero(w.link >= 0)
-                    tracks = np.stack([tracks, w.link[tracks]], axis=1)
-                    edges.append(estimate_edge(int(ids[w.k]), int(ids[k]), w.feats, fk, intr, cfg,
-                                               float(times[k] - times[w.k]), w.T_k_cur.copy(), tracks))
-            window.append(_WindowEntry(k, fk, np.arange(len(fk.uv)), np.eye(4)))
-            while window and k - window[0].k >= cfg.gaps:
-                window.popleft()
+            edges += window.add(int(ids[k]), float(times[k]), fk)
             if on_frame is not None and k < k1:
                 on_frame(1)
-    for e in edges:
-        e.inlier_pairs = None  # only needed while tracking; keeps results small
     return edges
 
 

@@ -202,6 +202,55 @@ def test_calibrate_writes_a_readable_calibration(run, data_dirs, tmp_path, monke
     assert abs(np.log(after / 6)) < abs(np.log(before / 6))
 
 
+@pytest.mark.slow
+def test_calibrate_reruns_by_the_rule(run, data_dirs, tmp_path, monkeypatch, caplog, capsys) -> None:
+    """The same inputs keep calibration.json without predicting again; other inputs are a
+    one-line error naming what differs until --overwrite; a run killed while predicting
+    leaves the previous file as it was."""
+    import learner.predict as P
+    from data.runs import StaleOutputError
+
+    ckpt = _copy_run(run, tmp_path / "run")
+    fit_fp = (ckpt.parent / "fingerprint.json").read_text()
+    kw = dict(teacher_root=data_dirs["teacher"], config=PredictConfig(samples=4))
+    first = calibrate(ckpt, str(data_dirs["val"]), **kw)
+    text = first.path.read_text()
+    fp = json.loads(text)["fingerprint"]
+    assert fp["stage"] == "calibrate" and list(fp["inputs"]["sequences"].values()) == ["0..19 (20 frames)"]
+
+    def no_prediction(*a, **k):
+        raise AssertionError("a calibration of the same inputs was predicted again")
+
+    monkeypatch.setattr(P, "mc_edges", no_prediction)
+    caplog.set_level("INFO")
+    again = calibrate(ckpt, str(data_dirs["val"]), **kw)
+    assert "calibration of the same inputs: kept" in caplog.text
+    assert first.path.read_text() == text and again.calibration.groups == first.calibration.groups
+    assert again.report == first.report
+    with pytest.raises(StaleOutputError, match=r"calibration.json holds outputs of other inputs \(sequences\..*"
+                                               r"0\.\.19 \(20 frames\) -> 0\.\.17 \(18 frames\)\); pass --overwrite"):
+        calibrate(ckpt, str(data_dirs["val"]), frames="0:18", **kw)
+    # killed while predicting, with --overwrite: the old calibration is still whole
+    monkeypatch.setattr(P, "mc_edges", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt()))
+    with pytest.raises(KeyboardInterrupt):
+        calibrate(ckpt, str(data_dirs["val"]), frames="0:18", overwrite=True, **kw)
+    assert first.path.read_text() == text
+    monkeypatch.undo()
+    other = calibrate(ckpt, str(data_dirs["val"]), frames="0:18", overwrite=True, **kw)
+    d = json.loads(other.path.read_text())
+    assert d["frames"] == "0:18" and list(d["fingerprint"]["inputs"]["sequences"].values()) == ["0..17 (18 frames)"]
+    assert (ckpt.parent / "fingerprint.json").read_text() == fit_fp  # the training run's own fingerprint is left alone
+    # the command line: another sample count is one line and exit 1; --overwrite replaces
+    base = ["calibrate", "--checkpoint", str(ckpt), "--scene", str(data_dirs["val"]), "--teacher",
+            str(data_dirs["teacher"]), "--frames", "0:18"]
+    assert cli.main([*base, "--samples", "4"]) == 0
+    assert cli.main([*base, "--samples", "3"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err and "predict.samples: 4 -> 3" in err
+    assert cli.main([*base, "--samples", "3", "--overwrite"]) == 0
+    assert json.loads(other.path.read_text())["samples"] == 3
+
+
 def test_read_calibration_rejects_bad_files(tmp_path) -> None:
     p = tmp_path / CALIBRATION_FILE
     p.write_text("{not json")

@@ -111,12 +111,15 @@ def test_follow_a_folder_being_written(tmp_path, online_run):
 
 
 def test_follow_times_out_without_frames(tmp_path):
-    (tmp_path / "empty").mkdir()
-    src = online.open_source(str(tmp_path / "empty"), follow=True, cfg=online.OnlineConfig(poll_s=0.01, timeout_s=0.2))
+    """A folder whose frames never become readable (a depth file without its colour image)."""
+    (tmp_path / "stuck").mkdir()
+    (tmp_path / "stuck" / "frame-000000.depth.png").write_bytes(b"")
+    src = online.open_source(str(tmp_path / "stuck"), follow=True, cfg=online.OnlineConfig(poll_s=0.01, timeout_s=0.2))
     from data.errors import DataError
 
     with pytest.raises(DataError, match="no frame arrived"):
         online.run(src, tmp_path / "o", TCFG, progress=False)
+    assert not (tmp_path / "o" / online.TRAJECTORY).exists()
 
 
 class _Interrupting(online.FrameSource):
@@ -177,3 +180,230 @@ def test_online_learner_edges_equal_predict(batch, tmp_path):
     for key, e in want.items():
         np.testing.assert_allclose(got[key].T_i_j, e.T_i_j, atol=2e-5)
     assert run.report["final"]["ate_rmse_m"] < 1.0
+
+
+# ----------------------------------------------------------------------------------
+# the rerun rule (data/runs.py)
+# ----------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_rerun_keeps_refuses_and_overwrites(tmp_path, monkeypatch, capsys):
+    """A second identical run keeps the finished outputs without computing; other inputs
+    are one line naming what differs, the outputs untouched; --overwrite replaces them."""
+    out = tmp_path / "o"
+    first = online.online("synthetic/tiny", out, teacher_cfg=TCFG, progress=False)
+    assert not first.kept and first.frames == 20
+    fp = json.loads((out / "fingerprint.json").read_text())
+    assert fp["stage"] == "online" and fp["inputs"]["frames"] == "0..19 (20 frames)"
+    assert fp["inputs"]["follow"] is False and fp["inputs"]["checkpoint"] is None
+    stamp = {f: (out / f).stat().st_mtime_ns for f in online.OUTPUT_FILES if (out / f).exists()}
+    assert set(stamp) >= {"report.json", "trajectory.tum", "trajectory_final.tum", "teacher/edges.g2o"}
+
+    def no_run(*a, **k):
+        raise AssertionError("a finished run of the same inputs was computed again")
+
+    monkeypatch.setattr(online, "run", no_run)
+    again = online.online("synthetic/tiny", out, teacher_cfg=TCFG, progress=False)
+    assert again.kept and again.frames == 20 and again.report == first.report
+    argv = ["--scene", "synthetic/tiny", "--preset", "tiny", "--out", str(out)]
+    assert online.main(argv) == 0
+    assert "(kept: a finished run of the same inputs)" in capsys.readouterr().out
+    assert online.main([*argv, "--frames", "0:10"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == (f"error: {out} holds outputs of other inputs (frames: 0..19 (20 frames) -> 0..9 (10 frames)); "
+                   "pass --overwrite to replace them, or choose another --out")
+    assert online.main([*argv, "--gaps", "1"]) == 1
+    assert "teacher.gaps: 2 -> 1" in capsys.readouterr().err
+    assert {f: (out / f).stat().st_mtime_ns for f in stamp} == stamp
+    monkeypatch.undo()
+    assert online.main([*argv, "--frames", "0:10", "--overwrite"]) == 0
+    assert len(read_tum(out / online.TRAJECTORY)) == 10
+    assert json.loads((out / "report.json").read_text())["frame_ids"] == "0..9 (10 frames)"
+
+
+@pytest.mark.slow
+def test_a_killed_run_is_run_again_and_fails_leave_nothing(tmp_path):
+    """SIGKILL mid-run leaves no report.json (the mark of a finished run) and only whole
+    files; the same command again computes the run afresh; other inputs are refused.
+    A run in which no frame arrived leaves no folder behind."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "o"
+    argv = [sys.executable, "-m", "pipeline.online", "--scene", "synthetic/tiny", "--preset", "tiny", "--out", str(out)]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(argv, cwd=Path(__file__).resolve().parents[1], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            traj = out / online.TRAJECTORY
+            if traj.is_file() and len(traj.read_text().splitlines()) >= 4:  # header + 3 frames
+                break
+            time.sleep(0.02)
+        assert proc.poll() is None, "the run ended before it could be killed"
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait()
+    assert (out / "fingerprint.json").is_file() and not (out / "report.json").exists()
+    assert not (out / online.FINAL_TRAJECTORY).exists()
+    rows = read_tum(out / online.TRAJECTORY)  # whole rows only
+    assert 3 <= len(rows) < 20
+    from data.runs import StaleOutputError
+
+    with pytest.raises(StaleOutputError, match="holds outputs of other inputs"):
+        online.online("synthetic/tiny", out, frames="0:10", teacher_cfg=TCFG, progress=False)
+    res = online.online("synthetic/tiny", out, teacher_cfg=TCFG, progress=False)
+    assert not res.kept and res.frames == 20 and len(read_tum(out / online.TRAJECTORY)) == 20
+
+    (tmp_path / "empty").mkdir()
+    from data.errors import DataError
+
+    with pytest.raises(DataError, match="no frame arrived"):
+        online.online(str(tmp_path / "empty"), tmp_path / "runs" / "x", follow=True, teacher_cfg=TCFG,
+                      cfg=online.OnlineConfig(poll_s=0.01, timeout_s=0.2), progress=False)
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.slow
+def test_follow_rerun_is_kept_until_the_folder_grows(tmp_path):
+    """With --follow a finished run is kept while the folder holds no frame it did not
+    take; once frames were added, the same command runs again over all of them."""
+    src = open_scene("synthetic/tiny")[0].root
+    live = tmp_path / "live"
+    live.mkdir()
+
+    def copy(ids):
+        for k in ids:
+            for f in src.glob(f"frame-{k:06d}.*"):
+                shutil.copy(f, live / f.name)
+
+    copy(range(10))
+    cfg = online.OnlineConfig(poll_s=0.01, timeout_s=0.3)
+    kw = dict(follow=True, teacher_cfg=TCFG, cfg=cfg, progress=False)
+    first = online.online(str(live), tmp_path / "o", **kw)
+    assert first.frames == 10 and first.report["frame_ids"] == "0..9 (10 frames)"
+    assert json.loads((tmp_path / "o" / "fingerprint.json").read_text())["inputs"]["frames"] == "as they arrive"
+    assert online.online(str(live), tmp_path / "o", **kw).kept
+    copy(range(10, 14))
+    grown = online.online(str(live), tmp_path / "o", **kw)
+    assert not grown.kept and grown.frames == 14 and len(read_tum(tmp_path / "o" / online.TRAJECTORY)) == 14
+
+
+# ----------------------------------------------------------------------------------
+# --follow on a TUM RGB-D folder being written
+# ----------------------------------------------------------------------------------
+def _tum_frames(n: int = 20):
+    """synthetic/tiny's frames as TUM RGB-D files: (RGB time, rgb PNG, depth time, depth PNG)
+    with depth 4 ms after RGB, the camera, and groundtruth.txt rows at the RGB times."""
+    import cv2
+
+    from data import geometry as geo
+
+    seq = open_scene("synthetic/tiny")[0]
+    gt = seq.groundtruth()
+    frames = []
+    for k in range(min(n, len(seq))):
+        t = 1305031100.0 + k / 30.0
+        ok1, rgb = cv2.imencode(".png", cv2.cvtColor(seq.rgb(k), cv2.COLOR_RGB2BGR))
+        ok2, dep = cv2.imencode(".png", np.round(seq.depth(k) * 5000.0).clip(0, 65535).astype(np.uint16))
+        assert ok1 and ok2
+        frames.append((t, rgb.tobytes(), t + 0.004, dep.tobytes()))
+    i = seq.intrinsics
+    camera = f"{i.fx} {i.fy} {i.cx} {i.cy} {i.width} {i.height}\n"
+    gt_rows = "".join(f"{f[0]:.6f} " + " ".join(f"{x:.9f}" for x in geo.T_to_tum(T)) + "\n"
+                      for f, T in zip(frames, gt))
+    return frames, camera, gt_rows
+
+
+def _write_tum(folder: Path, frames, camera: str, gt_rows: str, period_s: float = 0.0) -> None:
+    """A TUM writer: images by atomic rename, list lines appended (a line is sometimes
+    flushed before its newline, or before its image exists), one frame per period."""
+    (folder / "rgb").mkdir(parents=True, exist_ok=True)
+    (folder / "depth").mkdir(exist_ok=True)
+    (folder / "camera.txt").write_text(camera)
+    (folder / "groundtruth.txt").write_text(gt_rows)
+
+    def put(rel: str, data: bytes) -> None:
+        tmp = folder / f"{rel}.tmp"
+        tmp.write_bytes(data)
+        tmp.rename(folder / rel)
+
+    with open(folder / "rgb.txt", "a") as rgb_list, open(folder / "depth.txt", "a") as depth_list:
+        for k, (t_rgb, rgb, t_dep, dep) in enumerate(frames):
+            rel_rgb, rel_dep = f"rgb/{t_rgb:.6f}.png", f"depth/{t_dep:.6f}.png"
+            line_first = k % 3 == 1  # the list names the image before it is written
+            if not line_first:
+                put(rel_rgb, rgb)
+                put(rel_dep, dep)
+            rgb_list.write(f"{t_rgb:.6f} {rel_rgb}")
+            rgb_list.flush()
+            time.sleep(period_s / 4)
+            rgb_list.write("\n")
+            rgb_list.flush()
+            depth_list.write(f"{t_dep:.6f} {rel_dep}\n")
+            depth_list.flush()
+            if line_first:
+                time.sleep(period_s / 4)
+                put(rel_rgb, rgb)
+                put(rel_dep, dep)
+            time.sleep(period_s)
+
+
+@pytest.mark.slow
+def test_follow_a_tum_folder_being_written(tmp_path, monkeypatch):
+    """rgb.txt and depth.txt grow while vo-online --follow runs: every frame is taken once,
+    paired as the TUM reader pairs a finished folder, with the same teacher edges and ground
+    truth as a run over that finished folder; a rerun is kept until the lists grow."""
+    frames, camera, gt_rows = _tum_frames()
+    live = tmp_path / "live"
+    live.mkdir()
+    cfg = online.OnlineConfig(poll_s=0.01, timeout_s=2.0)
+    writer = threading.Thread(target=_write_tum, args=(live, frames, camera, gt_rows, 0.04))
+    writer.start()
+    try:
+        res = online.online(str(live), tmp_path / "follow", follow=True, teacher_cfg=TCFG, cfg=cfg, progress=False)
+    finally:
+        writer.join()
+    assert res.frames == 20 and res.report["frame_ids"] == "0..19 (20 frames)"
+    rows = read_tum(res.out / online.TRAJECTORY)
+    np.testing.assert_allclose(rows.timestamps, [f[0] for f in frames], atol=1e-6)
+    # the same folder, finished, read by the TUM reader
+    batch = online.online(str(live), tmp_path / "batch", teacher_cfg=TCFG, progress=False)
+    assert batch.frames == 20
+    assert (res.out / "teacher" / "edges.g2o").read_text() == (batch.out / "teacher" / "edges.g2o").read_text()
+    assert (res.out / "teacher" / "groundtruth.tum").read_text() == \
+        (batch.out / "teacher" / "groundtruth.tum").read_text()
+    assert res.report["final"]["ate_rmse_m"] == pytest.approx(batch.report["final"]["ate_rmse_m"], rel=1e-6)
+    # rerun: kept while the lists have not grown; one more frame (and a line without its
+    # newline yet, not read) and it runs again over all of them
+    assert online.online(str(live), tmp_path / "follow", follow=True, teacher_cfg=TCFG, cfg=cfg, progress=False).kept
+    t, rgb, t_dep, dep = frames[-1]
+    _write_tum(live, [(t + 1 / 30, rgb, t_dep + 1 / 30, dep)], camera, gt_rows)
+    with open(live / "rgb.txt", "a") as fh:
+        fh.write("1305031200.000000 rgb/half-writ")
+    src = online.open_source(str(live), follow=True, cfg=cfg)
+    assert isinstance(src, online.FollowTum) and len(src.present_ids()) == 21
+
+    class Ran(Exception):
+        pass
+
+    monkeypatch.setattr(online, "run", lambda *a, **k: (_ for _ in ()).throw(Ran()))
+    with pytest.raises(Ran):
+        online.online(str(live), tmp_path / "follow", follow=True, teacher_cfg=TCFG, cfg=cfg, progress=False)
+
+
+def test_follow_picks_the_layout_and_waits_for_one(tmp_path):
+    cfg = online.OnlineConfig(poll_s=0.01, timeout_s=0.2)
+    from data.errors import DataError
+
+    (tmp_path / "tum_fr1").mkdir()
+    (tmp_path / "tum_fr1" / "rgb.txt").write_text("# nothing yet\n")
+    assert isinstance(online.open_source(str(tmp_path / "tum_fr1"), follow=True, cfg=cfg), online.FollowTum)
+    (tmp_path / "seven").mkdir()
+    (tmp_path / "seven" / "frame-000000.depth.png").write_bytes(b"")
+    assert isinstance(online.open_source(str(tmp_path / "seven"), follow=True, cfg=cfg), online.FollowSevenScenes)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DataError, match="no frame arrived within 0.2 s"):
+        online.open_source(str(tmp_path / "empty"), follow=True, cfg=cfg)

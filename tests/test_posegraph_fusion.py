@@ -242,6 +242,21 @@ def test_cli_calibrate_then_optimize_with_teacher_calibration(tmp_path, capsys):
     assert main(["calibrate", "--teacher", str(val), "--out", str(cal)]) == 0, capsys.readouterr().err
     d = json.loads(cal.read_text())
     assert set(d["scales"]) == {"1", "2", "3"} and d["fitted_on"][0]["folder"] == str(val)
+    # the rerun rule: the same inputs keep the file, other inputs need --overwrite
+    text = cal.read_text()
+    assert d["fingerprint"]["stage"] == "posegraph-calibrate"
+    assert main(["calibrate", "--teacher", str(val), "--out", str(cal)]) == 0 and cal.read_text() == text
+    capsys.readouterr()
+    assert main(["calibrate", "--teacher", str(val), "--out", str(cal), "--max-gap", "2"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err and "max_gap: null -> 2" in err and "--overwrite" in err
+    assert cal.read_text() == text
+    assert main(["calibrate", "--teacher", str(val), "--out", str(tmp_path / "gap2.json"), "--max-gap", "2"]) == 0
+    assert set(json.loads((tmp_path / "gap2.json").read_text())["scales"]) == {"1", "2"}
+    assert main(["calibrate", "--teacher", str(val), "--out", str(cal), "--max-gap", "2", "--overwrite"]) == 0
+    assert json.loads(cal.read_text())["scales"] == json.loads((tmp_path / "gap2.json").read_text())["scales"]
+    assert main(["calibrate", "--teacher", str(val), "--out", str(cal), "--overwrite"]) == 0
+    assert json.loads(cal.read_text())["scales"] == d["scales"]
     out = tmp_path / "pg"
     assert main(["optimize", "--teacher", str(test), "--out", str(out), "--no-plots",
                  "--teacher-calibration", str(cal)]) == 0, capsys.readouterr().err

@@ -207,7 +207,8 @@ def test_verbose_in_one_place_for_every_cli() -> None:
 
 
 def test_posegraph_imports_neither_learner_nor_teacher_nor_torch() -> None:
-    code = ("import sys, posegraph.optimize, posegraph.cli, posegraph.graph, posegraph.report, posegraph.sources\n"
+    code = ("import sys, posegraph.optimize, posegraph.cli, posegraph.graph, posegraph.report, posegraph.sources, "
+            "posegraph.online\n"
             "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'learner', 'teacher', 'pipeline'))\n"
             "assert not bad, bad")
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)

@@ -203,7 +203,7 @@ def depth_to_png_mm(depth: NDArray[np.float32]) -> NDArray[np.uint16]:
 
 
 # fast settings: zlib level 1, RLE strategy, "up" filter (~3x faster than the defaults)
-_PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE,
+PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE,
                cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP]
 
 
@@ -217,11 +217,11 @@ def _write_frame(seq_dir: Path, k: int, rgb: NDArray[np.uint8], jpeg: Optional[b
                  T: NDArray) -> None:
     stem = seq_dir / f"frame-{k:06d}"
     if jpeg is None:
-        ok1, col = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), _PNG_PARAMS)
+        ok1, col = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), PNG_PARAMS)
         colour, suffix = col.tobytes(), ".color.png"
     else:
         ok1, colour, suffix = True, jpeg, ".color.jpg"
-    ok2, dep = cv2.imencode(".png", depth_to_png_mm(depth), _PNG_PARAMS)
+    ok2, dep = cv2.imencode(".png", depth_to_png_mm(depth), PNG_PARAMS)
     if not (ok1 and ok2):
         raise DataError(f"could not encode frame {k}")
     Path(f"{stem}{suffix}").write_bytes(colour)

@@ -1,0 +1,101 @@
+"""The teacher's window over the last K frames of a stream: each new frame's edges.
+
+One implementation for ``teacher generate`` (each chunk of a sequence,
+:func:`teacher.generate.run_sequence`) and ``vo-online`` (frame by frame as frames
+arrive, pipeline/online.py), so the two give the same edges bit for bit.
+
+For each new frame k (features from :func:`teacher.odometry.extract`):
+
+1. the gap-1 edge (k-1, k) is estimated with the constant-velocity prediction (the last
+   good gap-1 motion) guiding the matching;
+2. its inlier matches extend the feature tracks of every frame in the window, and the
+   gap-1 motion (or the constant-velocity guess when it failed) extends each frame's
+   chained motion to the newest frame;
+3. each longer edge (k-g, k), g = 2..K, is estimated from the tracks that survived from
+   k-g to k, predicted by the chained motion;
+4. frames more than K - 1 behind the newest leave the window.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+from numpy.typing import NDArray
+
+from data.sequence import Intrinsics
+from teacher.config import TeacherConfig
+from teacher.odometry import EdgeEstimate, FrameFeatures, estimate_edge, stale_stream
+
+
+@dataclass
+class _Entry:
+    pos: int  # how many frames were added before this one
+    frame_id: int
+    timestamp: float
+    feats: FrameFeatures
+    link: NDArray[np.int64]  # keypoint of this frame -> keypoint in the newest frame (-1: lost)
+    T_k_cur: NDArray[np.float64]  # chained gap-1 motion from this frame to the newest
+
+
+class EdgeWindow:
+    """The last ``cfg.gaps`` frames of a stream, their feature tracks and chained motions.
+
+    ``prev_keys``: the image keys (:func:`teacher.odometry.image_keys`) of the frame before
+    the first one added, when there is one (a chunk that starts inside a sequence), so that
+    a repeated image at the first frame is caught. ``until``: only edges whose first frame
+    is among the first ``until`` frames added are estimated and returned (a chunk reads
+    ``gaps`` frames past its end for the edges that start inside it); None: every edge.
+    """
+
+    def __init__(self, intr: Intrinsics, cfg: TeacherConfig, prev_keys: Optional[tuple[bytes, bytes]] = None,
+                 until: Optional[int] = None) -> None:
+        self.intr, self.cfg, self.until = intr, cfg, until
+        self.prev_keys = prev_keys
+        self.entries: deque[_Entry] = deque()
+        self.v_prev: Optional[NDArray[np.float64]] = None  # last good gap-1 motion (constant-velocity prior)
+        self.added = 0
+
+    def _starts_inside(self, pos: int) -> bool:
+        return self.until is None or pos < self.until
+
+    def add(self, frame_id: int, timestamp: float, fk: FrameFeatures) -> list[EdgeEstimate]:
+        """The edges ending at the new frame (failed ones included: ``e.ok`` False), the
+        gap-1 edge first, then the longer ones from the oldest frame on. Sets ``fk.stale``."""
+        cfg, intr = self.cfg, self.intr
+        pos, self.added = self.added, self.added + 1
+        if self.prev_keys is not None:
+            fk.stale = stale_stream(self.prev_keys, fk.keys)
+        self.prev_keys = fk.keys
+        edges: list[EdgeEstimate] = []
+        if self.entries:
+            prev = self.entries[-1]
+            e = estimate_edge(prev.frame_id, frame_id, prev.feats, fk, intr, cfg, timestamp - prev.timestamp,
+                              T_pred=self.v_prev)
+            if self._starts_inside(prev.pos):
+                edges.append(e)
+            step = e.T_i_j if e.ok else (self.v_prev if self.v_prev is not None else np.eye(4))
+            if e.ok:
+                self.v_prev = e.T_i_j
+            m = np.full(len(prev.feats.uv) + 1, -1, np.int64)  # last slot maps -1 -> -1
+            if e.ok and e.inlier_pairs is not None:
+                m[e.inlier_pairs[:, 0]] = e.inlier_pairs[:, 1]
+            for w in self.entries:
+                w.link = m[w.link]
+                w.T_k_cur = w.T_k_cur @ step
+            for w in list(self.entries)[:-1]:  # gaps >= 2
+                if not self._starts_inside(w.pos):
+                    continue
+                tracks = np.flatnonzero(w.link >= 0)
+                tracks = np.stack([tracks, w.link[tracks]], axis=1)
+                edges.append(estimate_edge(w.frame_id, frame_id, w.feats, fk, intr, cfg, timestamp - w.timestamp,
+                                           w.T_k_cur.copy(), tracks))
+            e.inlier_pairs = None  # only needed for the tracks above
+        self.entries.append(_Entry(pos, int(frame_id), timestamp, fk, np.arange(len(fk.uv)), np.eye(4)))
+        while self.entries and pos - self.entries[0].pos >= cfg.gaps:
+            self.entries.popleft()
+        for e in edges:
+            e.inlier_pairs = None  # keeps results small
+        return edges
