@@ -105,6 +105,24 @@ class TeacherConfig:
     blurred pair's poorly localised keypoints give way to the depth, and a pair with little
     depth structure keeps its keypoints. Validation (``gaps=1``, mm / deg / ATE mm): synthetic/lab
     2.55-2.97 / 0.124-0.135 / 15-17.5 against 3.24 / 0.146 / 21.2 for ``blend`` 0.25."""
+    dense_method: str = "auto"
+    """Dense step: ``point-to-plane`` (depth alone) or ``hybrid`` (photometric + depth,
+    :func:`teacher.odometry.hybrid_align`: the colour registered to the depth camera, frame
+    i at full resolution)."""
+    photo_huber: float = 0.1
+    """Hybrid dense step: Huber threshold of the intensity residual (grey in [0, 1]; Open3D's
+    default)."""
+    hybrid_cov_scale: float = 5.0
+    """Hybrid dense step, ``information`` fusion: its covariance
+    (:func:`teacher.odometry.hybrid_covariance`) is multiplied by this."""
+    photo_blur_px: float = 2.0
+    """Hybrid dense step: Gaussian blur (sigma, pixels) of the grey image before its use."""
+    photo_normalise: bool = True
+    """Hybrid dense step: scale each frame's grey to a mean of 0.5 (undoes auto-exposure gain)."""
+    fallback_finish_iters: int = 3
+    """Fallback 2, hybrid RGB-D odometry: after Open3D's coarse-to-fine alignment at 1/2, 1/4
+    and 1/8 resolution, at most this many iterations of :func:`teacher.odometry.hybrid_align`
+    against frame i at full resolution (0: none)."""
     dense_cov_scale: float = 5.0
     """Dense step, ``information`` fusion: the point-to-plane covariance is multiplied by this
     (its pixels' errors are correlated, so taken as independent it is too small). Chosen on

@@ -27,7 +27,7 @@ import threading
 import time
 from collections import Counter, deque
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -181,6 +181,7 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     edges: list[EdgeEstimate] = []
     orb = make_orb(cfg)
     colour = colour_camera_for(seq, cfg)
+    cfg = replace(cfg, dense_method=dense_method_for(seq, cfg))
 
     def _extract(k: int) -> FrameFeatures:
         return extract(seq.rgb(k), seq.depth(k), cfg, orb, intr.K, colour)  # one thread uses this ORB
@@ -252,6 +253,29 @@ def colour_camera_for(seq: Sequence, cfg: TeacherConfig) -> Optional[ColourCamer
     if not isinstance(seq, SevenScenesSequence):
         return None
     return colour_camera_of_folder(Path(seq.root))
+
+
+def dense_method_for(seq: Sequence, cfg: TeacherConfig) -> str:
+    """The dense step's method for ``seq``: ``cfg.dense_method``, with ``auto`` resolved to
+    ``hybrid`` for a synthetic scene (its sensor model exposes colour and depth at the same
+    instant) and to ``point-to-plane`` otherwise (real Kinect v1 recordings: 7-Scenes, whose
+    ground truth follows the depth while the colour is exposed at other times, and TUM
+    RGB-D)."""
+    from data.errors import ConfigError
+
+    if cfg.dense_method in ("hybrid", "point-to-plane"):
+        return cfg.dense_method
+    if cfg.dense_method != "auto":
+        raise ConfigError(f"dense_method must be auto, hybrid or point-to-plane, got {cfg.dense_method!r}")
+    from data.sevenscenes import SevenScenesSequence
+
+    if isinstance(seq, SevenScenesSequence) and (Path(seq.root).parent / "config.json").is_file():
+        try:
+            json.loads((Path(seq.root).parent / "config.json").read_text())["config"]["sensor"]
+            return "hybrid"
+        except (ValueError, KeyError, TypeError):
+            pass
+    return "point-to-plane"
 
 
 def colour_camera_of_folder(seq_dir: Path) -> Optional[ColourCamera]:
@@ -334,6 +358,7 @@ def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
         "edge_paths": dict(sorted(Counter(e.info.get("path", "none") for e in run.edges).items())),
         "gap1_edge_paths": dict(sorted(Counter(e.info.get("path", "none") for e in run.edges
                                                if _gap(seq, e) == 1).items())),
+        "dense_method": dense_method_for(seq, cfg) if cfg.dense_iters > 0 else "none",
         "fps": n / run.seconds if run.seconds > 0 else float("nan"),
         "seconds": run.seconds,
     }

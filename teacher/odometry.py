@@ -86,6 +86,26 @@ class ColourCamera:
             x = x + np.where(z > 0, K[0, 0] * self.baseline_m / np.maximum(z, 0.4), 0.0)
         return np.stack([x, y], axis=1).astype(np.float32)
 
+    def to_depth_image(self, img: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray) -> NDArray[np.uint8]:
+        """(H, W) colour-camera image resampled onto the depth camera's pixels (bilinear): the
+        depth pixel ``(x, y)`` takes the colour pixel ``(cx + shift_x + s (x - cx - fx b / z),
+        cy + shift_y + s (y - cy))``, the inverse of :meth:`to_depth_pixels`, with z the depth
+        at ``(x, y)`` (where it is 0, the median depth of the frame sets the parallax)."""
+        h, w = depth.shape
+        cx, cy, fx = K[0, 2], K[1, 2], K[0, 0]
+        xs = np.arange(w, dtype=np.float32)
+        my = np.broadcast_to((cy + self.shift_px[1] + self.focal_scale * (np.arange(h, dtype=np.float32) - cy))[:, None],
+                             (h, w))
+        if self.baseline_m:
+            valid = depth > 0
+            z0 = float(np.median(depth[::8, ::8][valid[::8, ::8]])) if valid[::8, ::8].any() else 2.0
+            par = np.float32(fx * self.baseline_m) / np.maximum(np.where(valid, depth, np.float32(z0)), np.float32(0.4))
+            mx = cx + self.shift_px[0] + self.focal_scale * (xs[None, :] - par - cx)
+        else:
+            mx = np.broadcast_to(cx + self.shift_px[0] + self.focal_scale * (xs - cx), (h, w))
+        return cv2.remap(img, np.ascontiguousarray(mx, dtype=np.float32), np.ascontiguousarray(my, dtype=np.float32),
+                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
 
 #: the Kinect v1 colour camera of 7-Scenes, as fitted on the redkitchen sample for the
 #: synthetic sensor model (data/synthetic/config.py: ``rgb_focal_scale``, ``rgb_shift_px``,
@@ -144,6 +164,31 @@ class DenseMaps:
     vertex: o3d.core.Tensor
     normal: o3d.core.Tensor
     K: o3d.core.Tensor
+    photo: Optional["PhotoMaps"] = None
+
+
+@dataclass
+class PhotoMaps:
+    """Open3D tensors of one frame for the hybrid (photometric + depth) alignment of
+    :func:`hybrid_align` (float32, (rows, cols, 1) unless noted, NaN depth where invalid).
+
+    As the frame moved (j): ``src_depth`` and ``src_intensity`` at the pixels of
+    ``DenseMaps.points`` (every ``cfg.dense_scale``-th). As the frame aligned to (i), at
+    full resolution: ``depth``, ``intensity`` (grey in [0, 1], registered to the depth
+    camera), their unnormalised 3x3 Sobel derivatives ``depth_dx`` ... ``intensity_dy``, and
+    ``K`` (3x3 float64). Full resolution on that side is what makes the alignment precise:
+    Open3D's kernel pairs each point with the nearest target pixel, and at half resolution
+    the gap-1 error on synthetic/stress-far doubled (2.1-2.5 against 0.9-1.3 mm)."""
+
+    src_depth: o3d.core.Tensor
+    src_intensity: o3d.core.Tensor
+    depth: o3d.core.Tensor
+    intensity: o3d.core.Tensor
+    depth_dx: o3d.core.Tensor
+    depth_dy: o3d.core.Tensor
+    intensity_dx: o3d.core.Tensor
+    intensity_dy: o3d.core.Tensor
+    K: o3d.core.Tensor
 
 
 def _subsampled(depth: NDArray[np.float32], K: NDArray, s: int,
@@ -157,7 +202,8 @@ def _subsampled(depth: NDArray[np.float32], K: NDArray, s: int,
     return o3d.t.geometry.Image(o3d.core.Tensor(d)), o3d.core.Tensor(Ks)
 
 
-def dense_maps(depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig) -> DenseMaps:
+def dense_maps(depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig,
+               gray: Optional[NDArray[np.uint8]] = None) -> DenseMaps:
     """The maps of :class:`DenseMaps` for one depth image (metres, 0 = invalid).
 
     The points moved are sparse (every 4th pixel: the cost of an iteration is proportional
@@ -174,7 +220,53 @@ def dense_maps(depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig) -> De
     vertex = img.create_vertex_map(Kt, float("nan")).as_tensor()
     smooth = img.filter_bilateral(cfg.dense_normal_kernel, 5.0, 10.0)
     normal = smooth.create_vertex_map(Kt, float("nan")).create_normal_map(float("nan")).as_tensor()
-    return DenseMaps(points, vertex, normal, Kt)
+    photo = photo_maps(gray, depth, K, cfg) if gray is not None else None
+    return DenseMaps(points, vertex, normal, Kt, photo)
+
+
+def photo_maps(gray: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig) -> PhotoMaps:
+    """The maps of :class:`PhotoMaps` for one frame: ``gray`` (H, W) uint8, registered to the
+    depth camera (:meth:`ColourCamera.to_depth_image`), ``depth`` (H, W) metres."""
+    d = np.array(depth, dtype=np.float32)
+    d[~((d >= cfg.depth_min) & (d <= cfg.depth_max))] = np.nan
+    inten = gray.astype(np.float32) * np.float32(1 / 255)
+    if cfg.photo_blur_px > 0:
+        inten = cv2.GaussianBlur(inten, (0, 0), cfg.photo_blur_px)
+    if cfg.photo_normalise:
+        inten *= np.float32(0.5 / max(float(inten[::4, ::4].mean()), 1e-3))
+    s = cfg.dense_scale
+
+    def t(a: NDArray) -> o3d.core.Tensor:
+        return o3d.core.Tensor(np.ascontiguousarray(a[..., None], dtype=np.float32))
+
+    return PhotoMaps(t(d[::s, ::s]), t(inten[::s, ::s]), t(d), t(inten),
+                     t(cv2.Sobel(d, cv2.CV_32F, 1, 0, ksize=3)), t(cv2.Sobel(d, cv2.CV_32F, 0, 1, ksize=3)),
+                     t(cv2.Sobel(inten, cv2.CV_32F, 1, 0, ksize=3)), t(cv2.Sobel(inten, cv2.CV_32F, 0, 1, ksize=3)),
+                     o3d.core.Tensor(np.asarray(K, dtype=np.float64)))
+
+
+def hybrid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
+                 iters: int) -> tuple[NDArray, float, int, bool]:
+    """Align frame j to frame i with Open3D's hybrid RGB-D odometry kernel (photometric and
+    depth residuals, Huber-weighted Gauss-Newton; Park, Zhou & Koltun 2017) at one level:
+    frame j's points of ``dj.points`` (every ``cfg.dense_scale``-th pixel) against frame i's
+    full-resolution maps, from ``T_init`` (``T_i_j``), at most ``iters`` iterations,
+    stopping at ``cfg.dense_stop_m`` / ``cfg.dense_stop_deg`` updates. Returns (T_i_j,
+    fitness, iterations, converged). Raises RuntimeError when no point pairs up."""
+    pi, pj = di.photo, dj.photo
+    T = o3d.core.Tensor(np.asarray(T_init, np.float64))
+    fitness, converged, it = 0.0, False, 0
+    for it in range(iters):
+        step = o3d.t.pipelines.odometry.compute_odometry_result_hybrid(
+            pj.src_depth, pi.depth, pj.src_intensity, pi.intensity, pi.depth_dx, pi.depth_dy, pi.intensity_dx,
+            pi.intensity_dy, dj.points, pi.K, T, cfg.dense_trunc_m, cfg.dense_huber_m, cfg.photo_huber)
+        T = step.transformation.matmul(T)
+        fitness = float(step.fitness)
+        delta = step.transformation.numpy()
+        if np.linalg.norm(delta[:3, 3]) < cfg.dense_stop_m and geo.rotation_angle_deg(delta) < cfg.dense_stop_deg:
+            converged = True
+            break
+    return geo.orthonormalize(T.numpy()), fitness, it + 1, converged
 
 
 def image_keys(rgb: NDArray[np.uint8], depth: NDArray[np.float32]) -> tuple[bytes, bytes]:
@@ -200,7 +292,12 @@ def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConf
     ``colour`` camera model (and ``K``), keypoints are moved into depth-camera pixels
     (``uv`` is then in depth-camera pixels; None: colour registered to depth)."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-    dense = dense_maps(depth, K, cfg) if K is not None and cfg.dense_iters > 0 else None
+    dense = None
+    if K is not None and cfg.dense_iters > 0:
+        photo = None
+        if cfg.dense_method == "hybrid":
+            photo = colour.to_depth_image(gray, depth, K) if colour is not None else gray
+        dense = dense_maps(depth, K, cfg, photo)
     orb = orb or make_orb(cfg)
     kps, desc = orb.detectAndCompute(gray, None)
     keys = image_keys(rgb, depth)
@@ -561,10 +658,15 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     """
     if cfg.dense_iters <= 0:
         return
+    # a stale pair's colour shows another moment than its depth: depth alone there
+    hybrid = cfg.dense_method == "hybrid" and di.photo is not None and dj.photo is not None and blend is None
     T = o3d.core.Tensor(res.T_i_j)
     fitness, rmse = 0.0, float("nan")
     try:
-        for it in range(cfg.dense_iters):
+        if hybrid:
+            T_h, fitness, n_it, _ = hybrid_align(res.T_i_j, di, dj, cfg, cfg.dense_iters)
+            T = o3d.core.Tensor(T_h)
+        for it in range(0 if hybrid else cfg.dense_iters):
             step = o3d.t.pipelines.odometry.compute_odometry_result_point_to_plane(
                 dj.points, di.vertex, di.normal, di.K, T, cfg.dense_trunc_m, cfg.dense_huber_m)
             T = step.transformation.matmul(T)
@@ -576,6 +678,8 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     except RuntimeError:  # Open3D raises when no pixel pairs up
         res.info["dense"] = {"accepted": False, "fitness": 0.0}
         return
+    if hybrid:
+        it = n_it - 1
     T_d = T.numpy()
     d = geo.inv_T(res.T_i_j) @ T_d
     shift_m, shift_deg = float(np.linalg.norm(d[:3, 3])), geo.rotation_angle_deg(d)
@@ -585,11 +689,17 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
                          "shift_m": shift_m, "shift_deg": shift_deg}
     if ok:
         x = geo.se3_log(d)
+        if blend is None and cfg.dense_fusion == "whole":
+            blend = 1.0
         if blend is None and cfg.dense_fusion == "information" and res.cov is not None:
             # weigh the two by their information: (S_s^-1 + S_d^-1)^-1 S_d^-1 x
-            cov_d, _, _ = point_to_plane_covariance(T_d, di, dj, cfg, stride=2)
+            if hybrid:
+                cov_d = hybrid_covariance(T_d, di, dj, cfg, stride=2)
+            else:
+                cov_d, _, _ = point_to_plane_covariance(T_d, di, dj, cfg, stride=2)
             if cov_d is not None:
-                info_s, info_d = np.linalg.inv(res.cov), np.linalg.inv(cov_d * cfg.dense_cov_scale)
+                scale = cfg.hybrid_cov_scale if hybrid else cfg.dense_cov_scale
+                info_s, info_d = np.linalg.inv(res.cov), np.linalg.inv(cov_d * scale)
                 step = np.linalg.solve(info_s + info_d, info_d @ x)
                 res.info["dense"]["weight"] = float(step @ x / max(x @ x, 1e-30))
                 res.T_i_j = res.T_i_j @ geo.se3_exp(step)
@@ -699,6 +809,12 @@ def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
                             info={"path": "none", "error": str(exc)[-200:]})
     T = geo.orthonormalize(out.transformation.numpy())
     fitness = float(out.fitness)
+    if cfg.fallback_finish_iters > 0 and fi.dense.photo is not None and fj.dense.photo is not None \
+            and np.all(np.isfinite(T)):
+        try:
+            T, fitness, _, _ = hybrid_align(T, fi.dense, fj.dense, cfg, cfg.fallback_finish_iters)
+        except RuntimeError:
+            pass  # keep the half-resolution result
     res = EdgeEstimate(i, j, "ok", T_i_j=T, info={"path": "rgbd", "dense": {
         "accepted": True, "iterations": 0, "fitness": fitness, "shift_m": 0.0, "shift_deg": 0.0, "stale_stream": False}})
     if not np.all(np.isfinite(T)) or fitness < cfg.dense_min_fitness:
@@ -766,6 +882,71 @@ def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg:
     if not np.all(np.isfinite(cov)):
         return None, len(q), float(np.sqrt(np.mean(r * r)))
     return 0.5 * (cov + cov.T), len(q), float(np.sqrt(np.mean(r * r)))
+
+
+def hybrid_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
+                      stride: int = 2) -> Optional[NDArray]:
+    """Covariance (6, 6), (v, w) order, right perturbation at ``T_i_j``, of the hybrid
+    alignment of :func:`hybrid_align`: the inverse of the summed information of its two
+    residuals at the result, each pixel pair formed as Open3D's kernel forms it (frame j's
+    point ``q`` moved into i, the nearest pixel of i's full-resolution maps, kept within
+    ``cfg.dense_trunc_m`` in depth). Photometric ``r_I = I_i(u) - I_j(q)`` and depth
+    ``r_D = D_i(u) - z(T q)``, their Jacobians through the Sobel derivatives of frame i
+    (``/ 8``: per pixel) and the projection; each term Huber-weighted (``cfg.photo_huber``,
+    ``cfg.dense_huber_m``) and divided by its own weighted residual variance (floored at
+    ``cfg.dense_min_sigma_m`` squared for depth). Pixel errors are correlated, so, like
+    :func:`point_to_plane_covariance`, a lower bound. ``stride``: every ``stride``-th point
+    of j in both axes (scaled back to all). None without photometric maps, with fewer
+    than 12 pairs or a singular system."""
+    pi, pj = di.photo, dj.photo
+    if pi is None or pj is None:
+        return None
+    q = dj.points.numpy()[::stride, ::stride].reshape(-1, 3)
+    Ij = pj.src_intensity.numpy()[::stride, ::stride].reshape(-1)
+    ok = np.all(np.isfinite(q), axis=1)
+    q, Ij = q[ok].astype(np.float64), Ij[ok].astype(np.float64)
+    R, t = T_i_j[:3, :3], T_i_j[:3, 3]
+    X = q @ R.T + t
+    K = pi.K.numpy()
+    Di = pi.depth.numpy()[..., 0]
+    h, w = Di.shape
+    front = X[:, 2] > 1e-6
+    X, q, Ij = X[front], q[front], Ij[front]
+    uf = K[0, 0] * X[:, 0] / X[:, 2] + K[0, 2]
+    vf = K[1, 1] * X[:, 1] / X[:, 2] + K[1, 2]
+    u, v = np.rint(uf).astype(np.int64), np.rint(vf).astype(np.int64)
+    inside = (u >= 1) & (u < w - 1) & (v >= 1) & (v < h - 1)
+    X, q, Ij, u, v = X[inside], q[inside], Ij[inside], u[inside], v[inside]
+    d = Di[v, u].astype(np.float64)
+    g = [a.numpy()[..., 0][v, u].astype(np.float64) / 8.0 for a in (pi.depth_dx, pi.depth_dy, pi.intensity_dx, pi.intensity_dy)]
+    rD = d - X[:, 2]
+    ok = np.isfinite(d) & (np.abs(rD) <= cfg.dense_trunc_m) & np.all(np.isfinite(np.stack(g)), axis=0)
+    if ok.sum() < 12:
+        return None
+    X, q, rD = X[ok], q[ok], rD[ok]
+    gDx, gDy, gIx, gIy = (a[ok] for a in g)
+    rI = pi.intensity.numpy()[..., 0][v[ok], u[ok]].astype(np.float64) - Ij[ok]
+    iz = 1.0 / X[:, 2]
+    # d(u, v)/dX of the pinhole projection, rows (3,) per pixel
+    du = np.stack([K[0, 0] * iz, np.zeros_like(iz), -K[0, 0] * X[:, 0] * iz * iz], axis=1)
+    dv = np.stack([np.zeros_like(iz), K[1, 1] * iz, -K[1, 1] * X[:, 1] * iz * iz], axis=1)
+    bI = gIx[:, None] * du + gIy[:, None] * dv
+    bD = gDx[:, None] * du + gDy[:, None] * dv
+    bD[:, 2] -= 1.0
+    info = np.zeros((6, 6))
+    for b, r, k, floor in ((bI, rI, cfg.photo_huber, 1.0 / 255), (bD, rD, cfg.dense_huber_m, cfg.dense_min_sigma_m)):
+        m = b @ R  # R^T b per pixel
+        J = np.concatenate([m, np.cross(q, m)], axis=1)
+        _, wts, _ = _huber(r, k)
+        sigma2 = max(float(np.sum(wts * r * r) / max(len(r) - 6, 1)), floor ** 2)
+        info += J.T @ (J * wts[:, None]) / sigma2
+    try:
+        cov = np.linalg.inv(info) / stride ** 2
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(cov)):
+        return None
+    return 0.5 * (cov + cov.T)
 
 
 def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
@@ -860,7 +1041,7 @@ def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray
     return out
 
 
-__all__ = ["ColourCamera", "KINECT_V1_COLOUR", "FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "dense_refine", "match",
+__all__ = ["ColourCamera", "KINECT_V1_COLOUR", "FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "photo_maps", "hybrid_align", "hybrid_covariance", "PhotoMaps", "dense_refine", "match",
            "match_wide", "dense_edge", "rgbd_edge", "point_to_plane_covariance",
            "image_keys", "stale_stream",
            "estimate_edge", "refine_two_way", "make_orb"]
