@@ -109,16 +109,28 @@ class TeacherConfig:
     """Dense step: ``point-to-plane`` (depth alone) or ``hybrid`` (photometric + depth,
     :func:`teacher.odometry.hybrid_align`: the colour registered to the depth camera, frame
     i at full resolution)."""
+    hybrid_iters: int = 3
+    """Hybrid dense step: most iterations (stopping earlier at ``dense_stop_m`` /
+    ``dense_stop_deg``)."""
+    hybrid_all_gaps: bool = False
+    """Hybrid dense step on the edges of every gap; False: on gap-1 edges only (the longer
+    ones keep the point-to-plane step)."""
     photo_huber: float = 0.1
     """Hybrid dense step: Huber threshold of the intensity residual (grey in [0, 1]; Open3D's
     default)."""
-    hybrid_cov_scale: float = 5.0
+    hybrid_cov_scale: float = 10.0
     """Hybrid dense step, ``information`` fusion: its covariance
     (:func:`teacher.odometry.hybrid_covariance`) is multiplied by this."""
     photo_blur_px: float = 2.0
     """Hybrid dense step: Gaussian blur (sigma, pixels) of the grey image before its use."""
-    photo_normalise: bool = True
-    """Hybrid dense step: scale each frame's grey to a mean of 0.5 (undoes auto-exposure gain)."""
+    fallback_levels: tuple[tuple[int, int], ...] = ((8, 10), (4, 5))
+    """Fallback 2, hybrid RGB-D odometry with the hybrid dense step's maps
+    (:func:`teacher.odometry.pyramid_align`): (scale, most iterations) of each coarse level,
+    coarse to fine, before the full-resolution finish."""
+    fallback_chained_iters: int = 5
+    """Fallback 2, hybrid RGB-D odometry of an edge longer than one frame (started from the
+    chained gap-1 motion, already close): no coarse levels, at most this many full-resolution
+    iterations."""
     fallback_finish_iters: int = 3
     """Fallback 2, hybrid RGB-D odometry: after Open3D's coarse-to-fine alignment at 1/2, 1/4
     and 1/8 resolution, at most this many iterations of :func:`teacher.odometry.hybrid_align`
@@ -132,6 +144,9 @@ class TeacherConfig:
     (``blend`` 0.25 there: 4.06 / 0.167 / 48.4; before the colour model 4.04 / 0.171 / 36.7).
     The smallest scale tried (most weight on the depth) whose redkitchen validation figures
     match those before this change (gap-1 error and rotation no worse, ATE within 0.1 mm)."""
+    dense_cov_stride: int = 2
+    """Dense step, ``information`` fusion: the dense covariance is formed from every
+    ``dense_cov_stride``-th of the step's points in both axes (scaled back to all of them)."""
     dense_on_stale: bool = True
     """Dense step: take the dense estimate whole (``dense_blend`` 1) for an edge with a frame
     whose colour and depth were taken at different times - exactly one of its two images

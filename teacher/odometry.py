@@ -189,6 +189,29 @@ class PhotoMaps:
     intensity_dx: o3d.core.Tensor
     intensity_dy: o3d.core.Tensor
     K: o3d.core.Tensor
+    levels: dict = field(default_factory=dict)
+    """Coarser levels for :func:`pyramid_align`, built on first use: scale -> (depth,
+    intensity, depth_dx, depth_dy, intensity_dx, intensity_dy, vertex map, K) at that scale."""
+
+    def level(self, s: int) -> tuple:
+        """The maps of every ``s``-th pixel (intensity averaged over ``s x s`` blocks, depth
+        subsampled), both as source and as target of the kernel."""
+        if s not in self.levels:
+            d = self.depth.numpy()[::s, ::s, 0].copy()
+            full = self.intensity.numpy()[..., 0]
+            inten = cv2.resize(full, (d.shape[1], d.shape[0]), interpolation=cv2.INTER_AREA)
+            K = self.K.numpy().copy()
+            K[:2] /= s
+
+            def t(a: NDArray) -> o3d.core.Tensor:
+                return o3d.core.Tensor(np.ascontiguousarray(a[..., None], dtype=np.float32))
+
+            Kt = o3d.core.Tensor(K)
+            vertex = o3d.t.geometry.Image(t(d)).create_vertex_map(Kt, float("nan")).as_tensor()
+            self.levels[s] = (t(d), t(inten), t(cv2.Sobel(d, cv2.CV_32F, 1, 0, ksize=3)),
+                              t(cv2.Sobel(d, cv2.CV_32F, 0, 1, ksize=3)), t(cv2.Sobel(inten, cv2.CV_32F, 1, 0, ksize=3)),
+                              t(cv2.Sobel(inten, cv2.CV_32F, 0, 1, ksize=3)), vertex, Kt)
+        return self.levels[s]
 
 
 def _subsampled(depth: NDArray[np.float32], K: NDArray, s: int,
@@ -232,8 +255,6 @@ def photo_maps(gray: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray, 
     inten = gray.astype(np.float32) * np.float32(1 / 255)
     if cfg.photo_blur_px > 0:
         inten = cv2.GaussianBlur(inten, (0, 0), cfg.photo_blur_px)
-    if cfg.photo_normalise:
-        inten *= np.float32(0.5 / max(float(inten[::4, ::4].mean()), 1e-3))
     s = cfg.dense_scale
 
     def t(a: NDArray) -> o3d.core.Tensor:
@@ -267,6 +288,33 @@ def hybrid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConf
             converged = True
             break
     return geo.orthonormalize(T.numpy()), fitness, it + 1, converged
+
+
+def pyramid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
+                  coarse: bool = True) -> tuple[NDArray, float]:
+    """Coarse-to-fine hybrid alignment of frame j to frame i from ``T_init`` (``T_i_j``):
+    Open3D's hybrid kernel at the scales and iteration counts of ``cfg.fallback_levels``
+    (frames at the same scale; the maps of each frame are built once and kept, so the
+    frame's other edges reuse them), then :func:`hybrid_align` against frame i at full
+    resolution (``cfg.fallback_finish_iters``). Returns (T_i_j, fitness). Raises
+    RuntimeError when no pixel pairs up. The multi-scale function of Open3D rebuilds both
+    frames' pyramids on every call; on synthetic/stress-lowfreq, where this fallback makes
+    nearly every edge at every gap, that cost ~4 times the alignment itself."""
+    T = o3d.core.Tensor(np.asarray(T_init, np.float64))
+    for s, iters in cfg.fallback_levels if coarse else ():
+        ti, tj = di.photo.level(s), dj.photo.level(s)
+        for _ in range(iters):
+            step = o3d.t.pipelines.odometry.compute_odometry_result_hybrid(
+                tj[0], ti[0], tj[1], ti[1], ti[2], ti[3], ti[4], ti[5], tj[6], ti[7], T,
+                cfg.dense_trunc_m, cfg.dense_huber_m, cfg.photo_huber)
+            T = step.transformation.matmul(T)
+            delta = step.transformation.numpy()
+            if np.linalg.norm(delta[:3, 3]) < cfg.dense_stop_m and geo.rotation_angle_deg(delta) < cfg.dense_stop_deg:
+                break
+    T_h = geo.orthonormalize(T.numpy())
+    T_h, fitness, _, _ = hybrid_align(T_h, di, dj, cfg, max(cfg.fallback_finish_iters if coarse
+                                                           else cfg.fallback_chained_iters, 1))
+    return T_h, fitness
 
 
 def image_keys(rgb: NDArray[np.uint8], depth: NDArray[np.float32]) -> tuple[bytes, bytes]:
@@ -616,7 +664,7 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
     if not best.ok and cfg.fallback_dense and fi.dense is not None and fj.dense is not None:
         T0 = np.eye(4) if T_pred is None else T_pred
         if cfg.fallback_rgbd:
-            rgbd = rgbd_edge(i, j, fi, fj, intr, cfg, dt, T0)
+            rgbd = rgbd_edge(i, j, fi, fj, intr, cfg, dt, T0, chained=tracks is not None and T_pred is not None)
             rgbd.info["sparse_status"] = best.status
             if rgbd.ok:
                 return rgbd
@@ -628,14 +676,15 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
         best.info["dense_fallback"] = dense.status
     if best.ok and fi.dense is not None and fj.dense is not None:
         stale = fi.stale or fj.stale
-        dense_refine(best, fi.dense, fj.dense, cfg, blend=1.0 if stale and cfg.dense_on_stale else None)
+        dense_refine(best, fi.dense, fj.dense, cfg, blend=1.0 if stale and cfg.dense_on_stale else None,
+                     hybrid=tracks is None or cfg.hybrid_all_gaps)
         if "dense" in best.info:
             best.info["dense"]["stale_stream"] = stale
     return best
 
 
 def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
-                 blend: Optional[float] = None) -> None:
+                 blend: Optional[float] = None, hybrid: bool = True) -> None:
     """Align the depth of frame j to that of frame i, point to plane, started at the sparse
     estimate ``res.T_i_j``, and keep the result if it is plausible (in place).
 
@@ -659,12 +708,23 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     if cfg.dense_iters <= 0:
         return
     # a stale pair's colour shows another moment than its depth: depth alone there
-    hybrid = cfg.dense_method == "hybrid" and di.photo is not None and dj.photo is not None and blend is None
+    hybrid = hybrid and cfg.dense_method == "hybrid" and di.photo is not None and dj.photo is not None and blend is None
+    cov = _dense_stage(res, di, dj, cfg, blend, False, res.cov)
+    if hybrid:
+        _dense_stage(res, di, dj, cfg, None, True, cov)
+
+
+def _dense_stage(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig, blend: Optional[float],
+                 hybrid: bool, cov_prior: Optional[NDArray]) -> Optional[NDArray]:
+    """One dense stage of :func:`dense_refine` (point-to-plane, or ``hybrid``), started at
+    ``res.T_i_j``, fused with it (prior covariance ``cov_prior``) in place; records the
+    outcome in ``res.info["dense"]`` (``["dense"]["hybrid"]`` for the hybrid stage).
+    Returns the covariance of the fused estimate (information fusion; else ``cov_prior``)."""
     T = o3d.core.Tensor(res.T_i_j)
     fitness, rmse = 0.0, float("nan")
     try:
         if hybrid:
-            T_h, fitness, n_it, _ = hybrid_align(res.T_i_j, di, dj, cfg, cfg.dense_iters)
+            T_h, fitness, n_it, _ = hybrid_align(res.T_i_j, di, dj, cfg, cfg.hybrid_iters)
             T = o3d.core.Tensor(T_h)
         for it in range(0 if hybrid else cfg.dense_iters):
             step = o3d.t.pipelines.odometry.compute_odometry_result_point_to_plane(
@@ -676,8 +736,12 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
                     and geo.rotation_angle_deg(delta) < cfg.dense_stop_deg):
                 break
     except RuntimeError:  # Open3D raises when no pixel pairs up
-        res.info["dense"] = {"accepted": False, "fitness": 0.0}
-        return
+        out = {"accepted": False, "fitness": 0.0}
+        if hybrid:
+            res.info.setdefault("dense", {})["hybrid"] = out
+        else:
+            res.info["dense"] = out
+        return cov_prior
     if hybrid:
         it = n_it - 1
     T_d = T.numpy()
@@ -685,26 +749,32 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     shift_m, shift_deg = float(np.linalg.norm(d[:3, 3])), geo.rotation_angle_deg(d)
     ok = (np.all(np.isfinite(T_d)) and fitness >= cfg.dense_min_fitness
           and shift_m <= cfg.dense_max_shift_m and shift_deg <= cfg.dense_max_shift_deg)
-    res.info["dense"] = {"accepted": bool(ok), "iterations": it + 1, "fitness": fitness, "rmse_m": rmse,
-                         "shift_m": shift_m, "shift_deg": shift_deg}
-    if ok:
-        x = geo.se3_log(d)
-        if blend is None and cfg.dense_fusion == "whole":
-            blend = 1.0
-        if blend is None and cfg.dense_fusion == "information" and res.cov is not None:
-            # weigh the two by their information: (S_s^-1 + S_d^-1)^-1 S_d^-1 x
-            if hybrid:
-                cov_d = hybrid_covariance(T_d, di, dj, cfg, stride=2)
-            else:
-                cov_d, _, _ = point_to_plane_covariance(T_d, di, dj, cfg, stride=2)
-            if cov_d is not None:
-                scale = cfg.hybrid_cov_scale if hybrid else cfg.dense_cov_scale
-                info_s, info_d = np.linalg.inv(res.cov), np.linalg.inv(cov_d * scale)
-                step = np.linalg.solve(info_s + info_d, info_d @ x)
-                res.info["dense"]["weight"] = float(step @ x / max(x @ x, 1e-30))
-                res.T_i_j = res.T_i_j @ geo.se3_exp(step)
-                return
-        res.T_i_j = res.T_i_j @ geo.se3_exp((cfg.dense_blend if blend is None else blend) * x)
+    out = {"accepted": bool(ok), "iterations": it + 1, "fitness": fitness, "rmse_m": rmse,
+           "shift_m": shift_m, "shift_deg": shift_deg}
+    if hybrid:
+        res.info.setdefault("dense", {})["hybrid"] = out
+    else:
+        res.info["dense"] = out
+    if not ok:
+        return cov_prior
+    x = geo.se3_log(d)
+    if blend is None and cfg.dense_fusion == "whole":
+        blend = 1.0
+    if blend is None and cfg.dense_fusion == "information" and cov_prior is not None:
+        # weigh the two by their information: (S_s^-1 + S_d^-1)^-1 S_d^-1 x
+        if hybrid:
+            cov_d = hybrid_covariance(T_d, di, dj, cfg, stride=2 * cfg.dense_cov_stride)
+        else:
+            cov_d, _, _ = point_to_plane_covariance(T_d, di, dj, cfg, stride=cfg.dense_cov_stride)
+        if cov_d is not None:
+            scale = cfg.hybrid_cov_scale if hybrid else cfg.dense_cov_scale
+            info_s, info_d = np.linalg.inv(cov_prior), np.linalg.inv(cov_d * scale)
+            step = np.linalg.solve(info_s + info_d, info_d @ x)
+            out["weight"] = float(step @ x / max(x @ x, 1e-30))
+            res.T_i_j = res.T_i_j @ geo.se3_exp(step)
+            return np.linalg.inv(info_s + info_d)
+    res.T_i_j = res.T_i_j @ geo.se3_exp((cfg.dense_blend if blend is None else blend) * x)
+    return cov_prior
 
 
 def dense_edge(i: int, j: int, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig, dt: float,
@@ -785,7 +855,7 @@ def _rgbd_image(f: FrameFeatures, s: int) -> o3d.t.geometry.RGBDImage:
 
 
 def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics, cfg: TeacherConfig,
-              dt: float, T_init: NDArray) -> EdgeEstimate:
+              dt: float, T_init: NDArray, chained: bool = False) -> EdgeEstimate:
     """Fallback 2, first step (``cfg.fallback_rgbd``), for a pair whose colour gave no usable
     sparse estimate; it also holds where the depth alone does not pin the motion down (e.g.
     a bare wall and the ceiling, slid along their corner): Open3D's hybrid RGB-D
@@ -796,6 +866,13 @@ def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     when too few pixels pair up, when that covariance cannot be formed or is as poorly
     conditioned as one plane's (``cfg.fallback_min_conditioning``: a textured single plane
     is refused too, conservatively), or when the motion is implausibly fast."""
+    if fi.dense.photo is not None and fj.dense.photo is not None:
+        try:
+            T, fitness = pyramid_align(T_init, fi.dense, fj.dense, cfg, coarse=not chained)
+        except RuntimeError as exc:
+            return EdgeEstimate(i, j, "degenerate" if "Singular" in str(exc) else "few_matches",
+                                info={"path": "none", "error": str(exc)[-200:]})
+        return _rgbd_checked(i, j, T, fitness, fi, fj, cfg, dt)
     s = 2
     K = np.array(intr.K, dtype=np.float64)
     K[:2] /= s
@@ -807,20 +884,18 @@ def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     except RuntimeError as exc:
         return EdgeEstimate(i, j, "degenerate" if "Singular" in str(exc) else "few_matches",
                             info={"path": "none", "error": str(exc)[-200:]})
-    T = geo.orthonormalize(out.transformation.numpy())
-    fitness = float(out.fitness)
-    if cfg.fallback_finish_iters > 0 and fi.dense.photo is not None and fj.dense.photo is not None \
-            and np.all(np.isfinite(T)):
-        try:
-            T, fitness, _, _ = hybrid_align(T, fi.dense, fj.dense, cfg, cfg.fallback_finish_iters)
-        except RuntimeError:
-            pass  # keep the half-resolution result
+    return _rgbd_checked(i, j, geo.orthonormalize(out.transformation.numpy()), float(out.fitness), fi, fj, cfg, dt)
+
+
+def _rgbd_checked(i: int, j: int, T: NDArray, fitness: float, fi: FrameFeatures, fj: FrameFeatures,
+                  cfg: TeacherConfig, dt: float) -> EdgeEstimate:
+    """The ``rgbd`` edge of a hybrid alignment's result, with its covariance and checks."""
     res = EdgeEstimate(i, j, "ok", T_i_j=T, info={"path": "rgbd", "dense": {
         "accepted": True, "iterations": 0, "fitness": fitness, "shift_m": 0.0, "shift_deg": 0.0, "stale_stream": False}})
     if not np.all(np.isfinite(T)) or fitness < cfg.dense_min_fitness:
         res.status, res.info["path"] = "few_matches", "none"
         return res
-    cov, n_pairs, rmse = point_to_plane_covariance(T, fi.dense, fj.dense, cfg)
+    cov, n_pairs, rmse = point_to_plane_covariance(T, fi.dense, fj.dense, cfg, stride=2)
     trans, rot = float(np.linalg.norm(T[:3, 3])), geo.rotation_angle_deg(T)
     res.cov, res.matches, res.inliers, res.inlier_ratio = cov, n_pairs, n_pairs, fitness
     res.info.update(trans_m=trans, rot_deg=rot, rmse_m=rmse)
@@ -1041,7 +1116,7 @@ def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray
     return out
 
 
-__all__ = ["ColourCamera", "KINECT_V1_COLOUR", "FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "photo_maps", "hybrid_align", "hybrid_covariance", "PhotoMaps", "dense_refine", "match",
+__all__ = ["ColourCamera", "KINECT_V1_COLOUR", "FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "photo_maps", "hybrid_align", "pyramid_align", "hybrid_covariance", "PhotoMaps", "dense_refine", "match",
            "match_wide", "dense_edge", "rgbd_edge", "point_to_plane_covariance",
            "image_keys", "stale_stream",
            "estimate_edge", "refine_two_way", "make_orb"]
