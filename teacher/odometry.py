@@ -253,6 +253,8 @@ def photo_maps(gray: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray, 
     d = np.array(depth, dtype=np.float32)
     d[~((d >= cfg.depth_min) & (d <= cfg.depth_max))] = np.nan
     inten = gray.astype(np.float32) * np.float32(1 / 255)
+    if cfg.photo_normalise:  # undo the auto-exposure gain; a dark frame's contrast counts as a bright one's
+        inten *= np.float32(0.5 / max(float(inten[::4, ::4].mean()), 1e-3))
     if cfg.photo_blur_px > 0:
         inten = cv2.GaussianBlur(inten, (0, 0), cfg.photo_blur_px)
     s = cfg.dense_scale
