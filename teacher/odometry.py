@@ -897,7 +897,10 @@ def _rgbd_checked(i: int, j: int, T: NDArray, fitness: float, fi: FrameFeatures,
     if not np.all(np.isfinite(T)) or fitness < cfg.dense_min_fitness:
         res.status, res.info["path"] = "few_matches", "none"
         return res
-    cov, n_pairs, rmse = point_to_plane_covariance(T, fi.dense, fj.dense, cfg, stride=2)
+    # every 2nd point on the hybrid path (it runs for every edge of a starved scene); all
+    # of them on Open3D's multi-scale path, as before
+    stride = 2 if fi.dense.photo is not None else 1
+    cov, n_pairs, rmse = point_to_plane_covariance(T, fi.dense, fj.dense, cfg, stride=stride)
     trans, rot = float(np.linalg.norm(T[:3, 3])), geo.rotation_angle_deg(T)
     res.cov, res.matches, res.inliers, res.inlier_ratio = cov, n_pairs, n_pairs, fitness
     res.info.update(trans_m=trans, rot_deg=rot, rmse_m=rmse)
