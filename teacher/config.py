@@ -112,9 +112,10 @@ class TeacherConfig:
     then on gap-1 edges a photometric + depth stage, :func:`teacher.odometry.hybrid_align`:
     frame j's every ``dense_scale``-th point against frame i's full-resolution depth and grey,
     the colour registered to the depth camera with ``colour_camera``; the rgbd fallback then
-    also uses these maps), or ``auto``: ``hybrid`` for synthetic scenes (their sensor exposes
-    colour and depth at the same instant), ``point-to-plane`` for anything else (real Kinect
-    v1 recordings). Why the hybrid: on the stress scenes the keypoints alone are imprecise
+    also uses these maps), or ``auto``: ``hybrid`` where the colour camera model
+    (``colour_camera``) is a synthetic scene's sensor model, which exposes colour and depth at
+    the same instant; ``point-to-plane`` for anything else (real Kinect v1 recordings;
+    noise-free synthetic scenes). Why the hybrid: on the stress scenes the keypoints alone are imprecise
     (far walls, repeated and low-contrast texture) and Open3D's photometric term is 2-3x more
     precise (20-frame walks, gap-1 mm: stress-far sparse + point-to-plane 2.83, + hybrid 1.18,
     Open3D 0.94; stress-repetitive 2.94 / 1.70 / 1.25); it also helps on office (training

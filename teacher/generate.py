@@ -27,7 +27,7 @@ import threading
 import time
 from collections import Counter, deque
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -86,6 +86,7 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> Te
     """
     n = len(seq)
     t0 = time.perf_counter()
+    dense_method_for(seq, cfg)  # a bad dense_method is a ConfigError before any work
     bounds = _chunks(n, cfg)
     bar = tqdm(total=n, desc=f"teacher {seq.name}", unit="frame", disable=not (progress and sys.stderr.isatty()))
     if len(bounds) == 1:
@@ -180,8 +181,7 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     k_end = min(n, k1 + cfg.gaps)
     edges: list[EdgeEstimate] = []
     orb = make_orb(cfg)
-    colour = colour_camera_for(seq, cfg)
-    cfg = replace(cfg, dense_method=dense_method_for(seq, cfg))
+    colour = colour_camera_for(seq, cfg)  # it also picks the dense step's method (dense_method_for)
 
     def _extract(k: int) -> FrameFeatures:
         return extract(seq.rgb(k), seq.depth(k), cfg, orb, intr.K, colour)  # one thread uses this ORB
@@ -256,26 +256,18 @@ def colour_camera_for(seq: Sequence, cfg: TeacherConfig) -> Optional[ColourCamer
 
 
 def dense_method_for(seq: Sequence, cfg: TeacherConfig) -> str:
-    """The dense step's method for ``seq``: ``cfg.dense_method``, with ``auto`` resolved to
-    ``hybrid`` for a synthetic scene (its sensor model exposes colour and depth at the same
-    instant) and to ``point-to-plane`` otherwise (real Kinect v1 recordings: 7-Scenes, whose
-    ground truth follows the depth while the colour is exposed at other times, and TUM
-    RGB-D)."""
+    """The dense step's method for ``seq``: ``cfg.dense_method``, with ``auto`` resolved by
+    the colour camera model ``colour_camera_for`` picks (:func:`teacher.odometry.dense_method`):
+    ``hybrid`` for a synthetic scene's sensor model (colour and depth exposed at the same
+    instant), ``point-to-plane`` otherwise (real Kinect v1 recordings: 7-Scenes, whose
+    ground truth follows the depth while the colour is exposed at other times, TUM RGB-D;
+    noise-free synthetic scenes, whose colour needs no model)."""
     from data.errors import ConfigError
+    from teacher.odometry import dense_method
 
-    if cfg.dense_method in ("hybrid", "point-to-plane"):
-        return cfg.dense_method
-    if cfg.dense_method != "auto":
+    if cfg.dense_method not in ("auto", "hybrid", "point-to-plane"):
         raise ConfigError(f"dense_method must be auto, hybrid or point-to-plane, got {cfg.dense_method!r}")
-    from data.sevenscenes import SevenScenesSequence
-
-    if isinstance(seq, SevenScenesSequence) and (Path(seq.root).parent / "config.json").is_file():
-        try:
-            json.loads((Path(seq.root).parent / "config.json").read_text())["config"]["sensor"]
-            return "hybrid"
-        except (ValueError, KeyError, TypeError):
-            pass
-    return "point-to-plane"
+    return dense_method(cfg, colour_camera_for(seq, cfg))
 
 
 def colour_camera_of_folder(seq_dir: Path) -> Optional[ColourCamera]:
@@ -287,7 +279,7 @@ def colour_camera_of_folder(seq_dir: Path) -> Optional[ColourCamera]:
             if sensor["noise_free"]:
                 return None
             return ColourCamera(float(sensor["rgb_focal_scale"]), tuple(map(float, sensor["rgb_shift_px"])),
-                                float(sensor["rgb_baseline_m"]))
+                                float(sensor["rgb_baseline_m"]), synchronous=True)
         except (ValueError, KeyError, TypeError):
             pass  # not a synthetic scene's config: a real 7-Scenes folder
     return KINECT_V1_COLOUR

@@ -73,6 +73,10 @@ class ColourCamera:
     focal_scale: float
     shift_px: tuple[float, float]
     baseline_m: float
+    synchronous: bool = False
+    """Colour and depth are exposed at the same instant (the synthetic sensor model); a
+    real Kinect v1 exposes them at different times. ``dense_method="auto"`` uses the hybrid
+    (photometric + depth) dense step only for a synchronous camera."""
 
     def to_depth_pixels(self, uv: NDArray, depth: NDArray[np.float32], K: NDArray) -> NDArray[np.float32]:
         """(N, 2) colour pixels -> (N, 2) depth-camera pixels (the parallax term uses the depth
@@ -334,6 +338,14 @@ def stale_stream(prev: tuple[bytes, bytes], cur: tuple[bytes, bytes]) -> bool:
     return (prev[0] == cur[0]) != (prev[1] == cur[1])
 
 
+def dense_method(cfg: TeacherConfig, colour: Optional[ColourCamera]) -> str:
+    """``cfg.dense_method`` resolved for a colour camera model: ``auto`` is ``hybrid`` for a
+    synchronous one (:attr:`ColourCamera.synchronous`), else ``point-to-plane``."""
+    if cfg.dense_method != "auto":
+        return cfg.dense_method
+    return "hybrid" if colour is not None and colour.synchronous else "point-to-plane"
+
+
 def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConfig,
             orb: Optional[cv2.ORB] = None, K: Optional[NDArray] = None,
             colour: Optional[ColourCamera] = None) -> FrameFeatures:
@@ -345,7 +357,7 @@ def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConf
     dense = None
     if K is not None and cfg.dense_iters > 0:
         photo = None
-        if cfg.dense_method == "hybrid":
+        if dense_method(cfg, colour) == "hybrid":
             photo = colour.to_depth_image(gray, depth, K) if colour is not None else gray
         dense = dense_maps(depth, K, cfg, photo)
     orb = orb or make_orb(cfg)
@@ -710,7 +722,7 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     if cfg.dense_iters <= 0:
         return
     # a stale pair's colour shows another moment than its depth: depth alone there
-    hybrid = hybrid and cfg.dense_method == "hybrid" and di.photo is not None and dj.photo is not None and blend is None
+    hybrid = hybrid and di.photo is not None and dj.photo is not None and blend is None
     cov = _dense_stage(res, di, dj, cfg, blend, False, res.cov)
     if hybrid:
         _dense_stage(res, di, dj, cfg, None, True, cov)
@@ -1121,7 +1133,7 @@ def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray
     return out
 
 
-__all__ = ["ColourCamera", "KINECT_V1_COLOUR", "FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "photo_maps", "hybrid_align", "pyramid_align", "hybrid_covariance", "PhotoMaps", "dense_refine", "match",
+__all__ = ["ColourCamera", "KINECT_V1_COLOUR", "FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "photo_maps", "dense_method", "hybrid_align", "pyramid_align", "hybrid_covariance", "PhotoMaps", "dense_refine", "match",
            "match_wide", "dense_edge", "rgbd_edge", "point_to_plane_covariance",
            "image_keys", "stale_stream",
            "estimate_edge", "refine_two_way", "make_orb"]

@@ -768,21 +768,30 @@ def test_rgbd_fallback_with_either_dense_method(office_clean, method):
 
 
 def test_dense_method_auto_follows_the_sensor(office_clean, tmp_path):
-    """``auto``: the hybrid step for a synthetic scene (colour and depth exposed together),
-    point-to-plane for a 7-Scenes folder without the renderer's config (a real Kinect v1
-    recording); an unknown name is a ConfigError."""
+    """``auto``: the hybrid step for a synthetic scene with its sensor model (colour and depth
+    exposed together; frames get the photometric maps), point-to-plane for a 7-Scenes
+    folder without the renderer's config (a real Kinect v1 recording) and for a noise-free
+    scene (no colour model); an unknown name is a ConfigError."""
     from data.errors import ConfigError
     from data.sevenscenes import SevenScenesSequence
-    from teacher.generate import dense_method_for
+    from data.synthetic import synthetic_sequence
+    from data.synthetic.config import PRESETS
+    from teacher.generate import colour_camera_for, dense_method_for
 
     cfg = TeacherConfig()
     assert cfg.dense_method == "auto"
-    assert dense_method_for(office_clean, cfg) == "hybrid"
-    assert dense_method_for(office_clean, dataclasses.replace(cfg, dense_method="point-to-plane")) == "point-to-plane"
-    src = office_clean.root
+    noisy = synthetic_sequence("tiny", cache_dir=tmp_path / "cache", config=dataclasses.replace(PRESETS["tiny"], frames=2))
+    assert dense_method_for(noisy, cfg) == "hybrid"
+    colour = colour_camera_for(noisy, cfg)
+    f = extract(noisy.rgb(0), noisy.depth(0), cfg, K=noisy.intrinsics.K, colour=colour)
+    assert f.dense.photo is not None
+    assert dense_method_for(noisy, dataclasses.replace(cfg, dense_method="point-to-plane")) == "point-to-plane"
+    assert dense_method_for(office_clean, cfg) == "point-to-plane"
+    assert dense_method_for(office_clean, dataclasses.replace(cfg, dense_method="hybrid")) == "hybrid"
+    src = noisy.root
     real = tmp_path / "scene" / "seq-01"
     real.mkdir(parents=True)
-    for f in sorted(os.listdir(src))[:6]:
+    for f in sorted(os.listdir(src)):
         shutil.copy(src / f, real / f)
     for f in os.listdir(src.parent):
         if f.endswith(".txt"):
