@@ -145,7 +145,7 @@ class TeacherConfig:
     1.75 / 1.70 / 1.79 (without ``photo_normalise``). 10: within 3 % of the point-to-plane
     teacher on lab, and every stress scene within 1.3x of Open3D's error on these walks;
     neither figure is best at either end. With the final defaults: lab 2.52, stress-far 1.02,
-    stress-repetitive 1.77.
+    stress-repetitive 1.77."""
     photo_blur_px: float = 2.0
     """Hybrid steps: Gaussian blur (sigma, pixels) of the grey image before its use (widens
     the photometric term's basin; the kernel's gradients are 3x3 Sobel at full resolution).
