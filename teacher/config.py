@@ -99,12 +99,81 @@ class TeacherConfig:
     included, before; issue 14)."""
     dense_fusion: str = "information"
     """Dense step: how the sparse and the dense estimate are combined: ``blend`` (a fixed
-    fraction ``dense_blend`` of the way) or ``information`` (each weighed by its inverse
-    covariance: the sparse refinement's, and the point-to-plane one of
-    :func:`teacher.odometry.point_to_plane_covariance` times ``dense_cov_scale``), so a
+    fraction ``dense_blend`` of the way), ``whole`` (the dense estimate) or ``information``
+    (each weighed by its inverse covariance: the sparse refinement's, and the point-to-plane
+    one of :func:`teacher.odometry.point_to_plane_covariance` times ``dense_cov_scale``), so a
     blurred pair's poorly localised keypoints give way to the depth, and a pair with little
     depth structure keeps its keypoints. Validation (``gaps=1``, mm / deg / ATE mm): synthetic/lab
-    2.55-2.97 / 0.124-0.135 / 15-17.5 against 3.24 / 0.146 / 21.2 for ``blend`` 0.25."""
+    2.55-2.97 / 0.124-0.135 / 15-17.5 against 3.24 / 0.146 / 21.2 for ``blend`` 0.25. With the
+    hybrid stage (``dense_method``) the fused estimate and its covariance are fused again
+    with the hybrid result (its covariance times ``hybrid_cov_scale``)."""
+    dense_method: str = "auto"
+    """Dense step: ``point-to-plane`` (the depth alone), ``hybrid`` (the point-to-plane stage,
+    then on gap-1 edges a photometric + depth stage, :func:`teacher.odometry.hybrid_align`:
+    frame j's every ``dense_scale``-th point against frame i's full-resolution depth and grey,
+    the colour registered to the depth camera with ``colour_camera``; the rgbd fallback then
+    also uses these maps), or ``auto``: ``hybrid`` where the colour camera model
+    (``colour_camera``) is a synthetic scene's sensor model, which exposes colour and depth at
+    the same instant; ``point-to-plane`` for anything else (real Kinect v1 recordings;
+    noise-free synthetic scenes). Why the hybrid: on the stress scenes the keypoints alone are imprecise
+    (far walls, repeated and low-contrast texture) and Open3D's photometric term is 2-3x more
+    precise (20-frame walks, gap-1 mm: stress-far sparse + point-to-plane 2.83, + hybrid 1.18,
+    Open3D 0.94; stress-repetitive 2.94 / 1.70 / 1.25); it also helps on office (training
+    scene, 0:60: 2.19 -> 1.70). Why not on real data: on redkitchen 0:150 (training range)
+    the hybrid alone in place of the point-to-plane step made gap-1 4.84 against 4.13 mm
+    (7-Scenes' ground truth follows the depth, its colour is exposed at other times). A
+    stale-stream edge (``dense_on_stale``) never gets the hybrid stage."""
+    hybrid_iters: int = 3
+    """Hybrid dense step: most iterations (stopping earlier at ``dense_stop_m`` /
+    ``dense_stop_deg``). stress-far (20 frames) 1.03 mm with 3, 1.10 with 2; synthetic/lab
+    (validation, 0:100) 2.68 / 2.67 (before the point-to-plane stage was kept ahead of it)."""
+    hybrid_all_gaps: bool = False
+    """Hybrid dense step on the edges of every gap; False: on gap-1 edges only (the longer
+    ones keep the point-to-plane step). For speed: on synthetic/office 0:60 (gaps 1-5) every
+    gap gained with it (gap-2..5 labels 2.38-2.52 against 2.73-2.86 mm) but the run took
+    ~10 % longer than with gap 1 alone, which the >= 10x Open3D speed target does not leave."""
+    photo_huber: float = 0.1
+    """Hybrid dense step: Huber threshold of the intensity residual (grey in [0, 1] before
+    ``photo_normalise``; Open3D's default, not tuned)."""
+    hybrid_cov_scale: float = 10.0
+    """Hybrid dense step, ``information`` fusion: its covariance
+    (:func:`teacher.odometry.hybrid_covariance`, from every ``2 * dense_cov_stride``-th point)
+    is multiplied by this (correlated pixel errors, and Open3D's kernel pairs each point with
+    the nearest target pixel, which leaves it 0.2-1.3 mm off even on noise-free frames).
+    Gap-1 mm at 5 / 10 / 20: synthetic/lab (validation, 0:100) 2.56 / 2.48 / 2.44 (2.40
+    without the hybrid stage), stress-far (20 frames) 1.04 / 1.18 / 1.40, stress-repetitive
+    1.75 / 1.70 / 1.79 (without ``photo_normalise``). 10: within 3 % of the point-to-plane
+    teacher on lab, and every stress scene within 1.3x of Open3D's error on these walks;
+    neither figure is best at either end. With the final defaults: lab 2.52, stress-far 1.02,
+    stress-repetitive 1.77."""
+    photo_blur_px: float = 2.0
+    """Hybrid steps: Gaussian blur (sigma, pixels) of the grey image before its use (widens
+    the photometric term's basin; the kernel's gradients are 3x3 Sobel at full resolution).
+    Gap-1 mm with blur 0 / 1 / 2 (the hybrid stage alone, scale 5): stress-far (20 frames)
+    1.27 / 0.95 / 0.91, synthetic/lab 0:100 2.70 / 2.70 / 2.65."""
+    photo_normalise: bool = True
+    """Hybrid steps: scale each frame's grey to a mean of 0.5 (undoes auto-exposure gain and
+    weighs a dark, low-contrast frame's photometric term like a bright one's). On
+    synthetic/stress-lowfreq (20 frames, gaps 1-5) gap-1 1.54 mm with it, 1.96 without;
+    synthetic/lab (0:100) 2.70 either way."""
+    fallback_levels: tuple[tuple[int, int], ...] = ((8, 10), (4, 5))
+    """Fallback 2, hybrid RGB-D odometry with the hybrid dense step's maps
+    (:func:`teacher.odometry.pyramid_align`): (scale, most iterations) of each coarse level,
+    coarse to fine, before the full-resolution finish (set a priori after Open3D's default
+    10 / 5 / 3 schedule, not tuned). Open3D's own multi-scale function rebuilds both frames'
+    pyramids on every call: 163 against 68 ms per fallback edge on stress-lowfreq under the
+    same load, gap-1 1.34 against 1.54 mm (20 frames; Open3D's hybrid 1.74)."""
+    fallback_chained_iters: int = 3
+    """Fallback 2, hybrid RGB-D odometry of an edge longer than one frame (started from the
+    chained gap-1 motion, already close): no coarse levels, at most this many full-resolution
+    iterations. stress-lowfreq (20 frames) gap-2..5 labels 1.78 / 2.20 / 2.50 / 2.32 mm with
+    3, 1.76 / 2.18 / 2.50 / 2.35 with 5."""
+    fallback_finish_iters: int = 3
+    """Fallback 2, hybrid RGB-D odometry: after the coarse levels, at most this many
+    iterations of :func:`teacher.odometry.hybrid_align` against frame i at full resolution.
+    Without the hybrid maps (``dense_method`` point-to-plane) the fallback is Open3D's
+    multi-scale odometry at 1/2, 1/4, 1/8 resolution and no finish: at 1/2 resolution its
+    error on stress-lowfreq was 3.2 against 1.4 mm at full resolution."""
     dense_cov_scale: float = 5.0
     """Dense step, ``information`` fusion: the point-to-plane covariance is multiplied by this
     (its pixels' errors are correlated, so taken as independent it is too small). Chosen on
@@ -114,6 +183,11 @@ class TeacherConfig:
     (``blend`` 0.25 there: 4.06 / 0.167 / 48.4; before the colour model 4.04 / 0.171 / 36.7).
     The smallest scale tried (most weight on the depth) whose redkitchen validation figures
     match those before this change (gap-1 error and rotation no worse, ATE within 0.1 mm)."""
+    dense_cov_stride: int = 2
+    """Dense step, ``information`` fusion: the point-to-plane covariance is formed from every
+    ``dense_cov_stride``-th of the step's points in both axes (scaled back to all of them;
+    2 as before). 4 would be ~10 % faster on redkitchen 0:150 with labels 0.01-0.03 mm worse
+    (gap-1 4.14 vs 4.13 mm), kept at 2 so real data is unchanged."""
     dense_on_stale: bool = True
     """Dense step: take the dense estimate whole (``dense_blend`` 1) for an edge with a frame
     whose colour and depth were taken at different times - exactly one of its two images
@@ -170,8 +244,9 @@ class TeacherConfig:
     point-to-plane residuals. Only when it fails too is the edge failed (a failed gap-1 edge
     is bridged by a longer edge, else by constant velocity, and flagged in the report)."""
     fallback_rgbd: bool = True
-    """Fallback 2, first step: Open3D's hybrid RGB-D odometry (photometric + depth, coarse to
-    fine) from the motion prediction, ``path`` ``rgbd`` (:func:`teacher.odometry.rgbd_edge`);
+    """Fallback 2, first step: hybrid RGB-D odometry (photometric + depth, coarse to fine; see
+    ``fallback_levels``, ``fallback_finish_iters``, ``fallback_chained_iters``) from the
+    motion prediction, ``path`` ``rgbd`` (:func:`teacher.odometry.rgbd_edge`);
     the depth alignment alone comes after it. Why first: on views of plain walls and ceiling
     (synthetic/stress-textureless, 40 frames) the depth alone slides along the planes (gap-1
     RPE 15.3 mm, errors growing to 47 mm) where the hybrid's colour term holds (3.1 mm)."""

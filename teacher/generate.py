@@ -78,6 +78,7 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> Te
     """
     n = len(seq)
     t0 = time.perf_counter()
+    dense_method_for(seq, cfg)  # a bad dense_method is a ConfigError before any work
     bounds = _chunks(n, cfg)
     bar = tqdm(total=n, desc=f"teacher {seq.name}", unit="frame", disable=not (progress and sys.stderr.isatty()))
     if len(bounds) == 1:
@@ -172,7 +173,7 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     k_end = min(n, k1 + cfg.gaps)
     edges: list[EdgeEstimate] = []
     orb = make_orb(cfg)
-    colour = colour_camera_for(seq, cfg)
+    colour = colour_camera_for(seq, cfg)  # it also picks the dense step's method (dense_method_for)
 
     def _extract(k: int) -> FrameFeatures:
         return extract(seq.rgb(k), seq.depth(k), cfg, orb, intr.K, colour)  # one thread uses this ORB
@@ -216,6 +217,21 @@ def colour_camera_for(seq: Sequence, cfg: TeacherConfig) -> Optional[ColourCamer
     return colour_camera_of_folder(Path(seq.root))
 
 
+def dense_method_for(seq: Sequence, cfg: TeacherConfig) -> str:
+    """The dense step's method for ``seq``: ``cfg.dense_method``, with ``auto`` resolved by
+    the colour camera model ``colour_camera_for`` picks (:func:`teacher.odometry.dense_method`):
+    ``hybrid`` for a synthetic scene's sensor model (colour and depth exposed at the same
+    instant), ``point-to-plane`` otherwise (real Kinect v1 recordings: 7-Scenes, whose
+    ground truth follows the depth while the colour is exposed at other times, TUM RGB-D;
+    noise-free synthetic scenes, whose colour needs no model)."""
+    from data.errors import ConfigError
+    from teacher.odometry import dense_method
+
+    if cfg.dense_method not in ("auto", "hybrid", "point-to-plane"):
+        raise ConfigError(f"dense_method must be auto, hybrid or point-to-plane, got {cfg.dense_method!r}")
+    return dense_method(cfg, colour_camera_for(seq, cfg))
+
+
 def colour_camera_of_folder(seq_dir: Path) -> Optional[ColourCamera]:
     """``auto``'s choice for a 7-Scenes-layout sequence folder (see :func:`colour_camera_for`)."""
     rendered = Path(seq_dir).parent / "config.json"
@@ -225,7 +241,7 @@ def colour_camera_of_folder(seq_dir: Path) -> Optional[ColourCamera]:
             if sensor["noise_free"]:
                 return None
             return ColourCamera(float(sensor["rgb_focal_scale"]), tuple(map(float, sensor["rgb_shift_px"])),
-                                float(sensor["rgb_baseline_m"]))
+                                float(sensor["rgb_baseline_m"]), synchronous=True)
         except (ValueError, KeyError, TypeError):
             pass  # not a synthetic scene's config: a real 7-Scenes folder
     return KINECT_V1_COLOUR
@@ -296,6 +312,7 @@ def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
         "edge_paths": dict(sorted(Counter(e.info.get("path", "none") for e in run.edges).items())),
         "gap1_edge_paths": dict(sorted(Counter(e.info.get("path", "none") for e in run.edges
                                                if _gap(seq, e) == 1).items())),
+        "dense_method": dense_method_for(seq, cfg) if cfg.dense_iters > 0 else "none",
         "fps": n / run.seconds if run.seconds > 0 else float("nan"),
         "seconds": run.seconds,
     }

@@ -73,6 +73,10 @@ class ColourCamera:
     focal_scale: float
     shift_px: tuple[float, float]
     baseline_m: float
+    synchronous: bool = False
+    """Colour and depth are exposed at the same instant (the synthetic sensor model); a
+    real Kinect v1 exposes them at different times. ``dense_method="auto"`` uses the hybrid
+    (photometric + depth) dense step only for a synchronous camera."""
 
     def to_depth_pixels(self, uv: NDArray, depth: NDArray[np.float32], K: NDArray) -> NDArray[np.float32]:
         """(N, 2) colour pixels -> (N, 2) depth-camera pixels (the parallax term uses the depth
@@ -85,6 +89,26 @@ class ColourCamera:
             z = depth[np.clip(np.rint(y).astype(np.int64), 0, h - 1), np.clip(np.rint(x).astype(np.int64), 0, w - 1)]
             x = x + np.where(z > 0, K[0, 0] * self.baseline_m / np.maximum(z, 0.4), 0.0)
         return np.stack([x, y], axis=1).astype(np.float32)
+
+    def to_depth_image(self, img: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray) -> NDArray[np.uint8]:
+        """(H, W) colour-camera image resampled onto the depth camera's pixels (bilinear): the
+        depth pixel ``(x, y)`` takes the colour pixel ``(cx + shift_x + s (x - cx - fx b / z),
+        cy + shift_y + s (y - cy))``, the inverse of :meth:`to_depth_pixels`, with z the depth
+        at ``(x, y)`` (where it is 0, the median depth of the frame sets the parallax)."""
+        h, w = depth.shape
+        cx, cy, fx = K[0, 2], K[1, 2], K[0, 0]
+        xs = np.arange(w, dtype=np.float32)
+        my = np.broadcast_to((cy + self.shift_px[1] + self.focal_scale * (np.arange(h, dtype=np.float32) - cy))[:, None],
+                             (h, w))
+        if self.baseline_m:
+            valid = depth > 0
+            z0 = float(np.median(depth[::8, ::8][valid[::8, ::8]])) if valid[::8, ::8].any() else 2.0
+            par = np.float32(fx * self.baseline_m) / np.maximum(np.where(valid, depth, np.float32(z0)), np.float32(0.4))
+            mx = cx + self.shift_px[0] + self.focal_scale * (xs[None, :] - par - cx)
+        else:
+            mx = np.broadcast_to(cx + self.shift_px[0] + self.focal_scale * (xs - cx), (h, w))
+        return cv2.remap(img, np.ascontiguousarray(mx, dtype=np.float32), np.ascontiguousarray(my, dtype=np.float32),
+                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 #: the Kinect v1 colour camera of 7-Scenes, as fitted on the redkitchen sample for the
@@ -144,6 +168,54 @@ class DenseMaps:
     vertex: o3d.core.Tensor
     normal: o3d.core.Tensor
     K: o3d.core.Tensor
+    photo: Optional["PhotoMaps"] = None
+
+
+@dataclass
+class PhotoMaps:
+    """Open3D tensors of one frame for the hybrid (photometric + depth) alignment of
+    :func:`hybrid_align` (float32, (rows, cols, 1) unless noted, NaN depth where invalid).
+
+    As the frame moved (j): ``src_depth`` and ``src_intensity`` at the pixels of
+    ``DenseMaps.points`` (every ``cfg.dense_scale``-th). As the frame aligned to (i), at
+    full resolution: ``depth``, ``intensity`` (grey in [0, 1], registered to the depth
+    camera), their unnormalised 3x3 Sobel derivatives ``depth_dx`` ... ``intensity_dy``, and
+    ``K`` (3x3 float64). Full resolution on that side is what makes the alignment precise:
+    Open3D's kernel pairs each point with the nearest target pixel, and at half resolution
+    the gap-1 error on synthetic/stress-far doubled (2.1-2.5 against 0.9-1.3 mm)."""
+
+    src_depth: o3d.core.Tensor
+    src_intensity: o3d.core.Tensor
+    depth: o3d.core.Tensor
+    intensity: o3d.core.Tensor
+    depth_dx: o3d.core.Tensor
+    depth_dy: o3d.core.Tensor
+    intensity_dx: o3d.core.Tensor
+    intensity_dy: o3d.core.Tensor
+    K: o3d.core.Tensor
+    levels: dict = field(default_factory=dict)
+    """Coarser levels for :func:`pyramid_align`, built on first use: scale -> (depth,
+    intensity, depth_dx, depth_dy, intensity_dx, intensity_dy, vertex map, K) at that scale."""
+
+    def level(self, s: int) -> tuple:
+        """The maps of every ``s``-th pixel (intensity averaged over ``s x s`` blocks, depth
+        subsampled), both as source and as target of the kernel."""
+        if s not in self.levels:
+            d = self.depth.numpy()[::s, ::s, 0].copy()
+            full = self.intensity.numpy()[..., 0]
+            inten = cv2.resize(full, (d.shape[1], d.shape[0]), interpolation=cv2.INTER_AREA)
+            K = self.K.numpy().copy()
+            K[:2] /= s
+
+            def t(a: NDArray) -> o3d.core.Tensor:
+                return o3d.core.Tensor(np.ascontiguousarray(a[..., None], dtype=np.float32))
+
+            Kt = o3d.core.Tensor(K)
+            vertex = o3d.t.geometry.Image(t(d)).create_vertex_map(Kt, float("nan")).as_tensor()
+            self.levels[s] = (t(d), t(inten), t(cv2.Sobel(d, cv2.CV_32F, 1, 0, ksize=3)),
+                              t(cv2.Sobel(d, cv2.CV_32F, 0, 1, ksize=3)), t(cv2.Sobel(inten, cv2.CV_32F, 1, 0, ksize=3)),
+                              t(cv2.Sobel(inten, cv2.CV_32F, 0, 1, ksize=3)), vertex, Kt)
+        return self.levels[s]
 
 
 def _subsampled(depth: NDArray[np.float32], K: NDArray, s: int,
@@ -157,7 +229,8 @@ def _subsampled(depth: NDArray[np.float32], K: NDArray, s: int,
     return o3d.t.geometry.Image(o3d.core.Tensor(d)), o3d.core.Tensor(Ks)
 
 
-def dense_maps(depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig) -> DenseMaps:
+def dense_maps(depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig,
+               gray: Optional[NDArray[np.uint8]] = None) -> DenseMaps:
     """The maps of :class:`DenseMaps` for one depth image (metres, 0 = invalid).
 
     The points moved are sparse (every 4th pixel: the cost of an iteration is proportional
@@ -174,7 +247,80 @@ def dense_maps(depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig) -> De
     vertex = img.create_vertex_map(Kt, float("nan")).as_tensor()
     smooth = img.filter_bilateral(cfg.dense_normal_kernel, 5.0, 10.0)
     normal = smooth.create_vertex_map(Kt, float("nan")).create_normal_map(float("nan")).as_tensor()
-    return DenseMaps(points, vertex, normal, Kt)
+    photo = photo_maps(gray, depth, K, cfg) if gray is not None else None
+    return DenseMaps(points, vertex, normal, Kt, photo)
+
+
+def photo_maps(gray: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig) -> PhotoMaps:
+    """The maps of :class:`PhotoMaps` for one frame: ``gray`` (H, W) uint8, registered to the
+    depth camera (:meth:`ColourCamera.to_depth_image`), ``depth`` (H, W) metres."""
+    d = np.array(depth, dtype=np.float32)
+    d[~((d >= cfg.depth_min) & (d <= cfg.depth_max))] = np.nan
+    inten = gray.astype(np.float32) * np.float32(1 / 255)
+    if cfg.photo_normalise:  # undo the auto-exposure gain; a dark frame's contrast counts as a bright one's
+        inten *= np.float32(0.5 / max(float(inten[::4, ::4].mean()), 1e-3))
+    if cfg.photo_blur_px > 0:
+        inten = cv2.GaussianBlur(inten, (0, 0), cfg.photo_blur_px)
+    s = cfg.dense_scale
+
+    def t(a: NDArray) -> o3d.core.Tensor:
+        return o3d.core.Tensor(np.ascontiguousarray(a[..., None], dtype=np.float32))
+
+    return PhotoMaps(t(d[::s, ::s]), t(inten[::s, ::s]), t(d), t(inten),
+                     t(cv2.Sobel(d, cv2.CV_32F, 1, 0, ksize=3)), t(cv2.Sobel(d, cv2.CV_32F, 0, 1, ksize=3)),
+                     t(cv2.Sobel(inten, cv2.CV_32F, 1, 0, ksize=3)), t(cv2.Sobel(inten, cv2.CV_32F, 0, 1, ksize=3)),
+                     o3d.core.Tensor(np.asarray(K, dtype=np.float64)))
+
+
+def hybrid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
+                 iters: int) -> tuple[NDArray, float, int, bool]:
+    """Align frame j to frame i with Open3D's hybrid RGB-D odometry kernel (photometric and
+    depth residuals, Huber-weighted Gauss-Newton; Park, Zhou & Koltun 2017) at one level:
+    frame j's points of ``dj.points`` (every ``cfg.dense_scale``-th pixel) against frame i's
+    full-resolution maps, from ``T_init`` (``T_i_j``), at most ``iters`` iterations,
+    stopping at ``cfg.dense_stop_m`` / ``cfg.dense_stop_deg`` updates. Returns (T_i_j,
+    fitness, iterations, converged). Raises RuntimeError when no point pairs up."""
+    pi, pj = di.photo, dj.photo
+    T = o3d.core.Tensor(np.asarray(T_init, np.float64))
+    fitness, converged, it = 0.0, False, 0
+    for it in range(iters):
+        step = o3d.t.pipelines.odometry.compute_odometry_result_hybrid(
+            pj.src_depth, pi.depth, pj.src_intensity, pi.intensity, pi.depth_dx, pi.depth_dy, pi.intensity_dx,
+            pi.intensity_dy, dj.points, pi.K, T, cfg.dense_trunc_m, cfg.dense_huber_m, cfg.photo_huber)
+        T = step.transformation.matmul(T)
+        fitness = float(step.fitness)
+        delta = step.transformation.numpy()
+        if np.linalg.norm(delta[:3, 3]) < cfg.dense_stop_m and geo.rotation_angle_deg(delta) < cfg.dense_stop_deg:
+            converged = True
+            break
+    return geo.orthonormalize(T.numpy()), fitness, it + 1, converged
+
+
+def pyramid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
+                  coarse: bool = True) -> tuple[NDArray, float]:
+    """Coarse-to-fine hybrid alignment of frame j to frame i from ``T_init`` (``T_i_j``):
+    Open3D's hybrid kernel at the scales and iteration counts of ``cfg.fallback_levels``
+    (frames at the same scale; the maps of each frame are built once and kept, so the
+    frame's other edges reuse them), then :func:`hybrid_align` against frame i at full
+    resolution (``cfg.fallback_finish_iters``). Returns (T_i_j, fitness). Raises
+    RuntimeError when no pixel pairs up. The multi-scale function of Open3D rebuilds both
+    frames' pyramids on every call; on synthetic/stress-lowfreq, where this fallback makes
+    nearly every edge at every gap, that cost ~4 times the alignment itself."""
+    T = o3d.core.Tensor(np.asarray(T_init, np.float64))
+    for s, iters in cfg.fallback_levels if coarse else ():
+        ti, tj = di.photo.level(s), dj.photo.level(s)
+        for _ in range(iters):
+            step = o3d.t.pipelines.odometry.compute_odometry_result_hybrid(
+                tj[0], ti[0], tj[1], ti[1], ti[2], ti[3], ti[4], ti[5], tj[6], ti[7], T,
+                cfg.dense_trunc_m, cfg.dense_huber_m, cfg.photo_huber)
+            T = step.transformation.matmul(T)
+            delta = step.transformation.numpy()
+            if np.linalg.norm(delta[:3, 3]) < cfg.dense_stop_m and geo.rotation_angle_deg(delta) < cfg.dense_stop_deg:
+                break
+    T_h = geo.orthonormalize(T.numpy())
+    T_h, fitness, _, _ = hybrid_align(T_h, di, dj, cfg, max(cfg.fallback_finish_iters if coarse
+                                                           else cfg.fallback_chained_iters, 1))
+    return T_h, fitness
 
 
 def image_keys(rgb: NDArray[np.uint8], depth: NDArray[np.float32]) -> tuple[bytes, bytes]:
@@ -192,6 +338,14 @@ def stale_stream(prev: tuple[bytes, bytes], cur: tuple[bytes, bytes]) -> bool:
     return (prev[0] == cur[0]) != (prev[1] == cur[1])
 
 
+def dense_method(cfg: TeacherConfig, colour: Optional[ColourCamera]) -> str:
+    """``cfg.dense_method`` resolved for a colour camera model: ``auto`` is ``hybrid`` for a
+    synchronous one (:attr:`ColourCamera.synchronous`), else ``point-to-plane``."""
+    if cfg.dense_method != "auto":
+        return cfg.dense_method
+    return "hybrid" if colour is not None and colour.synchronous else "point-to-plane"
+
+
 def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConfig,
             orb: Optional[cv2.ORB] = None, K: Optional[NDArray] = None,
             colour: Optional[ColourCamera] = None) -> FrameFeatures:
@@ -200,7 +354,12 @@ def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConf
     ``colour`` camera model (and ``K``), keypoints are moved into depth-camera pixels
     (``uv`` is then in depth-camera pixels; None: colour registered to depth)."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-    dense = dense_maps(depth, K, cfg) if K is not None and cfg.dense_iters > 0 else None
+    dense = None
+    if K is not None and cfg.dense_iters > 0:
+        photo = None
+        if dense_method(cfg, colour) == "hybrid":
+            photo = colour.to_depth_image(gray, depth, K) if colour is not None else gray
+        dense = dense_maps(depth, K, cfg, photo)
     orb = orb or make_orb(cfg)
     kps, desc = orb.detectAndCompute(gray, None)
     keys = image_keys(rgb, depth)
@@ -519,7 +678,7 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
     if not best.ok and cfg.fallback_dense and fi.dense is not None and fj.dense is not None:
         T0 = np.eye(4) if T_pred is None else T_pred
         if cfg.fallback_rgbd:
-            rgbd = rgbd_edge(i, j, fi, fj, intr, cfg, dt, T0)
+            rgbd = rgbd_edge(i, j, fi, fj, intr, cfg, dt, T0, chained=tracks is not None and T_pred is not None)
             rgbd.info["sparse_status"] = best.status
             if rgbd.ok:
                 return rgbd
@@ -531,14 +690,15 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
         best.info["dense_fallback"] = dense.status
     if best.ok and fi.dense is not None and fj.dense is not None:
         stale = fi.stale or fj.stale
-        dense_refine(best, fi.dense, fj.dense, cfg, blend=1.0 if stale and cfg.dense_on_stale else None)
+        dense_refine(best, fi.dense, fj.dense, cfg, blend=1.0 if stale and cfg.dense_on_stale else None,
+                     hybrid=tracks is None or cfg.hybrid_all_gaps)
         if "dense" in best.info:
             best.info["dense"]["stale_stream"] = stale
     return best
 
 
 def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
-                 blend: Optional[float] = None) -> None:
+                 blend: Optional[float] = None, hybrid: bool = True) -> None:
     """Align the depth of frame j to that of frame i, point to plane, started at the sparse
     estimate ``res.T_i_j``, and keep the result if it is plausible (in place).
 
@@ -561,10 +721,26 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     """
     if cfg.dense_iters <= 0:
         return
+    # a stale pair's colour shows another moment than its depth: depth alone there
+    hybrid = hybrid and di.photo is not None and dj.photo is not None and blend is None
+    cov = _dense_stage(res, di, dj, cfg, blend, False, res.cov)
+    if hybrid:
+        _dense_stage(res, di, dj, cfg, None, True, cov)
+
+
+def _dense_stage(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig, blend: Optional[float],
+                 hybrid: bool, cov_prior: Optional[NDArray]) -> Optional[NDArray]:
+    """One dense stage of :func:`dense_refine` (point-to-plane, or ``hybrid``), started at
+    ``res.T_i_j``, fused with it (prior covariance ``cov_prior``) in place; records the
+    outcome in ``res.info["dense"]`` (``["dense"]["hybrid"]`` for the hybrid stage).
+    Returns the covariance of the fused estimate (information fusion; else ``cov_prior``)."""
     T = o3d.core.Tensor(res.T_i_j)
     fitness, rmse = 0.0, float("nan")
     try:
-        for it in range(cfg.dense_iters):
+        if hybrid:
+            T_h, fitness, n_it, _ = hybrid_align(res.T_i_j, di, dj, cfg, cfg.hybrid_iters)
+            T = o3d.core.Tensor(T_h)
+        for it in range(0 if hybrid else cfg.dense_iters):
             step = o3d.t.pipelines.odometry.compute_odometry_result_point_to_plane(
                 dj.points, di.vertex, di.normal, di.K, T, cfg.dense_trunc_m, cfg.dense_huber_m)
             T = step.transformation.matmul(T)
@@ -574,27 +750,45 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
                     and geo.rotation_angle_deg(delta) < cfg.dense_stop_deg):
                 break
     except RuntimeError:  # Open3D raises when no pixel pairs up
-        res.info["dense"] = {"accepted": False, "fitness": 0.0}
-        return
+        out = {"accepted": False, "fitness": 0.0}
+        if hybrid:
+            res.info.setdefault("dense", {})["hybrid"] = out
+        else:
+            res.info["dense"] = out
+        return cov_prior
+    if hybrid:
+        it = n_it - 1
     T_d = T.numpy()
     d = geo.inv_T(res.T_i_j) @ T_d
     shift_m, shift_deg = float(np.linalg.norm(d[:3, 3])), geo.rotation_angle_deg(d)
     ok = (np.all(np.isfinite(T_d)) and fitness >= cfg.dense_min_fitness
           and shift_m <= cfg.dense_max_shift_m and shift_deg <= cfg.dense_max_shift_deg)
-    res.info["dense"] = {"accepted": bool(ok), "iterations": it + 1, "fitness": fitness, "rmse_m": rmse,
-                         "shift_m": shift_m, "shift_deg": shift_deg}
-    if ok:
-        x = geo.se3_log(d)
-        if blend is None and cfg.dense_fusion == "information" and res.cov is not None:
-            # weigh the two by their information: (S_s^-1 + S_d^-1)^-1 S_d^-1 x
-            cov_d, _, _ = point_to_plane_covariance(T_d, di, dj, cfg, stride=2)
-            if cov_d is not None:
-                info_s, info_d = np.linalg.inv(res.cov), np.linalg.inv(cov_d * cfg.dense_cov_scale)
-                step = np.linalg.solve(info_s + info_d, info_d @ x)
-                res.info["dense"]["weight"] = float(step @ x / max(x @ x, 1e-30))
-                res.T_i_j = res.T_i_j @ geo.se3_exp(step)
-                return
-        res.T_i_j = res.T_i_j @ geo.se3_exp((cfg.dense_blend if blend is None else blend) * x)
+    out = {"accepted": bool(ok), "iterations": it + 1, "fitness": fitness, "rmse_m": rmse,
+           "shift_m": shift_m, "shift_deg": shift_deg}
+    if hybrid:
+        res.info.setdefault("dense", {})["hybrid"] = out
+    else:
+        res.info["dense"] = out
+    if not ok:
+        return cov_prior
+    x = geo.se3_log(d)
+    if blend is None and cfg.dense_fusion == "whole":
+        blend = 1.0
+    if blend is None and cfg.dense_fusion == "information" and cov_prior is not None:
+        # weigh the two by their information: (S_s^-1 + S_d^-1)^-1 S_d^-1 x
+        if hybrid:
+            cov_d = hybrid_covariance(T_d, di, dj, cfg, stride=2 * cfg.dense_cov_stride)
+        else:
+            cov_d, _, _ = point_to_plane_covariance(T_d, di, dj, cfg, stride=cfg.dense_cov_stride)
+        if cov_d is not None:
+            scale = cfg.hybrid_cov_scale if hybrid else cfg.dense_cov_scale
+            info_s, info_d = np.linalg.inv(cov_prior), np.linalg.inv(cov_d * scale)
+            step = np.linalg.solve(info_s + info_d, info_d @ x)
+            out["weight"] = float(step @ x / max(x @ x, 1e-30))
+            res.T_i_j = res.T_i_j @ geo.se3_exp(step)
+            return np.linalg.inv(info_s + info_d)
+    res.T_i_j = res.T_i_j @ geo.se3_exp((cfg.dense_blend if blend is None else blend) * x)
+    return cov_prior
 
 
 def dense_edge(i: int, j: int, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig, dt: float,
@@ -675,7 +869,7 @@ def _rgbd_image(f: FrameFeatures, s: int) -> o3d.t.geometry.RGBDImage:
 
 
 def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics, cfg: TeacherConfig,
-              dt: float, T_init: NDArray) -> EdgeEstimate:
+              dt: float, T_init: NDArray, chained: bool = False) -> EdgeEstimate:
     """Fallback 2, first step (``cfg.fallback_rgbd``), for a pair whose colour gave no usable
     sparse estimate; it also holds where the depth alone does not pin the motion down (e.g.
     a bare wall and the ceiling, slid along their corner): Open3D's hybrid RGB-D
@@ -686,6 +880,13 @@ def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     when too few pixels pair up, when that covariance cannot be formed or is as poorly
     conditioned as one plane's (``cfg.fallback_min_conditioning``: a textured single plane
     is refused too, conservatively), or when the motion is implausibly fast."""
+    if fi.dense.photo is not None and fj.dense.photo is not None:
+        try:
+            T, fitness = pyramid_align(T_init, fi.dense, fj.dense, cfg, coarse=not chained)
+        except RuntimeError as exc:
+            return EdgeEstimate(i, j, "degenerate" if "Singular" in str(exc) else "few_matches",
+                                info={"path": "none", "error": str(exc)[-200:]})
+        return _rgbd_checked(i, j, T, fitness, fi, fj, cfg, dt)
     s = 2
     K = np.array(intr.K, dtype=np.float64)
     K[:2] /= s
@@ -697,14 +898,21 @@ def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     except RuntimeError as exc:
         return EdgeEstimate(i, j, "degenerate" if "Singular" in str(exc) else "few_matches",
                             info={"path": "none", "error": str(exc)[-200:]})
-    T = geo.orthonormalize(out.transformation.numpy())
-    fitness = float(out.fitness)
+    return _rgbd_checked(i, j, geo.orthonormalize(out.transformation.numpy()), float(out.fitness), fi, fj, cfg, dt)
+
+
+def _rgbd_checked(i: int, j: int, T: NDArray, fitness: float, fi: FrameFeatures, fj: FrameFeatures,
+                  cfg: TeacherConfig, dt: float) -> EdgeEstimate:
+    """The ``rgbd`` edge of a hybrid alignment's result, with its covariance and checks."""
     res = EdgeEstimate(i, j, "ok", T_i_j=T, info={"path": "rgbd", "dense": {
         "accepted": True, "iterations": 0, "fitness": fitness, "shift_m": 0.0, "shift_deg": 0.0, "stale_stream": False}})
     if not np.all(np.isfinite(T)) or fitness < cfg.dense_min_fitness:
         res.status, res.info["path"] = "few_matches", "none"
         return res
-    cov, n_pairs, rmse = point_to_plane_covariance(T, fi.dense, fj.dense, cfg)
+    # every 2nd point on the hybrid path (it runs for every edge of a starved scene); all
+    # of them on Open3D's multi-scale path, as before
+    stride = 2 if fi.dense.photo is not None else 1
+    cov, n_pairs, rmse = point_to_plane_covariance(T, fi.dense, fj.dense, cfg, stride=stride)
     trans, rot = float(np.linalg.norm(T[:3, 3])), geo.rotation_angle_deg(T)
     res.cov, res.matches, res.inliers, res.inlier_ratio = cov, n_pairs, n_pairs, fitness
     res.info.update(trans_m=trans, rot_deg=rot, rmse_m=rmse)
@@ -766,6 +974,71 @@ def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg:
     if not np.all(np.isfinite(cov)):
         return None, len(q), float(np.sqrt(np.mean(r * r)))
     return 0.5 * (cov + cov.T), len(q), float(np.sqrt(np.mean(r * r)))
+
+
+def hybrid_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
+                      stride: int = 2) -> Optional[NDArray]:
+    """Covariance (6, 6), (v, w) order, right perturbation at ``T_i_j``, of the hybrid
+    alignment of :func:`hybrid_align`: the inverse of the summed information of its two
+    residuals at the result, each pixel pair formed as Open3D's kernel forms it (frame j's
+    point ``q`` moved into i, the nearest pixel of i's full-resolution maps, kept within
+    ``cfg.dense_trunc_m`` in depth). Photometric ``r_I = I_i(u) - I_j(q)`` and depth
+    ``r_D = D_i(u) - z(T q)``, their Jacobians through the Sobel derivatives of frame i
+    (``/ 8``: per pixel) and the projection; each term Huber-weighted (``cfg.photo_huber``,
+    ``cfg.dense_huber_m``) and divided by its own weighted residual variance (floored at
+    ``cfg.dense_min_sigma_m`` squared for depth). Pixel errors are correlated, so, like
+    :func:`point_to_plane_covariance`, a lower bound. ``stride``: every ``stride``-th point
+    of j in both axes (scaled back to all). None without photometric maps, with fewer
+    than 12 pairs or a singular system."""
+    pi, pj = di.photo, dj.photo
+    if pi is None or pj is None:
+        return None
+    q = dj.points.numpy()[::stride, ::stride].reshape(-1, 3)
+    Ij = pj.src_intensity.numpy()[::stride, ::stride].reshape(-1)
+    ok = np.all(np.isfinite(q), axis=1)
+    q, Ij = q[ok].astype(np.float64), Ij[ok].astype(np.float64)
+    R, t = T_i_j[:3, :3], T_i_j[:3, 3]
+    X = q @ R.T + t
+    K = pi.K.numpy()
+    Di = pi.depth.numpy()[..., 0]
+    h, w = Di.shape
+    front = X[:, 2] > 1e-6
+    X, q, Ij = X[front], q[front], Ij[front]
+    uf = K[0, 0] * X[:, 0] / X[:, 2] + K[0, 2]
+    vf = K[1, 1] * X[:, 1] / X[:, 2] + K[1, 2]
+    u, v = np.rint(uf).astype(np.int64), np.rint(vf).astype(np.int64)
+    inside = (u >= 1) & (u < w - 1) & (v >= 1) & (v < h - 1)
+    X, q, Ij, u, v = X[inside], q[inside], Ij[inside], u[inside], v[inside]
+    d = Di[v, u].astype(np.float64)
+    g = [a.numpy()[..., 0][v, u].astype(np.float64) / 8.0 for a in (pi.depth_dx, pi.depth_dy, pi.intensity_dx, pi.intensity_dy)]
+    rD = d - X[:, 2]
+    ok = np.isfinite(d) & (np.abs(rD) <= cfg.dense_trunc_m) & np.all(np.isfinite(np.stack(g)), axis=0)
+    if ok.sum() < 12:
+        return None
+    X, q, rD = X[ok], q[ok], rD[ok]
+    gDx, gDy, gIx, gIy = (a[ok] for a in g)
+    rI = pi.intensity.numpy()[..., 0][v[ok], u[ok]].astype(np.float64) - Ij[ok]
+    iz = 1.0 / X[:, 2]
+    # d(u, v)/dX of the pinhole projection, rows (3,) per pixel
+    du = np.stack([K[0, 0] * iz, np.zeros_like(iz), -K[0, 0] * X[:, 0] * iz * iz], axis=1)
+    dv = np.stack([np.zeros_like(iz), K[1, 1] * iz, -K[1, 1] * X[:, 1] * iz * iz], axis=1)
+    bI = gIx[:, None] * du + gIy[:, None] * dv
+    bD = gDx[:, None] * du + gDy[:, None] * dv
+    bD[:, 2] -= 1.0
+    info = np.zeros((6, 6))
+    for b, r, k, floor in ((bI, rI, cfg.photo_huber, 1.0 / 255), (bD, rD, cfg.dense_huber_m, cfg.dense_min_sigma_m)):
+        m = b @ R  # R^T b per pixel
+        J = np.concatenate([m, np.cross(q, m)], axis=1)
+        _, wts, _ = _huber(r, k)
+        sigma2 = max(float(np.sum(wts * r * r) / max(len(r) - 6, 1)), floor ** 2)
+        info += J.T @ (J * wts[:, None]) / sigma2
+    try:
+        cov = np.linalg.inv(info) / stride ** 2
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(cov)):
+        return None
+    return 0.5 * (cov + cov.T)
 
 
 def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
@@ -860,7 +1133,7 @@ def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray
     return out
 
 
-__all__ = ["ColourCamera", "KINECT_V1_COLOUR", "FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "dense_refine", "match",
+__all__ = ["ColourCamera", "KINECT_V1_COLOUR", "FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "photo_maps", "dense_method", "hybrid_align", "pyramid_align", "hybrid_covariance", "PhotoMaps", "dense_refine", "match",
            "match_wide", "dense_edge", "rgbd_edge", "point_to_plane_covariance",
            "image_keys", "stale_stream",
            "estimate_edge", "refine_two_way", "make_orb"]

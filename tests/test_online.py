@@ -97,6 +97,9 @@ def test_follow_a_folder_being_written(tmp_path, online_run):
     src = seq.root
     live = tmp_path / "live"
     live.mkdir()
+    # the renderer's sensor description beside the live folder, as beside the scene: the
+    # teacher's colour camera and dense method come from it (a real recording has none)
+    shutil.copy(src.parent / "config.json", tmp_path / "config.json")
     done = threading.Event()
     writer = threading.Thread(target=_copy_frames_slowly, args=(src, live, 0.05, done))
     writer.start()
