@@ -26,6 +26,9 @@ ground truth): results ``zero_motion`` (the camera never moves) and ``constant_v
         --out /tmp/rk/runs
     .venv/bin/python -m bench.ablation --scene synthetic/office --scene synthetic/lab \\
         --test-scene synthetic/kitchen --steps 300 --out runs/ablation-synth
+
+``--init CKPT`` fine-tunes every variant from a checkpoint (e.g. one pretrained on the
+synthetic corpus) instead of training it from scratch.
 """
 
 from __future__ import annotations
@@ -110,6 +113,8 @@ def main() -> None:
     ap.add_argument("--preset", default="cpu")
     ap.add_argument("--steps", type=int, help="optimiser steps per variant (default: the preset's)")
     ap.add_argument("--lr", type=float, help="peak learning rate (default: the preset's)")
+    ap.add_argument("--init", type=Path, help="fine-tune every variant from this learner checkpoint's weights "
+                    "(learner fit --init; default: random initialisation)")
     ap.add_argument("--input", choices=list(INPUTS), help="encoder input (default: the preset's)")
     ap.add_argument("--val-scene", action="append", default=[], help="validation scene (repeatable; logged per epoch)")
     ap.add_argument("--val-frames", help="validation frame range (never the test range)")
@@ -137,7 +142,7 @@ def main() -> None:
         t0, c0 = time.perf_counter(), time.process_time()
         res = fit(args.scene, variant=v, preset=args.preset, frames=args.frames, out=run,
                   val_scenes=args.val_scene, val_frames=args.val_frames, calibrate=False,
-                  teacher_root=args.teacher, steps=args.steps,  # a rerun keeps or continues the run
+                  teacher_root=args.teacher, steps=args.steps, init=args.init,  # a rerun keeps or continues the run
                   lr=args.lr, input=args.input, seed=args.seed, flip_prob=args.flip_prob, reverse_prob=args.reverse_prob)
         t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
         rep = predict(res.checkpoint, test_scene, frames=args.test_frames, out=run / "predict",
