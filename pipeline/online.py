@@ -621,7 +621,8 @@ def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: Onlin
             report["final_isam2"] = trajectory_report(gt, Trajectory(times, graph.isam2_poses))
         report["online"] = trajectory_report(gt, Trajectory(times, _read_rows(out / TRAJECTORY, n)))
         report["teacher_chain"] = trajectory_report(gt, Trajectory(times, chained))
-    write_json(out / REPORT, json_safe(report))
+    report = json_safe(report)  # what a later run reads back from the file (tuples as lists)
+    write_json(out / REPORT, report)
     return report
 
 
