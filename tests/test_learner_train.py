@@ -177,6 +177,14 @@ def _motion_reader(gt: np.ndarray):
     return net
 
 
+def _random_walk(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Poses (n, 4, 4) of a camera taking random steps of about 1 cm and 1 degree."""
+    gt = [np.eye(4)]
+    for _ in range(n - 1):
+        gt.append(gt[-1] @ geo.se3_exp(rng.normal(0, [0.01, 0.01, 0.01, 0.02, 0.02, 0.02])))
+    return np.array(gt)
+
+
 @pytest.mark.parametrize("reverse_prob", [0.0, 1.0])
 def test_reversed_pairs_and_windows_keep_labels_and_ctc_exact(reverse_prob) -> None:
     """Time reversal: with exact labels, a network that returns the true motion between the
@@ -186,12 +194,8 @@ def test_reversed_pairs_and_windows_keep_labels_and_ctc_exact(reverse_prob) -> N
     from learner.train import pairs_step, windows_step
     from learner.config import TrainConfig
 
-    rng = np.random.default_rng(1)
     N, G, W = 30, 3, 6
-    gt = [np.eye(4)]
-    for _ in range(N - 1):
-        gt.append(gt[-1] @ geo.se3_exp(rng.normal(0, [0.01, 0.01, 0.01, 0.02, 0.02, 0.02])))
-    gt = np.array(gt)
+    gt = _random_walk(np.random.default_rng(1), N)
     labels = torch.zeros(G + 1, N, 6)
     mask = torch.zeros(G + 1, N, dtype=torch.bool)
     for g in range(1, G + 1):
@@ -225,12 +229,8 @@ def test_scale_augmentation_keeps_labels_and_ctc_exact() -> None:
     from learner.dataset import gt_labels
     from learner.train import pairs_step, windows_step
 
-    rng = np.random.default_rng(2)
     N, G, W = 24, 3, 5
-    gt = [np.eye(4)]
-    for _ in range(N - 1):
-        gt.append(gt[-1] @ geo.se3_exp(rng.normal(0, [0.01, 0.01, 0.01, 0.02, 0.02, 0.02])))
-    gt = np.array(gt)
+    gt = _random_walk(np.random.default_rng(2), N)
     labels, mask = gt_labels(gt, G)
     rgb = torch.arange(N, dtype=torch.uint8)[:, None, None, None].expand(N, 3, 2, 2).contiguous()
     inv = torch.full((N, 1, 2, 2), 100, dtype=torch.uint8)  # 1 / m
