@@ -66,8 +66,8 @@ from learner import loss as L
 from learner import se3
 from learner.calibrate import CALIBRATION_FILE
 from learner.calibrate import calibrate as run_calibration
-from learner.config import (FLOW_U_CHANNEL, INVDEPTH_CHANNELS, PredictConfig, Preset, TrainConfig, check_variant, get_preset,
-                            model_from_dict, to_dict)
+from learner.config import (FLOW_U_CHANNEL, INVDEPTH_CHANNELS, PredictConfig, Preset, TrainConfig, check_variant,
+                            get_preset, model_from_dict, to_dict)
 from learner.dataset import Frames, SequenceData, check_labels, find_teacher_edges, hull_range, load_sequences
 from learner.model import CTCNet, load_pretrained_vgg
 

@@ -31,10 +31,10 @@ log = logging.getLogger("pipeline.demo")  # also when run as __main__
 DEMO_INPUT = "flowd"
 #: the demo learner's augmentation beyond the cpu preset's time reversal: depth scaling
 #: (``TrainConfig.scale_aug``, the world scaled by 2**u, |u| <= 1) and left-right
-#: mirroring. Chosen on validation scenes only: trained on office, it scored 0.76x zero
-#: motion on lab and 0.83-0.91x on the corpus rooms room-0..3, all below zero motion,
-#: where the same run without them scored 0.82x on lab but 0.95-2.02x on the rooms
-#: (bench/README.md, "Learner: does it learn?", 6).
+#: mirroring. Chosen on validation scenes only (lab, lab at double speed, the corpus rooms
+#: room-0..3; trained on office, two seeds): with them every one of the six is below zero
+#: motion and the mean ratio is 0.82-0.88x; without them two of the six are above it in
+#: each seed, mean 0.99-1.12x (bench/README.md, "Learner: does it learn?", 6).
 DEMO_AUGMENT = {"scale_aug": 1.0, "flip_prob": 0.5}
 
 
