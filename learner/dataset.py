@@ -211,7 +211,18 @@ def _cached(seq: Sequence, what: str, shape: tuple[int, ...], cache_dir: Path,
     return np.load(path, mmap_mode="r")
 
 
-def _invdepth(depth: NDArray[np.float32], width: int, height: int) -> NDArray[np.uint8]:
+def rgb_input(rgb: NDArray[np.uint8], width: int, height: int) -> NDArray[np.uint8]:
+    """(3, H, W) uint8: one frame's colour at the network's resolution (the ``frames`` cache)."""
+    return _resize(rgb, width, height).transpose(2, 0, 1)
+
+
+def grey2x_input(rgb: NDArray[np.uint8], width: int, height: int) -> NDArray[np.uint8]:
+    """(2H, 2W) uint8: one frame's grey image at twice the network's resolution, from which
+    the optical flow is computed (the ``grey2x`` cache)."""
+    return cv2.cvtColor(_resize(rgb, 2 * width, 2 * height), cv2.COLOR_RGB2GRAY)
+
+
+def invdepth_input(depth: NDArray[np.float32], width: int, height: int) -> NDArray[np.uint8]:
     """(1, H, W) uint8 inverse depth in :data:`INVDEPTH_UNIT` (0 where depth is invalid)."""
     d = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
     with np.errstate(divide="ignore"):
@@ -224,14 +235,14 @@ def load_frames(seq: Sequence, width: int, height: int, cache_dir: Path, mode: s
     memory-mapped .npy files in ``cache_dir`` (only the frames' RGB is then held in RAM)."""
     if mode not in INPUTS:
         raise DataError(f"unknown input {mode!r} (choose from {', '.join(INPUTS)})")
-    rgb = _cached(seq, "frames", (3, height, width), cache_dir,
-                  lambda k: _resize(seq.rgb(k), width, height).transpose(2, 0, 1))
+    rgb = _cached(seq, "frames", (3, height, width), cache_dir, lambda k: rgb_input(seq.rgb(k), width, height))
     inv = grey = None
     if mode != "rgb":
-        inv = _cached(seq, "invdepth", (1, height, width), cache_dir, lambda k: _invdepth(seq.depth(k), width, height))
+        inv = _cached(seq, "invdepth", (1, height, width), cache_dir,
+                      lambda k: invdepth_input(seq.depth(k), width, height))
     if mode in FLOW_U_CHANNEL:
         grey = _cached(seq, "grey2x", (2 * height, 2 * width), cache_dir,
-                       lambda k: cv2.cvtColor(_resize(seq.rgb(k), 2 * width, 2 * height), cv2.COLOR_RGB2GRAY))
+                       lambda k: grey2x_input(seq.rgb(k), width, height))
     return Frames(rgb, inv, grey, mode)
 
 

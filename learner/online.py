@@ -53,14 +53,12 @@ class OnlineLearner:
 
     def inputs(self, frame: Frame) -> tuple:
         """Per-frame network inputs (resized RGB, inverse depth, grey at 2x), as the learner caches them."""
-        import cv2
-
         from learner.config import FLOW_U_CHANNEL
-        from learner.dataset import _invdepth, _resize
+        from learner.dataset import grey2x_input, invdepth_input, rgb_input
 
-        rgb = _resize(frame.rgb, self.width, self.height).transpose(2, 0, 1)
-        inv = _invdepth(frame.depth, self.width, self.height) if self.mode != "rgb" else None
-        grey = (cv2.cvtColor(_resize(frame.rgb, 2 * self.width, 2 * self.height), cv2.COLOR_RGB2GRAY)
+        rgb = rgb_input(frame.rgb, self.width, self.height)
+        inv = invdepth_input(frame.depth, self.width, self.height) if self.mode != "rgb" else None
+        grey = (grey2x_input(frame.rgb, self.width, self.height)
                 if self.mode in FLOW_U_CHANNEL else None)  # the inputs with optical flow
         return rgb, inv, grey
 
