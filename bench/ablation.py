@@ -122,6 +122,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--flip-prob", type=float, help="left-right mirroring augmentation (default: the preset's)")
     ap.add_argument("--reverse-prob", type=float, help="time-reversal augmentation (default: the preset's)")
+    ap.add_argument("--reg-robust", type=float, help="Cauchy label loss scale (learner fit --reg-robust)")
+    ap.add_argument("--gap-weight", type=float, help="per-gap label weight exponent (learner fit --gap-weight)")
     ap.add_argument("--sub-length", type=int, default=30, help="frames per sub-trajectory of the ATE mean +- std")
     ap.add_argument("--sub-stride", type=int, default=15, help="frames between sub-trajectory starts")
     ap.add_argument("--out", type=Path, default=Path("runs/ablation"))
@@ -143,7 +145,8 @@ def main() -> None:
         res = fit(args.scene, variant=v, preset=args.preset, frames=args.frames, out=run,
                   val_scenes=args.val_scene, val_frames=args.val_frames, calibrate=False,
                   teacher_root=args.teacher, steps=args.steps, init=args.init,  # a rerun keeps or continues the run
-                  lr=args.lr, input=args.input, seed=args.seed, flip_prob=args.flip_prob, reverse_prob=args.reverse_prob)
+                  lr=args.lr, input=args.input, seed=args.seed, flip_prob=args.flip_prob, reverse_prob=args.reverse_prob,
+                  reg_robust=args.reg_robust, gap_weight=args.gap_weight)
         t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
         rep = predict(res.checkpoint, test_scene, frames=args.test_frames, out=run / "predict",
                       config=PredictConfig(samples=args.samples)).reports[0]

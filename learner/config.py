@@ -8,6 +8,7 @@ by mutation. The resolved configuration is saved as JSON next to every run
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
@@ -136,6 +137,23 @@ class TrainConfig:
     room then shows many pairings of depth and step length, so the network has to read
     the step from the flow and the depth together instead of remembering the room's."""
 
+    reg_robust: float = 0.0
+    """Robust label regression (not in the paper): each labelled prediction's normalised
+    squared error ``e`` (the mean over the 6 dimensions of ``((xi - xi_label) / s_g)^2``)
+    enters L_reg as the Cauchy loss ``c log(1 + e / c)`` with ``c = reg_robust`` instead
+    of as ``e``; 0 keeps the squared error. A teacher's gross label failures (PnP-RANSAC on
+    a stale or blurred frame) then pull the network ``1 + e / c`` times less than under the
+    squared error, while small residuals (``e << c``) are treated as before."""
+    gap_weight: float = 0.0
+    """Weight the label regression of every prediction of gap g by ``g ** gap_weight``
+    (not in the paper; the LSTM's consecutive pairs are gap 1 and weigh 1; L_reg stays a
+    weighted mean). Each gap's residual is divided by its target scale ``s_g``, which grows
+    like g, while a teacher's label noise grows more slowly (like sqrt(g) for a random
+    walk of independent errors): at 0 a gap-5 label, normalised, counts ~1/5 of what its
+    noise level warrants; 1 weighs the gaps by that random-walk noise model. Through the
+    CTC the long, relatively more accurate labels then constrain the consecutive
+    estimates."""
+
     @property
     def epochs(self) -> int:
         """Number of epochs of ``eval_every`` steps (the last one may be shorter)."""
@@ -154,6 +172,10 @@ class TrainConfig:
         for name in ("flip_prob", "reverse_prob"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if not (self.reg_robust >= 0.0 and math.isfinite(self.reg_robust)):
+            raise ConfigError(f"reg_robust must be a finite number >= 0, got {self.reg_robust}")
+        if not -3.0 <= self.gap_weight <= 3.0:
+            raise ConfigError(f"gap_weight must be in [-3, 3], got {self.gap_weight}")
         if not 0.0 <= self.scale_aug <= 3.0:
             raise ConfigError(f"scale_aug must be in [0, 3] (log2 of the largest scale), got {self.scale_aug}")
 

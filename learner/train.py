@@ -779,7 +779,7 @@ def pairs_step(net, data, rows: np.ndarray, cfg: TrainConfig, aug: bool, gen, de
     x, lab = _augment(torch.cat(x), torch.cat(labs), cfg, gen, data[0].frames.mode)
     xi_d, _ = net(x.to(device))
     return L.pair_loss(xi_d.float(), lab.to(device), torch.cat(masks).to(device), torch.cat(gaps).to(device),
-                       cfg.beta, scale)
+                       cfg.beta, scale, cfg.reg_robust, cfg.gap_weight)
 
 
 def windows_step(net, data, rows: np.ndarray, W: int, cfg: TrainConfig, aug: bool, gen, device,
@@ -810,7 +810,7 @@ def windows_step(net, data, rows: np.ndarray, W: int, cfg: TrainConfig, aug: boo
     # the LSTM's consecutive pairs share the labels of the direct gap-1 pairs
     with torch.autocast(device.type, enabled=False):  # se(3) maps in float32
         return L.window_loss(xi_s.float(), xi_d, lab[:, :W], mask[:, :W], lab, mask, cfg.max_gap, cfg.alpha,
-                             cfg.beta, scale)
+                             cfg.beta, scale, cfg.reg_robust, cfg.gap_weight)
 
 
 

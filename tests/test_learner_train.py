@@ -300,10 +300,12 @@ def test_input_pairs_rgb_rgbd_flow_and_flowd() -> None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name, good, bad", [("flip_prob", 1.0, 1.5), ("reverse_prob", 0.5, -0.1),
-                                             ("scale_aug", 1.0, -1.0)])
+                                             ("scale_aug", 1.0, -1.0), ("reg_robust", 1.0, float("nan")),
+                                             ("gap_weight", 1.0, 5.0)])
 def test_augmentation_trains(fixture_seq, tmp_path, name, good, bad) -> None:
-    """Mirroring, time reversal and depth scaling: a tiny fit with each trains both phases,
-    records its setting in config.json, and a setting out of range is refused."""
+    """Mirroring, time reversal, depth scaling and the two label-loss options: a tiny fit
+    with each trains both phases, records its setting in config.json, and a setting out of
+    range is refused."""
     seq, teacher = fixture_seq
     extra = {"input": "rgbd"} if name == "scale_aug" else {}  # scaling needs depth
     res = fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=teacher, **{name: good},
