@@ -10,8 +10,8 @@ Layout: ``runs/<scene-slug>/<stage>`` (:func:`stage_dir`), with the stages
 
 Rerun rule. Beside its outputs each stage writes ``fingerprint.json``: the inputs that
 shape its outputs (scene, selected frames, the stage's resolved config, the fingerprints
-or content digests of the upstream outputs it read) and their SHA-256 ``digest``. A
-rerun (:func:`claim`)
+or content digests of the upstream outputs it read) and their SHA-256 ``digest``, which
+also covers the stage's code version (:data:`STAGE_VERSIONS`). A rerun (:func:`claim`)
 
 * with the same digest skips the work when the stage is done (and resumes it where the
   stage can, e.g. a killed ``learner fit``);
@@ -52,6 +52,15 @@ RUNS_DIR = Path("runs")
 #: the stages, in pipeline order; each one's default folder is ``runs/<scene-slug>/<stage>``
 STAGES = ("teacher", "learner", "predict", "posegraph", "online")
 FINGERPRINT_FILE = "fingerprint.json"
+#: The code version of each fingerprinted stage (the fingerprint's ``stage`` name). A
+#: change that alters what a stage writes for the same inputs bumps its number here, in
+#: the same commit: the rerun rule then treats the older outputs as outputs of other
+#: inputs instead of keeping them. Stages downstream of a file see its change through
+#: the file's digest; ``online`` runs the teacher's code itself and records its version.
+STAGE_VERSIONS: dict[str, int] = {
+    "teacher": 2,  # 2: issue 13's colour-camera model, fallback chain and hybrid gap-1 stage
+    "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 1, "posegraph-calibrate": 1, "online": 1,
+}
 SYNTHETIC_PREFIX = "synthetic/"
 
 
@@ -124,18 +133,23 @@ class Fingerprint:
 
     stage: str
     inputs: dict[str, Any]
+    version: Optional[int] = None
+    """The stage's code version; None takes the stage's :data:`STAGE_VERSIONS` entry (1
+    for a stage not listed) when the fingerprint is made."""
 
     def __post_init__(self) -> None:  # as fingerprint.json will hold them (tuples become lists)
         object.__setattr__(self, "inputs", json.loads(json.dumps(self.inputs, allow_nan=False)))
+        if self.version is None:
+            object.__setattr__(self, "version", STAGE_VERSIONS.get(self.stage, 1))
 
     @property
     def digest(self) -> str:
-        text = json.dumps({"stage": self.stage, "inputs": self.inputs}, sort_keys=True, allow_nan=False,
-                          separators=(",", ":"))
+        text = json.dumps({"stage": self.stage, "version": self.version, "inputs": self.inputs}, sort_keys=True,
+                          allow_nan=False, separators=(",", ":"))
         return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
 
     def to_dict(self) -> dict[str, Any]:
-        return {"stage": self.stage, "digest": self.digest, "inputs": self.inputs}
+        return {"stage": self.stage, "version": self.version, "digest": self.digest, "inputs": self.inputs}
 
 
 def read_fingerprint(folder: Path, inside: Optional[str] = None) -> Optional[dict[str, Any]]:
@@ -216,7 +230,9 @@ def claim(folder: Path, fp: Fingerprint, *, done: bool, has_outputs: bool, overw
         return False
     where = folder / inside if inside else folder
     if not overwrite:
-        what = (f"outputs of other inputs ({differences(old['inputs'], fp.inputs)})" if old is not None
+        what = (f"outputs of version {old.get('version', 0)} of the {fp.stage} stage's code (now version "
+                f"{fp.version})" if old is not None and old.get("version", 0) != fp.version
+                else f"outputs of other inputs ({differences(old['inputs'], fp.inputs)})" if old is not None
                 else f"{fp.stage} outputs without {'a fingerprint' if inside else 'a ' + FINGERPRINT_FILE} "
                      "(an older version wrote them)")
         raise StaleOutputError(f"{where} holds {what}; {hint}")

@@ -505,7 +505,7 @@ def fingerprint(spec: str, source: FrameSource, teacher_cfg, checkpoint: Optiona
     ``--follow``: as they arrive), the teacher's config (without its process settings), the
     checkpoint and the calibration beside it (content digests), the MC-dropout settings and
     the graph's config."""
-    from data.runs import Fingerprint, file_digest, frames_id, scene_id
+    from data.runs import STAGE_VERSIONS, Fingerprint, file_digest, frames_id, scene_id
     from posegraph.config import ONLINE
 
     tconf = teacher_cfg.to_dict()
@@ -520,7 +520,7 @@ def fingerprint(spec: str, source: FrameSource, teacher_cfg, checkpoint: Optiona
     return Fingerprint("online", {
         "scene": scene_id(spec), "sequence": source.name,
         "frames": "as they arrive" if follow else frames_id(source.seq.ids()) if isinstance(source, SequenceSource)
-        else None, "follow": follow, "teacher": tconf,
+        else None, "follow": follow, "teacher": tconf, "teacher_version": STAGE_VERSIONS["teacher"],
         "checkpoint": file_digest(checkpoint) if checkpoint is not None else None,
         "calibration": file_digest(cal) if cal is not None and cal.is_file() else None,
         "predict": pconf if checkpoint is not None else None, "graph": (graph_cfg or ONLINE).to_dict()})

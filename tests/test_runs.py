@@ -56,6 +56,34 @@ def test_claim_same_other_and_overwrite(tmp_path) -> None:
     assert not (out / "result.txt").exists() and not (out / "fingerprint.json").exists()
 
 
+def test_a_code_version_bump_makes_kept_outputs_stale(tmp_path, monkeypatch) -> None:
+    """The same inputs written by an older version of a stage's code are not kept: the
+    error says which version wrote them; a folder from before versions were recorded
+    (no ``version``) counts as version 0."""
+    import data.runs as runs
+
+    out = tmp_path / "stage"
+    out.mkdir()
+    (out / "result.txt").write_text("old")
+    fp = Fingerprint("teacher", {"frames": "0..9 (10 frames)"})
+    write_fingerprint(out, fp)
+    assert json.loads((out / "fingerprint.json").read_text())["version"] == runs.STAGE_VERSIONS["teacher"]
+    assert claim(out, fp, done=True, has_outputs=True, overwrite=False) is True
+    monkeypatch.setitem(runs.STAGE_VERSIONS, "teacher", runs.STAGE_VERSIONS["teacher"] + 1)
+    newer = Fingerprint("teacher", {"frames": "0..9 (10 frames)"})
+    assert newer.digest != fp.digest
+    v = runs.STAGE_VERSIONS["teacher"]
+    with pytest.raises(StaleOutputError, match=rf"outputs of version {v - 1} of the teacher stage's code "
+                                               rf"\(now version {v}\); pass --overwrite"):
+        claim(out, newer, done=True, has_outputs=True, overwrite=False)
+    old = json.loads((out / "fingerprint.json").read_text())
+    del old["version"]
+    (out / "fingerprint.json").write_text(json.dumps(old))
+    with pytest.raises(StaleOutputError, match="outputs of version 0 of the teacher stage's code"):
+        claim(out, newer, done=True, has_outputs=True, overwrite=False)
+    assert (out / "result.txt").read_text() == "old"
+
+
 def test_output_folder_removes_only_what_a_failure_left_empty(tmp_path) -> None:
     with pytest.raises(RuntimeError):
         with output_folder(tmp_path / "a" / "b" / "c") as d:
