@@ -169,6 +169,30 @@ class DenseMaps:
     normal: o3d.core.Tensor
     K: o3d.core.Tensor
     photo: Optional["PhotoMaps"] = None
+    _cache: dict = field(default_factory=dict, repr=False)
+    """What the covariances of :func:`point_to_plane_covariance` take from this frame on
+    every edge it is part of, computed on its first edge (:meth:`moved_points`,
+    :meth:`surface`)."""
+
+    def moved_points(self, stride: int) -> NDArray[np.float64]:
+        """(N, 3) the finite points of ``points``, every ``stride``-th in both axes, float64
+        (the frame as the one moved, j; the same for all its edges)."""
+        key = ("points", stride)
+        if key not in self._cache:
+            q = self.points.numpy()[::stride, ::stride].reshape(-1, 3)
+            self._cache[key] = q[np.all(np.isfinite(q), axis=1)].astype(np.float64)
+        return self._cache[key]
+
+    def surface(self) -> tuple[NDArray[np.float64], NDArray[np.bool_], int, int, NDArray[np.float64]]:
+        """The frame as the one aligned to (i): (h * w, 6) float64 vertex and normal of each
+        pixel of ``vertex`` / ``normal`` (row-major), whether both are finite there, h, w and
+        the camera matrix; one gather per edge instead of two and their finiteness tests."""
+        if "surface" not in self._cache:
+            vert, nrm = self.vertex.numpy(), self.normal.numpy()
+            h, w = vert.shape[:2]
+            vn = np.concatenate([vert.reshape(-1, 3), nrm.reshape(-1, 3)], axis=1).astype(np.float64)
+            self._cache["surface"] = (vn, np.all(np.isfinite(vn), axis=1), h, w, self.K.numpy())
+        return self._cache["surface"]
 
 
 @dataclass
@@ -942,23 +966,23 @@ def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg:
     bound of the real uncertainty. None when fewer than 6 pairs or a singular system.
     ``stride``: use every ``stride``-th point of j in both axes (the covariance is then
     scaled back to all of them)."""
-    q = dj.points.numpy()[::stride, ::stride].reshape(-1, 3)
-    q = q[np.all(np.isfinite(q), axis=1)]
+    q = dj.moved_points(stride)
     R, t = T_i_j[:3, :3], T_i_j[:3, 3]
     X = q @ R.T + t
-    K = di.K.numpy()
-    vert, nrm = di.vertex.numpy(), di.normal.numpy()
-    h, w = vert.shape[:2]
+    vn, finite, h, w, K = di.surface()
     front = X[:, 2] > 1e-6
-    u = np.full(len(X), -1, np.int64)
-    v = np.full(len(X), -1, np.int64)
-    u[front] = np.rint(K[0, 0] * X[front, 0] / X[front, 2] + K[0, 2]).astype(np.int64)
-    v[front] = np.rint(K[1, 1] * X[front, 1] / X[front, 2] + K[1, 2]).astype(np.int64)
-    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    q, X, u, v = q[inside], X[inside], u[inside], v[inside]
-    p, n = vert[v, u].astype(np.float64), nrm[v, u].astype(np.float64)
-    ok = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(n), axis=1) & (np.linalg.norm(X - p, axis=1) < cfg.dense_trunc_m)
-    q, X, p, n = q[ok], X[ok], p[ok], n[ok]
+    if not front.all():
+        q, X = q[front], X[front]
+    u = np.rint(K[0, 0] * X[:, 0] / X[:, 2] + K[0, 2]).astype(np.int64)
+    v = np.rint(K[1, 1] * X[:, 1] / X[:, 2] + K[1, 2]).astype(np.int64)
+    sel = np.flatnonzero((u >= 0) & (u < w) & (v >= 0) & (v < h))
+    pix = v[sel] * w + u[sel]
+    use = finite[pix]
+    sel, pn = sel[use], vn[pix[use]]
+    d = X[sel] - pn[:, :3]
+    ok = np.sqrt(np.add.reduce(d * d, axis=1)) < cfg.dense_trunc_m  # np.linalg.norm's formula
+    sel, pn = sel[ok], pn[ok]
+    q, X, p, n = q[sel], X[sel], pn[:, :3].copy(), pn[:, 3:].copy()
     if len(q) < 6:
         return None, len(q), float("nan")
     r = np.einsum("ij,ij->i", n, X - p)
