@@ -654,6 +654,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--poll", type=float, default=OnlineConfig.poll_s, help="--follow: seconds between polls")
     p.add_argument("--gaps", type=int, help="teacher edges to the last K frames (default: the preset's)")
     p.add_argument("--preset", default="default", choices=sorted(TEACHER_PRESETS), help="teacher preset")
+    p.add_argument("--dense-max-gap", type=int, help="teacher: dense step only on edges of at most this many "
+                   "frames (0: every edge; default: the preset's); less work per frame, see bench/README.md")
     p.add_argument("--samples", type=int, help="MC-dropout passes K (default 10)")
     p.add_argument("--max-gap", type=int, help="learner edges to the last frames (default 5)")
     p.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"], help="learner device")
@@ -678,6 +680,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             if args.gaps < 1:
                 raise ConfigError(f"--gaps must be >= 1, got {args.gaps}")
             tcfg = dataclasses.replace(tcfg, gaps=args.gaps)
+        if args.dense_max_gap is not None:
+            if args.dense_max_gap < 0:
+                raise ConfigError(f"--dense-max-gap must be >= 0 (0: every edge), got {args.dense_max_gap}")
+            tcfg = dataclasses.replace(tcfg, dense_max_gap=args.dense_max_gap)
         pcfg = PredictConfig(**{k: v for k, v in (("samples", args.samples), ("max_gap", args.max_gap)) if v is not None})
         if args.timeout <= 0 or args.poll <= 0:
             raise ConfigError("--timeout and --poll must be positive")

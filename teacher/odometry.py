@@ -668,12 +668,13 @@ def _huber(r: NDArray, k: float) -> tuple[float, NDArray, NDArray]:
 
 def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
                   cfg: TeacherConfig, dt: float, T_pred: Optional[NDArray] = None,
-                  tracks: Optional[NDArray[np.int64]] = None) -> EdgeEstimate:
+                  tracks: Optional[NDArray[np.int64]] = None, dense: bool = True) -> EdgeEstimate:
     """Estimate ``T_i_j`` between two frames (ids ``i``, ``j``, ``dt`` seconds apart).
 
     Correspondences come from ``tracks`` ((M, 2) keypoint index pairs chained along the
     gap-1 matches) when given and numerous enough, else from matching: guided by the motion
     prediction ``T_pred`` when given, exhaustive otherwise or when the guided estimate fails.
+    ``dense``: refine a good sparse estimate with the dense step (:func:`dense_refine`).
     """
     attempts = []
     if tracks is not None and len(tracks) >= cfg.min_matches:
@@ -712,7 +713,7 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
         if dense.ok:
             return dense
         best.info["dense_fallback"] = dense.status
-    if best.ok and fi.dense is not None and fj.dense is not None:
+    if dense and best.ok and fi.dense is not None and fj.dense is not None:
         stale = fi.stale or fj.stale
         dense_refine(best, fi.dense, fj.dense, cfg, blend=1.0 if stale and cfg.dense_on_stale else None,
                      hybrid=tracks is None or cfg.hybrid_all_gaps)

@@ -90,8 +90,10 @@ class EdgeWindow:
                     continue
                 tracks = np.flatnonzero(w.link >= 0)
                 tracks = np.stack([tracks, w.link[tracks]], axis=1)
+                gap = pos - w.pos
                 edges.append(estimate_edge(w.frame_id, frame_id, w.feats, fk, intr, cfg, timestamp - w.timestamp,
-                                           w.T_k_cur.copy(), tracks))
+                                           w.T_k_cur.copy(), tracks,
+                                           dense=cfg.dense_max_gap <= 0 or gap <= cfg.dense_max_gap))
             e.inlier_pairs = None  # only needed for the tracks above
         self.entries.append(_Entry(pos, int(frame_id), timestamp, fk, np.arange(len(fk.uv)), np.eye(4)))
         while self.entries and pos - self.entries[0].pos >= cfg.gaps:
