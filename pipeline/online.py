@@ -22,6 +22,11 @@ For each new frame k:
    :mod:`posegraph.graph`);
 4. the new pose's current estimate is appended to ``trajectory.tum`` and flushed.
 
+With ``--pose-after-gap1`` step 1 gives the gap-1 edge only, and the longer teacher edges
+follow step 4 in a second ISAM2 update (the same edges; a frame's pose waits for less).
+``--dense-max-gap N`` runs the teacher's dense step on edges of at most N frames only (a
+cheaper teacher; bench/README.md, "Online mode", measures what it costs in accuracy).
+
 This module only composes them (frame sources, the hand-over thread, outputs, command
 line); it is, with pipeline/demo.py, where every stage is imported.
 
@@ -32,10 +37,11 @@ solves the same edges in batch) and ``report.json`` (fps, latency percentiles, A
 there is ground truth). Formats: docs/formats.md, "Online mode".
 
 :func:`online` (the command) follows the rerun rule of :mod:`data.runs`: beside its outputs
-it writes ``fingerprint.json`` (scene, frames, the teacher, learner and graph settings, the
-checkpoint's digest); a rerun of the same inputs keeps a finished run (with ``--follow``:
-when the folder holds no frame the run did not take), recomputes an interrupted or killed
-one, and stops with a one-line error for other inputs unless ``--overwrite``.
+it writes ``fingerprint.json`` (scene, frames, the teacher, learner and graph settings,
+``--pose-after-gap1``, the checkpoint's digest); a rerun of the same inputs keeps a
+finished run (with ``--follow``: when the folder holds no frame the run did not take),
+recomputes an interrupted or killed one, and stops with a one-line error for other inputs
+unless ``--overwrite``.
 """
 
 from __future__ import annotations
@@ -82,6 +88,12 @@ class OnlineConfig:
     prefetch: int = 2
     """Frames read and prepared (teacher features, learner inputs) ahead of the estimator
     by a helper thread (at least 1)."""
+    pose_after_gap1: bool = False
+    """Write each frame's pose once its gap-1 teacher edge (and its learner edges) are in
+    the graph; its longer teacher edges (k-g, k), g >= 2, are estimated after that and
+    enter the graph in a second ISAM2 update, before the next frame. The same edges as
+    without it (the final trajectory solves the same graph); the latency a frame waits
+    for its own pose no longer includes its longer edges (bench/README.md, "Online mode")."""
 
 
 # ----------------------------------------------------------------------------------
@@ -334,9 +346,18 @@ class OnlineTeacher:
 
     def add(self, frame: Frame, fk) -> list:
         """The edges ending at ``frame`` (``EdgeEstimate``; failed ones included)."""
+        return self.add_gap1(frame, fk) + self.add_longer()
+
+    def add_gap1(self, frame: Frame, fk) -> list:
+        """The first half of :meth:`add`: the gap-1 edge ending at ``frame`` (a list of it,
+        empty for the first frame); :meth:`add_longer` follows before the next frame."""
         self.ids.append(int(frame.frame_id))
         self.times.append(float(frame.timestamp))
-        return self.window.add(self.ids[-1], self.times[-1], fk)
+        return self.window.add_gap1(self.ids[-1], self.times[-1], fk)
+
+    def add_longer(self) -> list:
+        """The second half of :meth:`add`: the longer edges ending at the newest frame."""
+        return self.window.add_longer()
 
 
 # ----------------------------------------------------------------------------------
@@ -460,7 +481,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
                 raise item
             t_arr, frame, feats, inputs, t_prep = item
             t_take = time.perf_counter()
-            edges = teacher.add(frame, feats)
+            edges = teacher.add_gap1(frame, feats) if cfg.pose_after_gap1 else teacher.add(frame, feats)
             t_edges += edges
             new = [Edge(e.i, e.j, e.T_i_j, e.cov, {"source": "teacher"}) for e in edges if e.ok]
             if learner is not None:
@@ -475,6 +496,10 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
             gts.append(frame.T_world_cam)
             n += 1
             lat.append(time.perf_counter() - t_arr)
+            if cfg.pose_after_gap1:  # the longer edges of this frame, after its pose
+                later = teacher.add_longer()
+                t_edges += later
+                graph.add_edges([Edge(e.i, e.j, e.T_i_j, e.cov, {"source": "teacher"}) for e in later if e.ok])
             work.append(t_prep + time.perf_counter() - t_take)
             if bar is not None:
                 bar.show(n, n / (time.perf_counter() - t_start), lat, len(t_edges) + len(l_edges))
@@ -500,7 +525,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
 
 
 def fingerprint(spec: str, source: FrameSource, teacher_cfg, checkpoint: Optional[Path] = None, predict_cfg=None,
-                graph_cfg=None):
+                graph_cfg=None, cfg: OnlineConfig = OnlineConfig()):
     """The inputs of an online run (``data.runs.Fingerprint``): scene, sequence, frames (with
     ``--follow``: as they arrive), the teacher's config (without its process settings), the
     checkpoint and the calibration beside it (content digests), the MC-dropout settings and
@@ -523,7 +548,8 @@ def fingerprint(spec: str, source: FrameSource, teacher_cfg, checkpoint: Optiona
         else None, "follow": follow, "teacher": tconf,
         "checkpoint": file_digest(checkpoint) if checkpoint is not None else None,
         "calibration": file_digest(cal) if cal is not None and cal.is_file() else None,
-        "predict": pconf if checkpoint is not None else None, "graph": (graph_cfg or ONLINE).to_dict()})
+        "predict": pconf if checkpoint is not None else None, "graph": (graph_cfg or ONLINE).to_dict(),
+        "pose_after_gap1": cfg.pose_after_gap1})
 
 
 def online(spec: str, out: Optional[Path] = None, *, frames: Optional[str] = None, follow: bool = False,
@@ -547,7 +573,7 @@ def online(spec: str, out: Optional[Path] = None, *, frames: Optional[str] = Non
     out = Path(out) if out is not None else stage_dir(spec, "online")
     with output_folder(out):
         source = open_source(spec, frames, follow, cfg)
-        fp = fingerprint(spec, source, teacher_cfg, checkpoint, predict_cfg, graph_cfg)
+        fp = fingerprint(spec, source, teacher_cfg, checkpoint, predict_cfg, graph_cfg, cfg)
         report = None
         if (out / REPORT).is_file():
             try:
@@ -654,6 +680,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--poll", type=float, default=OnlineConfig.poll_s, help="--follow: seconds between polls")
     p.add_argument("--gaps", type=int, help="teacher edges to the last K frames (default: the preset's)")
     p.add_argument("--preset", default="default", choices=sorted(TEACHER_PRESETS), help="teacher preset")
+    p.add_argument("--pose-after-gap1", action="store_true",
+                   help="write each frame's pose once its gap-1 edge is in the graph; its longer edges follow")
     p.add_argument("--dense-max-gap", type=int, help="teacher: dense step only on edges of at most this many "
                    "frames (0: every edge; default: the preset's); less work per frame, see bench/README.md")
     p.add_argument("--samples", type=int, help="MC-dropout passes K (default 10)")
@@ -687,7 +715,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         pcfg = PredictConfig(**{k: v for k, v in (("samples", args.samples), ("max_gap", args.max_gap)) if v is not None})
         if args.timeout <= 0 or args.poll <= 0:
             raise ConfigError("--timeout and --poll must be positive")
-        ocfg = OnlineConfig(poll_s=args.poll, timeout_s=args.timeout)
+        ocfg = OnlineConfig(poll_s=args.poll, timeout_s=args.timeout, pose_after_gap1=args.pose_after_gap1)
         res = online(scene, args.out, frames=args.frames, follow=args.follow, teacher_cfg=tcfg,
                      checkpoint=args.checkpoint, predict_cfg=pcfg if args.checkpoint else None, cfg=ocfg,
                      device=args.device, overwrite=args.overwrite)
