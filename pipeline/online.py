@@ -339,10 +339,20 @@ class OnlineTeacher:
         self.times: list[float] = []
 
     def features(self, frame: Frame):
-        """Per-frame work (safe to run in one helper thread ahead of :meth:`add`)."""
+        """Per-frame work (safe to run in one helper thread ahead of :meth:`add`), without
+        the maps the frame's dense step needs only as the older frame of a later edge:
+        :meth:`finish` adds them, in the same thread, before the next frame's features."""
         from teacher.odometry import extract
 
-        return extract(frame.rgb, frame.depth, self.cfg, self.orb, self.intr.K, self.colour)
+        return extract(frame.rgb, frame.depth, self.cfg, self.orb, self.intr.K, self.colour, surface=False)
+
+    def finish(self, fk) -> None:
+        """The rest of :meth:`features` (:func:`teacher.odometry.add_surface`): called after
+        the frame is handed over, so its own edges do not wait for it."""
+        from teacher.odometry import add_surface
+
+        if fk.dense is not None:
+            add_surface(fk.dense, fk.depth, self.intr.K, self.cfg)
 
     def add(self, frame: Frame, fk) -> list:
         """The edges ending at ``frame`` (``EdgeEstimate``; failed ones included)."""
@@ -443,7 +453,8 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
         return frame, feats, (learner.inputs(frame) if learner is not None else None)
 
     # A helper thread takes frames from the source (decoding them), stamps their arrival and
-    # prepares them (teacher features, learner inputs) up to cfg.prefetch frames ahead;
+    # prepares them (teacher features, learner inputs) up to cfg.prefetch frames ahead,
+    # then adds what a frame's dense step needs only as the older frame of later edges;
     # this thread estimates edges, updates the graph and writes.
     ahead: queue.Queue = queue.Queue(maxsize=max(cfg.prefetch, 1))
     stop = threading.Event()
@@ -459,6 +470,9 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
                         break
                     except queue.Full:
                         continue
+                # what frame k's dense step needs only in later frames' edges: built here,
+                # before frame k+1 is handed over (so before the estimator can need it)
+                teacher.finish(item[2])
                 if stop.is_set() or (max_frames is not None and k + 1 >= max_frames):
                     break
             ahead.put(None)

@@ -165,8 +165,8 @@ class DenseMaps:
     """
 
     points: o3d.core.Tensor
-    vertex: o3d.core.Tensor
-    normal: o3d.core.Tensor
+    vertex: Optional[o3d.core.Tensor]
+    normal: Optional[o3d.core.Tensor]
     K: o3d.core.Tensor
     photo: Optional["PhotoMaps"] = None
     _cache: dict = field(default_factory=dict, repr=False)
@@ -254,7 +254,7 @@ def _subsampled(depth: NDArray[np.float32], K: NDArray, s: int,
 
 
 def dense_maps(depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig,
-               gray: Optional[NDArray[np.uint8]] = None) -> DenseMaps:
+               gray: Optional[NDArray[np.uint8]] = None, surface: bool = True) -> DenseMaps:
     """The maps of :class:`DenseMaps` for one depth image (metres, 0 = invalid).
 
     The points moved are sparse (every 4th pixel: the cost of an iteration is proportional
@@ -264,15 +264,30 @@ def dense_maps(depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig,
     from a Gaussian-smoothed copy of the depth (``filter_bilateral`` with a 5 m value sigma,
     which skips holes), as in Open3D's own point-to-plane odometry; Kinect noise makes
     unsmoothed normals useless.
+
+    ``surface`` False leaves ``vertex`` and ``normal`` (the frame as the one aligned to, i:
+    about two thirds of the time here) to :func:`add_surface`: a frame is i only in the
+    edges of the frames after it, so ``vo-online`` builds them after handing the frame over.
     """
     img, Kt = _subsampled(depth, K, cfg.dense_scale, cfg)
     points = img.create_vertex_map(Kt, float("nan")).as_tensor()
     img, Kt = _subsampled(depth, K, cfg.dense_target_scale, cfg)
-    vertex = img.create_vertex_map(Kt, float("nan")).as_tensor()
+    maps = DenseMaps(points, None, None, Kt, photo_maps(gray, depth, K, cfg) if gray is not None else None)
+    if surface:
+        _fill_surface(maps, img, cfg)
+    return maps
+
+
+def add_surface(maps: DenseMaps, depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig) -> None:
+    """Fill ``maps.vertex`` and ``maps.normal`` (see :func:`dense_maps`) when they are missing."""
+    if maps.vertex is None:
+        _fill_surface(maps, _subsampled(depth, K, cfg.dense_target_scale, cfg)[0], cfg)
+
+
+def _fill_surface(maps: DenseMaps, img: o3d.t.geometry.Image, cfg: TeacherConfig) -> None:
     smooth = img.filter_bilateral(cfg.dense_normal_kernel, 5.0, 10.0)
-    normal = smooth.create_vertex_map(Kt, float("nan")).create_normal_map(float("nan")).as_tensor()
-    photo = photo_maps(gray, depth, K, cfg) if gray is not None else None
-    return DenseMaps(points, vertex, normal, Kt, photo)
+    maps.vertex = img.create_vertex_map(maps.K, float("nan")).as_tensor()
+    maps.normal = smooth.create_vertex_map(maps.K, float("nan")).create_normal_map(float("nan")).as_tensor()
 
 
 def photo_maps(gray: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig) -> PhotoMaps:
@@ -372,18 +387,20 @@ def dense_method(cfg: TeacherConfig, colour: Optional[ColourCamera]) -> str:
 
 def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConfig,
             orb: Optional[cv2.ORB] = None, K: Optional[NDArray] = None,
-            colour: Optional[ColourCamera] = None) -> FrameFeatures:
+            colour: Optional[ColourCamera] = None, surface: bool = True) -> FrameFeatures:
     """ORB keypoints and descriptors of one frame, with the depth at each keypoint; with the
-    camera matrix ``K`` and ``cfg.dense_iters > 0`` also the maps of the dense step. With a
-    ``colour`` camera model (and ``K``), keypoints are moved into depth-camera pixels
-    (``uv`` is then in depth-camera pixels; None: colour registered to depth)."""
+    camera matrix ``K`` and ``cfg.dense_iters > 0`` also the maps of the dense step (``surface``
+    False: without the ones it needs as the older frame of an edge, for :func:`add_surface`
+    to add before a later frame's edges). With a ``colour`` camera model (and ``K``),
+    keypoints are moved into depth-camera pixels (``uv`` is then in depth-camera pixels;
+    None: colour registered to depth)."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     dense = None
     if K is not None and cfg.dense_iters > 0:
         photo = None
         if dense_method(cfg, colour) == "hybrid":
             photo = colour.to_depth_image(gray, depth, K) if colour is not None else gray
-        dense = dense_maps(depth, K, cfg, photo)
+        dense = dense_maps(depth, K, cfg, photo, surface)
     orb = orb or make_orb(cfg)
     kps, desc = orb.detectAndCompute(gray, None)
     keys = image_keys(rgb, depth)
@@ -1158,7 +1175,7 @@ def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray
     return out
 
 
-__all__ = ["ColourCamera", "KINECT_V1_COLOUR", "FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "photo_maps", "dense_method", "hybrid_align", "pyramid_align", "hybrid_covariance", "PhotoMaps", "dense_refine", "match",
+__all__ = ["ColourCamera", "KINECT_V1_COLOUR", "FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "add_surface", "photo_maps", "dense_method", "hybrid_align", "pyramid_align", "hybrid_covariance", "PhotoMaps", "dense_refine", "match",
            "match_wide", "dense_edge", "rgbd_edge", "point_to_plane_covariance",
            "image_keys", "stale_stream",
            "estimate_edge", "refine_two_way", "make_orb"]
