@@ -446,6 +446,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     gts: list[Optional[NDArray]] = []
     lat: list[float] = []
     work: list[float] = []  # prepare + estimate + update + write, without any wait in the queue
+    to_pose: list[float] = []  # the same until the frame's pose is written
     bar = _Progress(cfg.progress_every_s) if progress else None
 
     def prepare(frame: Frame):
@@ -510,6 +511,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
             gts.append(frame.T_world_cam)
             n += 1
             lat.append(time.perf_counter() - t_arr)
+            to_pose.append(t_prep + time.perf_counter() - t_take)
             if cfg.pose_after_gap1:  # the longer edges of this frame, after its pose
                 later = teacher.add_longer()
                 t_edges += later
@@ -533,8 +535,9 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
         raise DataError(f"{source.name}: no frame arrived")
     lat_ms = {f"p{q}": 1000 * float(np.percentile(lat, q)) for q in (50, 95, 99)} | {"max": 1000 * max(lat)}
     work_ms = {f"p{q}": 1000 * float(np.percentile(work, q)) for q in (50, 95, 99)} | {"max": 1000 * max(work)}
+    pose_ms = {f"p{q}": 1000 * float(np.percentile(to_pose, q)) for q in (50, 95, 99)} | {"max": 1000 * max(to_pose)}
     report = _finish(out, source, teacher, graph, t_edges, l_edges, gts, teacher_cfg, seconds,
-                     {"latency_ms": lat_ms, "work_ms": work_ms}, interrupted, checkpoint)
+                     {"latency_ms": lat_ms, "work_ms": work_ms, "work_to_pose_ms": pose_ms}, interrupted, checkpoint)
     return OnlineResult(out, n, n / seconds, lat_ms, interrupted, report)
 
 

@@ -89,6 +89,9 @@ def test_pose_after_gap1_solves_the_same_edges(batch, online_run, tmp_path):
     assert rep["online"]["ate_rmse_m"] < rep["teacher_chain"]["ate_rmse_m"]
     causal = read_tum(res.out / online.TRAJECTORY).poses
     assert len(causal) == 20 and not np.allclose(causal, read_tum(online_run.out / online.TRAJECTORY).poses)
+    # each frame's work until its pose is part of its whole work (so every percentile is too)
+    assert all(rep["work_to_pose_ms"][q] <= rep["work_ms"][q] for q in ("p50", "p95", "max"))
+    assert online_run.report["work_to_pose_ms"] == online_run.report["work_ms"]
 
 
 def test_window_halves_give_the_edges_of_add():
