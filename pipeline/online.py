@@ -510,13 +510,14 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
             fh.flush()
             gts.append(frame.T_world_cam)
             n += 1
-            lat.append(time.perf_counter() - t_arr)
-            to_pose.append(t_prep + time.perf_counter() - t_take)
+            t_pose = time.perf_counter()
+            lat.append(t_pose - t_arr)
+            to_pose.append(t_prep + t_pose - t_take)
             if cfg.pose_after_gap1:  # the longer edges of this frame, after its pose
                 later = teacher.add_longer()
                 t_edges += later
                 graph.add_edges([Edge(e.i, e.j, e.T_i_j, e.cov, {"source": "teacher"}) for e in later if e.ok])
-            work.append(t_prep + time.perf_counter() - t_take)
+            work.append(t_prep + time.perf_counter() - t_take if cfg.pose_after_gap1 else to_pose[-1])
             if bar is not None:
                 bar.show(n, n / (time.perf_counter() - t_start), lat, len(t_edges) + len(l_edges))
     except KeyboardInterrupt:
