@@ -447,6 +447,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     lat: list[float] = []
     work: list[float] = []  # prepare + estimate + update + write, without any wait in the queue
     to_pose: list[float] = []  # the same until the frame's pose is written
+    cpu_to_pose: list[float] = []  # the CPU time of that work (both threads' shares): what a core each gives
     bar = _Progress(cfg.progress_every_s) if progress else None
 
     def prepare(frame: Frame):
@@ -463,8 +464,8 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     def produce() -> None:
         try:
             for k, frame in enumerate(source):
-                t_arr = time.perf_counter()  # the frame is here: its latency counts from now
-                item = (t_arr, *prepare(frame), time.perf_counter() - t_arr)
+                t_arr, c_arr = time.perf_counter(), time.thread_time()  # the frame is here: latency counts from now
+                item = (t_arr, *prepare(frame), time.perf_counter() - t_arr, time.thread_time() - c_arr)
                 while not stop.is_set():
                     try:
                         ahead.put(item, timeout=0.1)
@@ -494,8 +495,8 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
                 break
             if isinstance(item, BaseException):
                 raise item
-            t_arr, frame, feats, inputs, t_prep = item
-            t_take = time.perf_counter()
+            t_arr, frame, feats, inputs, t_prep, c_prep = item
+            t_take, c_take = time.perf_counter(), time.thread_time()
             edges = teacher.add_gap1(frame, feats) if cfg.pose_after_gap1 else teacher.add(frame, feats)
             t_edges += edges
             new = [Edge(e.i, e.j, e.T_i_j, e.cov, {"source": "teacher"}) for e in edges if e.ok]
@@ -513,6 +514,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
             t_pose = time.perf_counter()
             lat.append(t_pose - t_arr)
             to_pose.append(t_prep + t_pose - t_take)
+            cpu_to_pose.append(c_prep + time.thread_time() - c_take)
             if cfg.pose_after_gap1:  # the longer edges of this frame, after its pose
                 later = teacher.add_longer()
                 t_edges += later
@@ -537,8 +539,11 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     lat_ms = {f"p{q}": 1000 * float(np.percentile(lat, q)) for q in (50, 95, 99)} | {"max": 1000 * max(lat)}
     work_ms = {f"p{q}": 1000 * float(np.percentile(work, q)) for q in (50, 95, 99)} | {"max": 1000 * max(work)}
     pose_ms = {f"p{q}": 1000 * float(np.percentile(to_pose, q)) for q in (50, 95, 99)} | {"max": 1000 * max(to_pose)}
+    cpu_ms = {f"p{q}": 1000 * float(np.percentile(cpu_to_pose, q)) for q in (50, 95, 99)} | \
+        {"max": 1000 * max(cpu_to_pose)}
     report = _finish(out, source, teacher, graph, t_edges, l_edges, gts, teacher_cfg, seconds,
-                     {"latency_ms": lat_ms, "work_ms": work_ms, "work_to_pose_ms": pose_ms}, interrupted, checkpoint)
+                     {"latency_ms": lat_ms, "work_ms": work_ms, "work_to_pose_ms": pose_ms,
+                      "work_to_pose_cpu_ms": cpu_ms}, interrupted, checkpoint)
     return OnlineResult(out, n, n / seconds, lat_ms, interrupted, report)
 
 

@@ -92,6 +92,7 @@ def test_pose_after_gap1_solves_the_same_edges(batch, online_run, tmp_path):
     # each frame's work until its pose is part of its whole work (so every percentile is too)
     assert all(rep["work_to_pose_ms"][q] <= rep["work_ms"][q] for q in ("p50", "p95", "max"))
     assert online_run.report["work_to_pose_ms"] == online_run.report["work_ms"]
+    assert 0 < rep["work_to_pose_cpu_ms"]["p50"] <= rep["work_to_pose_cpu_ms"]["max"]
 
 
 def test_window_halves_give_the_edges_of_add():
