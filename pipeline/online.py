@@ -22,6 +22,11 @@ For each new frame k:
    :mod:`posegraph.graph`);
 4. the new pose's current estimate is appended to ``trajectory.tum`` and flushed.
 
+With ``--pose-after-gap1`` step 1 gives the gap-1 edge only, and the longer teacher edges
+follow step 4 in a second ISAM2 update (the same edges; a frame's pose waits for less).
+``--dense-max-gap N`` runs the teacher's dense step on edges of at most N frames only (a
+cheaper teacher; bench/README.md, "Online mode", measures what it costs in accuracy).
+
 This module only composes them (frame sources, the hand-over thread, outputs, command
 line); it is, with pipeline/demo.py, where every stage is imported.
 
@@ -32,10 +37,11 @@ solves the same edges in batch) and ``report.json`` (fps, latency percentiles, A
 there is ground truth). Formats: docs/formats.md, "Online mode".
 
 :func:`online` (the command) follows the rerun rule of :mod:`data.runs`: beside its outputs
-it writes ``fingerprint.json`` (scene, frames, the teacher, learner and graph settings, the
-checkpoint's digest); a rerun of the same inputs keeps a finished run (with ``--follow``:
-when the folder holds no frame the run did not take), recomputes an interrupted or killed
-one, and stops with a one-line error for other inputs unless ``--overwrite``.
+it writes ``fingerprint.json`` (scene, frames, the teacher, learner and graph settings,
+``--pose-after-gap1``, the checkpoint's digest); a rerun of the same inputs keeps a
+finished run (with ``--follow``: when the folder holds no frame the run did not take),
+recomputes an interrupted or killed one, and stops with a one-line error for other inputs
+unless ``--overwrite``.
 """
 
 from __future__ import annotations
@@ -82,6 +88,12 @@ class OnlineConfig:
     prefetch: int = 2
     """Frames read and prepared (teacher features, learner inputs) ahead of the estimator
     by a helper thread (at least 1)."""
+    pose_after_gap1: bool = False
+    """Write each frame's pose once its gap-1 teacher edge (and its learner edges) are in
+    the graph; its longer teacher edges (k-g, k), g >= 2, are estimated after that and
+    enter the graph in a second ISAM2 update, before the next frame. The same edges as
+    without it (the final trajectory solves the same graph); the latency a frame waits
+    for its own pose no longer includes its longer edges (bench/README.md, "Online mode")."""
 
 
 # ----------------------------------------------------------------------------------
@@ -327,16 +339,35 @@ class OnlineTeacher:
         self.times: list[float] = []
 
     def features(self, frame: Frame):
-        """Per-frame work (safe to run in one helper thread ahead of :meth:`add`)."""
+        """Per-frame work (safe to run in one helper thread ahead of :meth:`add`), without
+        the maps the frame's dense step needs only as the older frame of a later edge:
+        :meth:`finish` adds them, in the same thread, before the next frame's features."""
         from teacher.odometry import extract
 
-        return extract(frame.rgb, frame.depth, self.cfg, self.orb, self.intr.K, self.colour)
+        return extract(frame.rgb, frame.depth, self.cfg, self.orb, self.intr.K, self.colour, surface=False)
+
+    def finish(self, fk) -> None:
+        """The rest of :meth:`features` (:func:`teacher.odometry.add_surface`): called after
+        the frame is handed over, so its own edges do not wait for it."""
+        from teacher.odometry import add_surface
+
+        if fk.dense is not None:
+            add_surface(fk.dense, fk.depth, self.intr.K, self.cfg)
 
     def add(self, frame: Frame, fk) -> list:
         """The edges ending at ``frame`` (``EdgeEstimate``; failed ones included)."""
+        return self.add_gap1(frame, fk) + self.add_longer()
+
+    def add_gap1(self, frame: Frame, fk) -> list:
+        """The first half of :meth:`add`: the gap-1 edge ending at ``frame`` (a list of it,
+        empty for the first frame); :meth:`add_longer` follows before the next frame."""
         self.ids.append(int(frame.frame_id))
         self.times.append(float(frame.timestamp))
-        return self.window.add(self.ids[-1], self.times[-1], fk)
+        return self.window.add_gap1(self.ids[-1], self.times[-1], fk)
+
+    def add_longer(self) -> list:
+        """The second half of :meth:`add`: the longer edges ending at the newest frame."""
+        return self.window.add_longer()
 
 
 # ----------------------------------------------------------------------------------
@@ -415,6 +446,8 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     gts: list[Optional[NDArray]] = []
     lat: list[float] = []
     work: list[float] = []  # prepare + estimate + update + write, without any wait in the queue
+    to_pose: list[float] = []  # the same until the frame's pose is written
+    cpu_to_pose: list[float] = []  # the CPU time of that work (both threads' shares): what a core each gives
     bar = _Progress(cfg.progress_every_s) if progress else None
 
     def prepare(frame: Frame):
@@ -422,7 +455,8 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
         return frame, feats, (learner.inputs(frame) if learner is not None else None)
 
     # A helper thread takes frames from the source (decoding them), stamps their arrival and
-    # prepares them (teacher features, learner inputs) up to cfg.prefetch frames ahead;
+    # prepares them (teacher features, learner inputs) up to cfg.prefetch frames ahead,
+    # then adds what a frame's dense step needs only as the older frame of later edges;
     # this thread estimates edges, updates the graph and writes.
     ahead: queue.Queue = queue.Queue(maxsize=max(cfg.prefetch, 1))
     stop = threading.Event()
@@ -430,14 +464,17 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     def produce() -> None:
         try:
             for k, frame in enumerate(source):
-                t_arr = time.perf_counter()  # the frame is here: its latency counts from now
-                item = (t_arr, *prepare(frame), time.perf_counter() - t_arr)
+                t_arr, c_arr = time.perf_counter(), time.thread_time()  # the frame is here: latency counts from now
+                item = (t_arr, *prepare(frame), time.perf_counter() - t_arr, time.thread_time() - c_arr)
                 while not stop.is_set():
                     try:
                         ahead.put(item, timeout=0.1)
                         break
                     except queue.Full:
                         continue
+                # what frame k's dense step needs only in later frames' edges: built here,
+                # before frame k+1 is handed over (so before the estimator can need it)
+                teacher.finish(item[2])
                 if stop.is_set() or (max_frames is not None and k + 1 >= max_frames):
                     break
             ahead.put(None)
@@ -458,9 +495,9 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
                 break
             if isinstance(item, BaseException):
                 raise item
-            t_arr, frame, feats, inputs, t_prep = item
-            t_take = time.perf_counter()
-            edges = teacher.add(frame, feats)
+            t_arr, frame, feats, inputs, t_prep, c_prep = item
+            t_take, c_take = time.perf_counter(), time.thread_time()
+            edges = teacher.add_gap1(frame, feats) if cfg.pose_after_gap1 else teacher.add(frame, feats)
             t_edges += edges
             new = [Edge(e.i, e.j, e.T_i_j, e.cov, {"source": "teacher"}) for e in edges if e.ok]
             if learner is not None:
@@ -474,8 +511,15 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
             fh.flush()
             gts.append(frame.T_world_cam)
             n += 1
-            lat.append(time.perf_counter() - t_arr)
-            work.append(t_prep + time.perf_counter() - t_take)
+            t_pose = time.perf_counter()
+            lat.append(t_pose - t_arr)
+            to_pose.append(t_prep + t_pose - t_take)
+            cpu_to_pose.append(c_prep + time.thread_time() - c_take)
+            if cfg.pose_after_gap1:  # the longer edges of this frame, after its pose
+                later = teacher.add_longer()
+                t_edges += later
+                graph.add_edges([Edge(e.i, e.j, e.T_i_j, e.cov, {"source": "teacher"}) for e in later if e.ok])
+            work.append(t_prep + time.perf_counter() - t_take if cfg.pose_after_gap1 else to_pose[-1])
             if bar is not None:
                 bar.show(n, n / (time.perf_counter() - t_start), lat, len(t_edges) + len(l_edges))
     except KeyboardInterrupt:
@@ -494,13 +538,17 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
         raise DataError(f"{source.name}: no frame arrived")
     lat_ms = {f"p{q}": 1000 * float(np.percentile(lat, q)) for q in (50, 95, 99)} | {"max": 1000 * max(lat)}
     work_ms = {f"p{q}": 1000 * float(np.percentile(work, q)) for q in (50, 95, 99)} | {"max": 1000 * max(work)}
+    pose_ms = {f"p{q}": 1000 * float(np.percentile(to_pose, q)) for q in (50, 95, 99)} | {"max": 1000 * max(to_pose)}
+    cpu_ms = {f"p{q}": 1000 * float(np.percentile(cpu_to_pose, q)) for q in (50, 95, 99)} | \
+        {"max": 1000 * max(cpu_to_pose)}
     report = _finish(out, source, teacher, graph, t_edges, l_edges, gts, teacher_cfg, seconds,
-                     {"latency_ms": lat_ms, "work_ms": work_ms}, interrupted, checkpoint)
+                     {"latency_ms": lat_ms, "work_ms": work_ms, "work_to_pose_ms": pose_ms,
+                      "work_to_pose_cpu_ms": cpu_ms}, interrupted, checkpoint)
     return OnlineResult(out, n, n / seconds, lat_ms, interrupted, report)
 
 
 def fingerprint(spec: str, source: FrameSource, teacher_cfg, checkpoint: Optional[Path] = None, predict_cfg=None,
-                graph_cfg=None):
+                graph_cfg=None, cfg: OnlineConfig = OnlineConfig()):
     """The inputs of an online run (``data.runs.Fingerprint``): scene, sequence, frames (with
     ``--follow``: as they arrive), the teacher's config (without its process settings), the
     checkpoint and the calibration beside it (content digests), the MC-dropout settings and
@@ -523,7 +571,8 @@ def fingerprint(spec: str, source: FrameSource, teacher_cfg, checkpoint: Optiona
         else None, "follow": follow, "teacher": tconf, "teacher_version": STAGE_VERSIONS["teacher"],
         "checkpoint": file_digest(checkpoint) if checkpoint is not None else None,
         "calibration": file_digest(cal) if cal is not None and cal.is_file() else None,
-        "predict": pconf if checkpoint is not None else None, "graph": (graph_cfg or ONLINE).to_dict()})
+        "predict": pconf if checkpoint is not None else None, "graph": (graph_cfg or ONLINE).to_dict(),
+        "pose_after_gap1": cfg.pose_after_gap1})
 
 
 def online(spec: str, out: Optional[Path] = None, *, frames: Optional[str] = None, follow: bool = False,
@@ -547,7 +596,7 @@ def online(spec: str, out: Optional[Path] = None, *, frames: Optional[str] = Non
     out = Path(out) if out is not None else stage_dir(spec, "online")
     with output_folder(out):
         source = open_source(spec, frames, follow, cfg)
-        fp = fingerprint(spec, source, teacher_cfg, checkpoint, predict_cfg, graph_cfg)
+        fp = fingerprint(spec, source, teacher_cfg, checkpoint, predict_cfg, graph_cfg, cfg)
         report = None
         if (out / REPORT).is_file():
             try:
@@ -654,6 +703,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--poll", type=float, default=OnlineConfig.poll_s, help="--follow: seconds between polls")
     p.add_argument("--gaps", type=int, help="teacher edges to the last K frames (default: the preset's)")
     p.add_argument("--preset", default="default", choices=sorted(TEACHER_PRESETS), help="teacher preset")
+    p.add_argument("--pose-after-gap1", action="store_true",
+                   help="write each frame's pose once its gap-1 edge is in the graph; its longer edges follow")
+    p.add_argument("--dense-max-gap", type=int, help="teacher: dense step only on edges of at most this many "
+                   "frames (0: every edge; default: the preset's); less work per frame, see bench/README.md")
     p.add_argument("--samples", type=int, help="MC-dropout passes K (default 10)")
     p.add_argument("--max-gap", type=int, help="learner edges to the last frames (default 5)")
     p.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"], help="learner device")
@@ -678,10 +731,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             if args.gaps < 1:
                 raise ConfigError(f"--gaps must be >= 1, got {args.gaps}")
             tcfg = dataclasses.replace(tcfg, gaps=args.gaps)
+        if args.dense_max_gap is not None:
+            if args.dense_max_gap < 0:
+                raise ConfigError(f"--dense-max-gap must be >= 0 (0: every edge), got {args.dense_max_gap}")
+            tcfg = dataclasses.replace(tcfg, dense_max_gap=args.dense_max_gap)
         pcfg = PredictConfig(**{k: v for k, v in (("samples", args.samples), ("max_gap", args.max_gap)) if v is not None})
         if args.timeout <= 0 or args.poll <= 0:
             raise ConfigError("--timeout and --poll must be positive")
-        ocfg = OnlineConfig(poll_s=args.poll, timeout_s=args.timeout)
+        ocfg = OnlineConfig(poll_s=args.poll, timeout_s=args.timeout, pose_after_gap1=args.pose_after_gap1)
         res = online(scene, args.out, frames=args.frames, follow=args.follow, teacher_cfg=tcfg,
                      checkpoint=args.checkpoint, predict_cfg=pcfg if args.checkpoint else None, cfg=ocfg,
                      device=args.device, overwrite=args.overwrite)

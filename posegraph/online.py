@@ -117,6 +117,25 @@ class OnlineGraph:
             self.latest[k] = geo.from_gtsam_pose3(self.isam.calculateEstimatePose3(k))
         return self.latest[int(frame_id)]
 
+    def add_edges(self, edges: list) -> None:
+        """Add edges between poses already in the graph (``data.formats.Edge``; e.g.
+        ``vo-online``'s longer teacher edges of the newest frame, estimated after its pose
+        was written) in one ISAM2 update."""
+        import gtsam
+
+        if not edges:
+            return
+        graph = gtsam.NonlinearFactorGraph()
+        for f in self._edge_factors(edges):
+            graph.add(f)
+        slots = list(self._update(graph, gtsam.Values()).getNewFactorsIndices())
+        self.live.update({int(k): graph.at(n) for n, k in enumerate(slots)})
+        self.edges += edges
+        self.slots += slots
+        self.status = np.concatenate([self.status, np.zeros(len(edges), np.int64)])
+        for k in self.ids[-8:]:  # refresh the newest estimates (anchors of the next predictions)
+            self.latest[k] = geo.from_gtsam_pose3(self.isam.calculateEstimatePose3(k))
+
     def _update(self, graph, values, remove: Sequence[int] = ()):
         try:
             return self.isam.update(graph, values, list(remove))

@@ -123,6 +123,16 @@ class TeacherConfig:
     the hybrid alone in place of the point-to-plane step made gap-1 4.84 against 4.13 mm
     (7-Scenes' ground truth follows the depth, its colour is exposed at other times). A
     stale-stream edge (``dense_on_stale``) never gets the hybrid stage."""
+    dense_max_gap: int = 0
+    """Dense step (both stages, and their fusion) only on edges spanning at most this many
+    frames; longer edges keep their sparse estimate (PnP-RANSAC + two-way refinement) and its
+    covariance. 0: on every edge. An option for ``vo-online``'s per-frame work (the dense
+    step is about half of an edge's time on redkitchen: edges 94 -> 54 ms CPU per frame with
+    1, redkitchen 350:420); ``teacher generate`` keeps 0. The fallback chain
+    (``fallback_rgbd``, ``fallback_dense``) is not affected. Not recommended: on
+    synthetic/lab 0:100 (validation) the online final ATE with ``gaps`` 3 was 1.14x (2) and
+    1.63x (1) the default's, as the longer edges' sparse labels are worse and their
+    covariances too confident (bench/README.md, "Online mode")."""
     hybrid_iters: int = 3
     """Hybrid dense step: most iterations (stopping earlier at ``dense_stop_m`` /
     ``dense_stop_deg``). stress-far (20 frames) 1.03 mm with 3, 1.10 with 2; synthetic/lab

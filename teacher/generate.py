@@ -373,6 +373,8 @@ def generate(spec: str, out: Optional[Path] = None, split: str = "all", frames: 
 
     if config.gaps < 1:
         raise ConfigError(f"--gaps must be >= 1, got {config.gaps}")
+    if config.dense_max_gap < 0:
+        raise ConfigError(f"--dense-max-gap must be >= 0 (0: every edge), got {config.dense_max_gap}")
     if config.workers > 1:
         processes.start()  # the workers import while the scene opens (or renders)
     base = Path(out) if out is not None else stage_dir(spec, "teacher")

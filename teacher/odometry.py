@@ -165,10 +165,34 @@ class DenseMaps:
     """
 
     points: o3d.core.Tensor
-    vertex: o3d.core.Tensor
-    normal: o3d.core.Tensor
+    vertex: Optional[o3d.core.Tensor]
+    normal: Optional[o3d.core.Tensor]
     K: o3d.core.Tensor
     photo: Optional["PhotoMaps"] = None
+    _cache: dict = field(default_factory=dict, repr=False)
+    """What the covariances of :func:`point_to_plane_covariance` take from this frame on
+    every edge it is part of, computed on its first edge (:meth:`moved_points`,
+    :meth:`surface`)."""
+
+    def moved_points(self, stride: int) -> NDArray[np.float64]:
+        """(N, 3) the finite points of ``points``, every ``stride``-th in both axes, float64
+        (the frame as the one moved, j; the same for all its edges)."""
+        key = ("points", stride)
+        if key not in self._cache:
+            q = self.points.numpy()[::stride, ::stride].reshape(-1, 3)
+            self._cache[key] = q[np.all(np.isfinite(q), axis=1)].astype(np.float64)
+        return self._cache[key]
+
+    def surface(self) -> tuple[NDArray[np.float64], NDArray[np.bool_], int, int, NDArray[np.float64]]:
+        """The frame as the one aligned to (i): (h * w, 6) float64 vertex and normal of each
+        pixel of ``vertex`` / ``normal`` (row-major), whether both are finite there, h, w and
+        the camera matrix; one gather per edge instead of two and their finiteness tests."""
+        if "surface" not in self._cache:
+            vert, nrm = self.vertex.numpy(), self.normal.numpy()
+            h, w = vert.shape[:2]
+            vn = np.concatenate([vert.reshape(-1, 3), nrm.reshape(-1, 3)], axis=1).astype(np.float64)
+            self._cache["surface"] = (vn, np.all(np.isfinite(vn), axis=1), h, w, self.K.numpy())
+        return self._cache["surface"]
 
 
 @dataclass
@@ -230,7 +254,7 @@ def _subsampled(depth: NDArray[np.float32], K: NDArray, s: int,
 
 
 def dense_maps(depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig,
-               gray: Optional[NDArray[np.uint8]] = None) -> DenseMaps:
+               gray: Optional[NDArray[np.uint8]] = None, surface: bool = True) -> DenseMaps:
     """The maps of :class:`DenseMaps` for one depth image (metres, 0 = invalid).
 
     The points moved are sparse (every 4th pixel: the cost of an iteration is proportional
@@ -240,15 +264,30 @@ def dense_maps(depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig,
     from a Gaussian-smoothed copy of the depth (``filter_bilateral`` with a 5 m value sigma,
     which skips holes), as in Open3D's own point-to-plane odometry; Kinect noise makes
     unsmoothed normals useless.
+
+    ``surface`` False leaves ``vertex`` and ``normal`` (the frame as the one aligned to, i:
+    about two thirds of the time here) to :func:`add_surface`: a frame is i only in the
+    edges of the frames after it, so ``vo-online`` builds them after handing the frame over.
     """
     img, Kt = _subsampled(depth, K, cfg.dense_scale, cfg)
     points = img.create_vertex_map(Kt, float("nan")).as_tensor()
     img, Kt = _subsampled(depth, K, cfg.dense_target_scale, cfg)
-    vertex = img.create_vertex_map(Kt, float("nan")).as_tensor()
+    maps = DenseMaps(points, None, None, Kt, photo_maps(gray, depth, K, cfg) if gray is not None else None)
+    if surface:
+        _fill_surface(maps, img, cfg)
+    return maps
+
+
+def add_surface(maps: DenseMaps, depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig) -> None:
+    """Fill ``maps.vertex`` and ``maps.normal`` (see :func:`dense_maps`) when they are missing."""
+    if maps.vertex is None:
+        _fill_surface(maps, _subsampled(depth, K, cfg.dense_target_scale, cfg)[0], cfg)
+
+
+def _fill_surface(maps: DenseMaps, img: o3d.t.geometry.Image, cfg: TeacherConfig) -> None:
     smooth = img.filter_bilateral(cfg.dense_normal_kernel, 5.0, 10.0)
-    normal = smooth.create_vertex_map(Kt, float("nan")).create_normal_map(float("nan")).as_tensor()
-    photo = photo_maps(gray, depth, K, cfg) if gray is not None else None
-    return DenseMaps(points, vertex, normal, Kt, photo)
+    maps.vertex = img.create_vertex_map(maps.K, float("nan")).as_tensor()
+    maps.normal = smooth.create_vertex_map(maps.K, float("nan")).create_normal_map(float("nan")).as_tensor()
 
 
 def photo_maps(gray: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig) -> PhotoMaps:
@@ -348,18 +387,20 @@ def dense_method(cfg: TeacherConfig, colour: Optional[ColourCamera]) -> str:
 
 def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConfig,
             orb: Optional[cv2.ORB] = None, K: Optional[NDArray] = None,
-            colour: Optional[ColourCamera] = None) -> FrameFeatures:
+            colour: Optional[ColourCamera] = None, surface: bool = True) -> FrameFeatures:
     """ORB keypoints and descriptors of one frame, with the depth at each keypoint; with the
-    camera matrix ``K`` and ``cfg.dense_iters > 0`` also the maps of the dense step. With a
-    ``colour`` camera model (and ``K``), keypoints are moved into depth-camera pixels
-    (``uv`` is then in depth-camera pixels; None: colour registered to depth)."""
+    camera matrix ``K`` and ``cfg.dense_iters > 0`` also the maps of the dense step (``surface``
+    False: without the ones it needs as the older frame of an edge, for :func:`add_surface`
+    to add before a later frame's edges). With a ``colour`` camera model (and ``K``),
+    keypoints are moved into depth-camera pixels (``uv`` is then in depth-camera pixels;
+    None: colour registered to depth)."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     dense = None
     if K is not None and cfg.dense_iters > 0:
         photo = None
         if dense_method(cfg, colour) == "hybrid":
             photo = colour.to_depth_image(gray, depth, K) if colour is not None else gray
-        dense = dense_maps(depth, K, cfg, photo)
+        dense = dense_maps(depth, K, cfg, photo, surface)
     orb = orb or make_orb(cfg)
     kps, desc = orb.detectAndCompute(gray, None)
     keys = image_keys(rgb, depth)
@@ -644,12 +685,13 @@ def _huber(r: NDArray, k: float) -> tuple[float, NDArray, NDArray]:
 
 def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
                   cfg: TeacherConfig, dt: float, T_pred: Optional[NDArray] = None,
-                  tracks: Optional[NDArray[np.int64]] = None) -> EdgeEstimate:
+                  tracks: Optional[NDArray[np.int64]] = None, dense: bool = True) -> EdgeEstimate:
     """Estimate ``T_i_j`` between two frames (ids ``i``, ``j``, ``dt`` seconds apart).
 
     Correspondences come from ``tracks`` ((M, 2) keypoint index pairs chained along the
     gap-1 matches) when given and numerous enough, else from matching: guided by the motion
     prediction ``T_pred`` when given, exhaustive otherwise or when the guided estimate fails.
+    ``dense``: refine a good sparse estimate with the dense step (:func:`dense_refine`).
     """
     attempts = []
     if tracks is not None and len(tracks) >= cfg.min_matches:
@@ -688,7 +730,7 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
         if dense.ok:
             return dense
         best.info["dense_fallback"] = dense.status
-    if best.ok and fi.dense is not None and fj.dense is not None:
+    if dense and best.ok and fi.dense is not None and fj.dense is not None:
         stale = fi.stale or fj.stale
         dense_refine(best, fi.dense, fj.dense, cfg, blend=1.0 if stale and cfg.dense_on_stale else None,
                      hybrid=tracks is None or cfg.hybrid_all_gaps)
@@ -942,23 +984,23 @@ def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg:
     bound of the real uncertainty. None when fewer than 6 pairs or a singular system.
     ``stride``: use every ``stride``-th point of j in both axes (the covariance is then
     scaled back to all of them)."""
-    q = dj.points.numpy()[::stride, ::stride].reshape(-1, 3)
-    q = q[np.all(np.isfinite(q), axis=1)]
+    q = dj.moved_points(stride)
     R, t = T_i_j[:3, :3], T_i_j[:3, 3]
     X = q @ R.T + t
-    K = di.K.numpy()
-    vert, nrm = di.vertex.numpy(), di.normal.numpy()
-    h, w = vert.shape[:2]
+    vn, finite, h, w, K = di.surface()
     front = X[:, 2] > 1e-6
-    u = np.full(len(X), -1, np.int64)
-    v = np.full(len(X), -1, np.int64)
-    u[front] = np.rint(K[0, 0] * X[front, 0] / X[front, 2] + K[0, 2]).astype(np.int64)
-    v[front] = np.rint(K[1, 1] * X[front, 1] / X[front, 2] + K[1, 2]).astype(np.int64)
-    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    q, X, u, v = q[inside], X[inside], u[inside], v[inside]
-    p, n = vert[v, u].astype(np.float64), nrm[v, u].astype(np.float64)
-    ok = np.all(np.isfinite(p), axis=1) & np.all(np.isfinite(n), axis=1) & (np.linalg.norm(X - p, axis=1) < cfg.dense_trunc_m)
-    q, X, p, n = q[ok], X[ok], p[ok], n[ok]
+    if not front.all():
+        q, X = q[front], X[front]
+    u = np.rint(K[0, 0] * X[:, 0] / X[:, 2] + K[0, 2]).astype(np.int64)
+    v = np.rint(K[1, 1] * X[:, 1] / X[:, 2] + K[1, 2]).astype(np.int64)
+    sel = np.flatnonzero((u >= 0) & (u < w) & (v >= 0) & (v < h))
+    pix = v[sel] * w + u[sel]
+    use = finite[pix]
+    sel, pn = sel[use], vn[pix[use]]
+    d = X[sel] - pn[:, :3]
+    ok = np.sqrt(np.add.reduce(d * d, axis=1)) < cfg.dense_trunc_m  # np.linalg.norm's formula
+    sel, pn = sel[ok], pn[ok]
+    q, X, p, n = q[sel], X[sel], pn[:, :3].copy(), pn[:, 3:].copy()
     if len(q) < 6:
         return None, len(q), float("nan")
     r = np.einsum("ij,ij->i", n, X - p)
@@ -1133,7 +1175,7 @@ def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray
     return out
 
 
-__all__ = ["ColourCamera", "KINECT_V1_COLOUR", "FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "photo_maps", "dense_method", "hybrid_align", "pyramid_align", "hybrid_covariance", "PhotoMaps", "dense_refine", "match",
+__all__ = ["ColourCamera", "KINECT_V1_COLOUR", "FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "add_surface", "photo_maps", "dense_method", "hybrid_align", "pyramid_align", "hybrid_covariance", "PhotoMaps", "dense_refine", "match",
            "match_wide", "dense_edge", "rgbd_edge", "point_to_plane_covariance",
            "image_keys", "stale_stream",
            "estimate_edge", "refine_two_way", "make_orb"]

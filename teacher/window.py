@@ -57,19 +57,31 @@ class EdgeWindow:
         self.entries: deque[_Entry] = deque()
         self.v_prev: Optional[NDArray[np.float64]] = None  # last good gap-1 motion (constant-velocity prior)
         self.added = 0
+        self._pending: Optional[tuple] = None  # the frame add_gap1 took, until add_longer
 
     def _starts_inside(self, pos: int) -> bool:
         return self.until is None or pos < self.until
 
     def add(self, frame_id: int, timestamp: float, fk: FrameFeatures) -> list[EdgeEstimate]:
         """The edges ending at the new frame (failed ones included: ``e.ok`` False), the
-        gap-1 edge first, then the longer ones from the oldest frame on. Sets ``fk.stale``."""
+        gap-1 edge first, then the longer ones from the oldest frame on. Sets ``fk.stale``.
+        (:meth:`add_gap1` then :meth:`add_longer`.)"""
+        return self.add_gap1(frame_id, timestamp, fk) + self.add_longer()
+
+    def add_gap1(self, frame_id: int, timestamp: float, fk: FrameFeatures) -> list[EdgeEstimate]:
+        """The first half of :meth:`add`: the gap-1 edge ending at the new frame (a list of
+        it; empty for the first frame or one before ``until``'s range), and the feature
+        tracks and chained motions extended to the new frame. :meth:`add_longer` must follow
+        before the next frame (``vo-online`` writes the frame's pose in between)."""
+        if self._pending is not None:
+            raise RuntimeError("EdgeWindow.add_longer() must follow add_gap1() before the next frame")
         cfg, intr = self.cfg, self.intr
         pos, self.added = self.added, self.added + 1
         if self.prev_keys is not None:
             fk.stale = stale_stream(self.prev_keys, fk.keys)
         self.prev_keys = fk.keys
         edges: list[EdgeEstimate] = []
+        e = None
         if self.entries:
             prev = self.entries[-1]
             e = estimate_edge(prev.frame_id, frame_id, prev.feats, fk, intr, cfg, timestamp - prev.timestamp,
@@ -85,17 +97,32 @@ class EdgeWindow:
             for w in self.entries:
                 w.link = m[w.link]
                 w.T_k_cur = w.T_k_cur @ step
+        self._pending = (pos, frame_id, timestamp, fk, e)
+        return edges
+
+    def add_longer(self) -> list[EdgeEstimate]:
+        """The second half of :meth:`add`: the edges (k-g, k), g = 2..K, of the frame
+        :meth:`add_gap1` took, from the oldest frame on; the frame then enters the window."""
+        if self._pending is None:
+            raise RuntimeError("EdgeWindow.add_longer() without a frame from add_gap1()")
+        pos, frame_id, timestamp, fk, e = self._pending
+        self._pending = None
+        cfg, intr = self.cfg, self.intr
+        edges: list[EdgeEstimate] = []
+        if e is not None:
             for w in list(self.entries)[:-1]:  # gaps >= 2
                 if not self._starts_inside(w.pos):
                     continue
                 tracks = np.flatnonzero(w.link >= 0)
                 tracks = np.stack([tracks, w.link[tracks]], axis=1)
+                gap = pos - w.pos
                 edges.append(estimate_edge(w.frame_id, frame_id, w.feats, fk, intr, cfg, timestamp - w.timestamp,
-                                           w.T_k_cur.copy(), tracks))
+                                           w.T_k_cur.copy(), tracks,
+                                           dense=cfg.dense_max_gap <= 0 or gap <= cfg.dense_max_gap))
             e.inlier_pairs = None  # only needed for the tracks above
         self.entries.append(_Entry(pos, int(frame_id), timestamp, fk, np.arange(len(fk.uv)), np.eye(4)))
         while self.entries and pos - self.entries[0].pos >= cfg.gaps:
             self.entries.popleft()
-        for e in edges:
-            e.inlier_pairs = None  # keeps results small
+        for x in edges:
+            x.inlier_pairs = None  # keeps results small
         return edges

@@ -73,6 +73,48 @@ def test_online_trajectory_matches_batch_pose_graph(batch, online_run):
     assert online_run.latency_ms["p95"] > 0 and online_run.fps > 0
 
 
+@pytest.mark.slow
+def test_pose_after_gap1_solves_the_same_edges(batch, online_run, tmp_path):
+    """``pose_after_gap1``: each frame's pose is written after its gap-1 edge, the longer
+    edges follow in a second update; the edges are still the batch teacher's bit for bit,
+    the final trajectory solves the same graph (the batch pose graph's ATE to 10 %), and
+    the causal estimates still beat chaining the gap-1 edges."""
+    res = online.run(online.open_source("synthetic/tiny"), tmp_path / "o", TCFG,
+                     cfg=online.OnlineConfig(pose_after_gap1=True), progress=False)
+    assert res.frames == 20
+    assert (res.out / "teacher" / "edges.g2o").read_text() == (batch / "teacher" / "edges.g2o").read_text()
+    batch_ate = json.loads((batch / "posegraph" / "report.json").read_text())["rows"]["fused"]["ate_rmse_m"]
+    rep = res.report
+    assert abs(rep["final"]["ate_rmse_m"] - batch_ate) <= 0.1 * batch_ate, (rep["final"]["ate_rmse_m"], batch_ate)
+    assert rep["online"]["ate_rmse_m"] < rep["teacher_chain"]["ate_rmse_m"]
+    causal = read_tum(res.out / online.TRAJECTORY).poses
+    assert len(causal) == 20 and not np.allclose(causal, read_tum(online_run.out / online.TRAJECTORY).poses)
+    # each frame's work until its pose is part of its whole work (so every percentile is too)
+    assert all(rep["work_to_pose_ms"][q] <= rep["work_ms"][q] for q in ("p50", "p95", "max"))
+    assert online_run.report["work_to_pose_ms"] == online_run.report["work_ms"]
+    assert 0 < rep["work_to_pose_cpu_ms"]["p50"] <= rep["work_to_pose_cpu_ms"]["max"]
+
+
+def test_window_halves_give_the_edges_of_add():
+    """EdgeWindow.add_gap1 then add_longer gives add's edges; a second add_gap1 before
+    add_longer is refused (the tracks of the first frame would be lost)."""
+    from teacher.odometry import extract
+    from teacher.window import EdgeWindow
+
+    seq = open_scene("synthetic/tiny", frames="0:4")[0]
+    feats = [[extract(seq.rgb(k), seq.depth(k), TCFG, K=seq.intrinsics.K) for k in range(4)] for _ in range(2)]
+    whole, halves = EdgeWindow(seq.intrinsics, TCFG), EdgeWindow(seq.intrinsics, TCFG)
+    for k in range(4):
+        a = whole.add(int(seq.ids()[k]), float(seq.times()[k]), feats[0][k])
+        first = halves.add_gap1(int(seq.ids()[k]), float(seq.times()[k]), feats[1][k])
+        if k == 1:
+            with pytest.raises(RuntimeError):
+                halves.add_gap1(int(seq.ids()[k + 1]), float(seq.times()[k + 1]), feats[1][k + 1])
+        b = first + halves.add_longer()
+        assert [(e.i, e.j) for e in a] == [(e.i, e.j) for e in b] and len(first) == (k > 0)
+        assert all(np.array_equal(x.T_i_j, y.T_i_j) for x, y in zip(a, b) if x.ok)
+
+
 def _copy_frames_slowly(src: Path, dst: Path, period_s: float, done: threading.Event) -> None:
     """A writer: each frame's files appear by an atomic rename, one frame per period."""
     try:

@@ -801,3 +801,37 @@ def test_dense_method_auto_follows_the_sensor(office_clean, tmp_path):
     assert dense_method_for(seq, cfg) == "point-to-plane"
     with pytest.raises(ConfigError):
         dense_method_for(office_clean, dataclasses.replace(cfg, dense_method="photometric"))
+
+
+@pytest.mark.slow
+def test_dense_max_gap_keeps_the_dense_step_to_short_edges(tmp_path, capsys):
+    """``--dense-max-gap 1``: the gap-1 edges are the default teacher's, bit for bit; the
+    gap-2 edges keep their sparse estimate (no dense outcome in edges.csv, other poses);
+    a negative value is a one-line error."""
+    out1, out0 = tmp_path / "d1", tmp_path / "d0"
+    args = ["generate", "--scene", "synthetic/tiny", "--preset", "tiny", "--frames", "0:6", "--workers", "1"]
+    assert cli.main([*args, "--out", str(out0)]) == 0
+    assert cli.main([*args, "--out", str(out1), "--dense-max-gap", "1"]) == 0
+    assert json.loads((out1 / "config.json").read_text())["teacher"]["dense_max_gap"] == 1
+    rows0, rows1 = read_edges_csv(out0 / "edges.csv"), read_edges_csv(out1 / "edges.csv")
+    e0, e1 = read_g2o(out0 / "edges.g2o")[0], read_g2o(out1 / "edges.g2o")[0]
+    by_pair0 = {(e.i, e.j): e for e in e0}
+    gap1 = [e for e in e1 if e.j - e.i == 1]
+    assert len(gap1) == 5 and all(np.array_equal(e.T_i_j, by_pair0[e.i, e.j].T_i_j) for e in gap1)
+    assert all("dense_fitness" in r for r in rows1 if int(r["j"]) - int(r["i"]) == 1 and r["status"] == "ok")
+    long1 = [r for r in rows1 if int(r["j"]) - int(r["i"]) == 2 and r["status"] == "ok"]
+    assert len(long1) == 4 and not any("dense_fitness" in r for r in long1)
+    assert all("dense_fitness" in r for r in rows0 if int(r["j"]) - int(r["i"]) == 2 and r["status"] == "ok")
+    # the gap-2 labels are not the dense-refined ones; an edge asked for without the dense step has none
+    long0 = {(e.i, e.j): e for e in e0 if e.j - e.i == 2}
+    assert not any(np.allclose(e.T_i_j, long0[e.i, e.j].T_i_j, atol=1e-9) for e in e1 if e.j - e.i == 2)
+    seq = open_scene("synthetic/tiny", frames="0:2")[0]
+    from teacher.config import TINY
+
+    fa, fb = (extract(seq.rgb(k), seq.depth(k), TINY, K=seq.intrinsics.K) for k in range(2))
+    sparse = estimate_edge(0, 1, fa, fb, seq.intrinsics, TINY, 1 / 30, np.eye(4), dense=False)
+    dense = estimate_edge(0, 1, fa, fb, seq.intrinsics, TINY, 1 / 30, np.eye(4))
+    assert sparse.ok and "dense" not in sparse.info and "dense" in dense.info
+    assert cli.main([*args, "--out", str(tmp_path / "bad"), "--dense-max-gap", "-1"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("error: ") and "--dense-max-gap" in err
