@@ -261,6 +261,8 @@ def photo_maps(gray: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray, 
         inten *= np.float32(0.5 / max(float(inten[::4, ::4].mean()), 1e-3))
     if cfg.photo_blur_px > 0:
         inten = cv2.GaussianBlur(inten, (0, 0), cfg.photo_blur_px)
+    if cfg.photo_weight != 1.0:  # the kernel weighs both residuals alike: scale the grey instead
+        inten *= np.float32(np.sqrt(cfg.photo_weight))
     s = cfg.dense_scale
 
     def t(a: NDArray) -> o3d.core.Tensor:
@@ -270,6 +272,12 @@ def photo_maps(gray: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray, 
                      t(cv2.Sobel(d, cv2.CV_32F, 1, 0, ksize=3)), t(cv2.Sobel(d, cv2.CV_32F, 0, 1, ksize=3)),
                      t(cv2.Sobel(inten, cv2.CV_32F, 1, 0, ksize=3)), t(cv2.Sobel(inten, cv2.CV_32F, 0, 1, ksize=3)),
                      o3d.core.Tensor(np.asarray(K, dtype=np.float64)))
+
+
+def _photo_huber(cfg: TeacherConfig) -> float:
+    """Huber threshold of the photometric residual in the units of the scaled grey maps of
+    :func:`photo_maps` (``cfg.photo_huber`` times ``sqrt(cfg.photo_weight)``)."""
+    return cfg.photo_huber * float(np.sqrt(cfg.photo_weight))
 
 
 def hybrid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
@@ -286,7 +294,7 @@ def hybrid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConf
     for it in range(iters):
         step = o3d.t.pipelines.odometry.compute_odometry_result_hybrid(
             pj.src_depth, pi.depth, pj.src_intensity, pi.intensity, pi.depth_dx, pi.depth_dy, pi.intensity_dx,
-            pi.intensity_dy, dj.points, pi.K, T, cfg.dense_trunc_m, cfg.dense_huber_m, cfg.photo_huber)
+            pi.intensity_dy, dj.points, pi.K, T, cfg.dense_trunc_m, cfg.dense_huber_m, _photo_huber(cfg))
         T = step.transformation.matmul(T)
         fitness = float(step.fitness)
         delta = step.transformation.numpy()
@@ -312,7 +320,7 @@ def pyramid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherCon
         for _ in range(iters):
             step = o3d.t.pipelines.odometry.compute_odometry_result_hybrid(
                 tj[0], ti[0], tj[1], ti[1], ti[2], ti[3], ti[4], ti[5], tj[6], ti[7], T,
-                cfg.dense_trunc_m, cfg.dense_huber_m, cfg.photo_huber)
+                cfg.dense_trunc_m, cfg.dense_huber_m, _photo_huber(cfg))
             T = step.transformation.matmul(T)
             delta = step.transformation.numpy()
             if np.linalg.norm(delta[:3, 3]) < cfg.dense_stop_m and geo.rotation_angle_deg(delta) < cfg.dense_stop_deg:
@@ -718,12 +726,27 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     config field); ``blend`` overrides it (1 for a frame whose colour and depth were taken
     at different times, see ``cfg.dense_on_stale``). The covariance stays the sparse
     refinement's.
+
+    With photometric maps on both frames (``cfg.dense_method`` hybrid) and ``hybrid``, the
+    hybrid stage follows (:func:`hybrid_align`), information-fused with the estimate so far.
+    On a stale pair too when ``cfg.hybrid_on_stale``: the caller (:class:`teacher.window.EdgeWindow`)
+    gives a frame whose depth repeats the previous frame's that frame's photometric maps
+    (the colour taken with that depth) and a frame whose colour repeats none, so maps that
+    exist match their depth; the prior is then the depth stage's own covariance (times
+    ``cfg.dense_cov_scale``), as the sparse estimate was dropped.
     """
     if cfg.dense_iters <= 0:
         return
-    # a stale pair's colour shows another moment than its depth: depth alone there
-    hybrid = hybrid and di.photo is not None and dj.photo is not None and blend is None
+    # a stale pair's keypoints show another moment than its depth: depth alone there, then
+    # the hybrid stage where both frames' photometric maps match their depth (see above)
+    hybrid = hybrid and di.photo is not None and dj.photo is not None and (blend is None or cfg.hybrid_on_stale)
     cov = _dense_stage(res, di, dj, cfg, blend, False, res.cov)
+    if hybrid and blend is not None:
+        # the sparse estimate was dropped: the depth stage's own covariance is the prior
+        cov, _, _ = point_to_plane_covariance(res.T_i_j, di, dj, cfg, stride=cfg.dense_cov_stride)
+        if cov is None:
+            return
+        cov = cov * cfg.dense_cov_scale
     if hybrid:
         _dense_stage(res, di, dj, cfg, None, True, cov)
 
@@ -1026,7 +1049,8 @@ def hybrid_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg: Teacher
     bD = gDx[:, None] * du + gDy[:, None] * dv
     bD[:, 2] -= 1.0
     info = np.zeros((6, 6))
-    for b, r, k, floor in ((bI, rI, cfg.photo_huber, 1.0 / 255), (bD, rD, cfg.dense_huber_m, cfg.dense_min_sigma_m)):
+    a = float(np.sqrt(cfg.photo_weight))  # the grey maps' scale (photo_maps)
+    for b, r, k, floor in ((bI, rI, _photo_huber(cfg), a / 255), (bD, rD, cfg.dense_huber_m, cfg.dense_min_sigma_m)):
         m = b @ R  # R^T b per pixel
         J = np.concatenate([m, np.cross(q, m)], axis=1)
         _, wts, _ = _huber(r, k)
