@@ -143,7 +143,7 @@ class TeacherConfig:
     ~10 % longer than with gap 1 alone, which the >= 10x Open3D speed target does not leave."""
     photo_huber: float = 0.1
     """Hybrid dense step: Huber threshold of the intensity residual (grey in [0, 1] before
-    ``photo_normalise``; Open3D's default, not tuned)."""
+    ``photo_normalise`` and ``photo_weight``; Open3D's default, not tuned)."""
     hybrid_cov_scale: float = 10.0
     """Hybrid dense step, ``information`` fusion: its covariance
     (:func:`teacher.odometry.hybrid_covariance`, from every ``2 * dense_cov_stride``-th point)
@@ -169,7 +169,9 @@ class TeacherConfig:
     1.70 / 1.65, lab 2.17 / 2.27 / 2.31 / 2.41 / 2.57. 0.5: the smallest worst ratio to Open3D's
     gap-1 error over these eight (1.04, stress-repetitive; 0.3: 1.09, 1: 1.14) and the
     smallest geometric mean; 0.1 strands an edge of stress-fast. Only the hybrid maps of
-    synthetic scenes use it (real recordings: ``dense_method``)."""
+    synthetic scenes use it (real recordings: ``dense_method``). The fields around it
+    (``hybrid_cov_scale``, ``photo_blur_px``, ``photo_normalise``) were chosen at weight 1 and
+    not chosen again."""
     photo_blur_px: float = 2.0
     """Hybrid steps: Gaussian blur (sigma, pixels) of the grey image before its use (widens
     the photometric term's basin; the kernel's gradients are 3x3 Sobel at full resolution).
