@@ -658,6 +658,9 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
     Correspondences come from ``tracks`` ((M, 2) keypoint index pairs chained along the
     gap-1 matches) when given and numerous enough, else from matching: guided by the motion
     prediction ``T_pred`` when given, exhaustive otherwise or when the guided estimate fails.
+    When none passes, the fallback chain (``cfg.fallback_*``); a good estimate gets the dense
+    step (:func:`dense_refine`), and with photometric maps, when its depth stage moved it too
+    far (:func:`_dense_disagrees`), the rgbd fallback from ``T_pred`` replaces it.
     """
     attempts = []
     if tracks is not None and len(tracks) >= cfg.min_matches:
@@ -702,7 +705,23 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
                      hybrid=tracks is None or cfg.hybrid_all_gaps)
         if "dense" in best.info:
             best.info["dense"]["stale_stream"] = stale
+        if (cfg.fallback_rgbd and T_pred is not None and _dense_disagrees(best.info.get("dense", {}), cfg)
+                and fi.dense.photo is not None and fj.dense.photo is not None):
+            # the depth, started at the keypoints' estimate, moved too far from it: the
+            # keypoints may agree on a wrong motion; the rgbd fallback from the prediction
+            rgbd = rgbd_edge(i, j, fi, fj, intr, cfg, dt, T_pred, chained=tracks is not None)
+            if rgbd.ok:
+                rgbd.info["sparse_status"] = "dense_disagrees"
+                return rgbd
     return best
+
+
+def _dense_disagrees(d: dict, cfg: TeacherConfig) -> bool:
+    """The depth stage of :func:`dense_refine` (``d`` = ``info["dense"]``) paired enough
+    pixels but was rejected for moving the pose farther than ``cfg.dense_max_shift_m`` /
+    ``cfg.dense_max_shift_deg`` from the sparse estimate."""
+    return (bool(d) and not d.get("accepted", True) and d.get("fitness", 0.0) >= cfg.dense_min_fitness
+            and (d.get("shift_m", 0.0) > cfg.dense_max_shift_m or d.get("shift_deg", 0.0) > cfg.dense_max_shift_deg))
 
 
 def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,

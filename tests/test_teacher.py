@@ -770,6 +770,37 @@ def test_photo_weight_scales_the_grey_not_the_covariance(office_clean):
     np.testing.assert_allclose(covs[1], covs[0], rtol=1e-3, atol=1e-14)
 
 
+def test_keypoints_agreeing_on_a_wrong_motion_give_way_to_the_rgbd_fallback(office_clean, monkeypatch):
+    """A sparse estimate 4 cm off the truth (keypoints that agree on a wrong motion, e.g.
+    repeated structure): the point-to-plane and the hybrid stage, each started there, move
+    farther than ``dense_max_shift_m`` and are both rejected; the edge is then made by the
+    rgbd fallback from the motion prediction (``sparse_status`` ``dense_disagrees``), close
+    to the truth. With the depth stage alone (``point-to-plane``: real recordings) the
+    sparse estimate stays, as before."""
+    import teacher.odometry as od
+
+    seq = office_clean
+    gt = seq.groundtruth()
+    T_true = geo.relative_pose(gt[3], gt[4])
+    T_bad = T_true @ geo.se3_exp([0.04, 0.0, 0.0, 0.0, 0.0, 0.0])
+    T_pred = T_true @ geo.se3_exp([0.003, -0.002, 0.002, 0.002, -0.002, 0.002])
+
+    def wrong(i, j, fi, fj, intr, cfg, dt, pairs):
+        return EdgeEstimate(i, j, "ok", T_i_j=T_bad.copy(), cov=np.diag([1e-6] * 3 + [3e-6] * 3), matches=100,
+                            inliers=90, inlier_ratio=0.9, info={})
+
+    monkeypatch.setattr(od, "_estimate", wrong)
+    out = {}
+    for method in ("hybrid", "point-to-plane"):
+        cfg = dataclasses.replace(TeacherConfig(), dense_method=method)
+        fa, fb = _features(seq, 3, cfg), _features(seq, 4, cfg)
+        out[method] = estimate_edge(3, 4, fa, fb, seq.intrinsics, cfg, 1 / 30, T_pred=T_pred)
+    e = out["hybrid"]
+    assert e.ok and e.info["path"] == "rgbd" and e.info["sparse_status"] == "dense_disagrees", e.info
+    assert relative_pose_error(T_true, e.T_i_j)[0] < 2e-3
+    assert out["point-to-plane"].info["path"] == "guided" and np.array_equal(out["point-to-plane"].T_i_j, T_bad)
+
+
 class _DepthRepeats:
     """A sequence whose frames listed in ``repeats`` carry the previous frame's depth (and
     pose, as a dropped depth frame does) with their own colour."""
