@@ -280,8 +280,9 @@ class TeacherConfig:
     whose depth stage paired enough pixels but moved it farther than ``dense_max_shift_m`` /
     ``_deg`` (keypoints agreeing on a wrong motion; ``sparse_status`` ``dense_disagrees``), when
     it succeeds. On the whole 300-frame stress-textureless preset (the team's scene, ``gaps=1``)
-    it made 12 such gap-1 edges, among them one 34 mm off: gap-1 3.15 -> 2.24 mm; no edge of the
-    40-frame stress walks, office 0:60 or lab 0:100 changed. Real recordings: never (no maps)."""
+    it made 12 such gap-1 edges, among them one 34 mm off: gap-1 3.15 -> 2.24 mm; no gap-1 edge of
+    the 40-frame stress walks, office 0:60 or lab 0:100 changed (``gaps=1`` runs). Real recordings:
+    never (no maps)."""
     fallback_dense_iters: int = 20
     """Fallback 2: most iterations of the dense alignment (it starts farther from the answer
     than the refinement of a sparse estimate does; set a priori, not tuned)."""
