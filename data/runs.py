@@ -58,7 +58,10 @@ FINGERPRINT_FILE = "fingerprint.json"
 #: inputs instead of keeping them. Stages downstream of a file see its change through
 #: the file's digest; ``online`` runs the teacher's code itself and records its version.
 STAGE_VERSIONS: dict[str, int] = {
-    "teacher": 2,  # 2: issue 13's colour-camera model, fallback chain and hybrid gap-1 stage
+    # 2: issue 13's colour-camera model, fallback chain and hybrid gap-1 stage; 3: colour maps of
+    # repeated frames, the hybrid stage on stale edges, photo_weight, the rgbd replacement of
+    # far-moved sparse edges (synthetic labels change; real-data labels are bit-identical)
+    "teacher": 3,
     "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 1, "posegraph-calibrate": 1, "online": 1,
 }
 SYNTHETIC_PREFIX = "synthetic/"

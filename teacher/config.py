@@ -137,6 +137,15 @@ class TeacherConfig:
     """Hybrid dense step: most iterations (stopping earlier at ``dense_stop_m`` /
     ``dense_stop_deg``). stress-far (20 frames) 1.03 mm with 3, 1.10 with 2; synthetic/lab
     (validation, 0:100) 2.68 / 2.67 (before the point-to-plane stage was kept ahead of it)."""
+    hybrid_on_stale: bool = True
+    """Hybrid dense step on a gap-1 edge with a stale-stream frame too (after the depth stage
+    taken whole, ``dense_on_stale``), fused with the depth stage's covariance, when both
+    frames have photometric maps: :class:`teacher.window.EdgeWindow` gives a frame whose depth
+    repeats the previous one's that frame's maps (the colour taken with that depth) and a
+    frame whose colour repeats none. Gap-1 mm on and off (``photo_weight`` 1, 40-frame walks
+    of the stress scenes; office 0:60, lab 0:100): office 1.70 / 1.76, lab (validation)
+    2.41 / 2.52, stress-far 1.48 / 1.52, stress-blur 1.74 / 1.97, stress-repetitive 1.61 /
+    1.52; the three scenes made by the rgbd fallback unchanged."""
     hybrid_all_gaps: bool = False
     """Hybrid dense step on the edges of every gap; False: on gap-1 edges only (the longer
     ones keep the point-to-plane step). For speed: on synthetic/office 0:60 (gaps 1-5) every
@@ -144,7 +153,7 @@ class TeacherConfig:
     ~10 % longer than with gap 1 alone, which the >= 10x Open3D speed target does not leave."""
     photo_huber: float = 0.1
     """Hybrid dense step: Huber threshold of the intensity residual (grey in [0, 1] before
-    ``photo_normalise``; Open3D's default, not tuned)."""
+    ``photo_normalise`` and ``photo_weight``; Open3D's default, not tuned)."""
     hybrid_cov_scale: float = 10.0
     """Hybrid dense step, ``information`` fusion: its covariance
     (:func:`teacher.odometry.hybrid_covariance`, from every ``2 * dense_cov_stride``-th point)
@@ -156,6 +165,23 @@ class TeacherConfig:
     teacher on lab, and every stress scene within 1.3x of Open3D's error on these walks;
     neither figure is best at either end. With the final defaults: lab 2.52, stress-far 1.02,
     stress-repetitive 1.77."""
+    photo_weight: float = 0.5
+    """Hybrid steps: weight of the photometric residual against the depth residual (grey in
+    [0, 1], normalised as below, against metres; Open3D's tensor kernel weighs the two alike,
+    its legacy pipeline 0.032 against 0.968). Applied by scaling the grey maps by
+    ``sqrt(photo_weight)`` (``photo_huber`` stays in grey units; the hybrid covariance does not
+    depend on it). Chosen on the team's scenes, never on a test scene (``gaps=1``, 40-frame
+    walks of the stress scenes, office 0:60 (training), lab 0:100 (validation); gap-1 mm at
+    0.1 / 0.3 / 0.5 / 1 / 3): stress-textureless 1.65 / 1.26 / 1.24 / 1.59 / 2.24, stress-lowfreq
+    1.99 / 1.99 / 1.81 / 1.85 / 1.96, stress-fast 8.90 (one failed gap-1 edge) / 8.81 / 6.80 /
+    6.91 / 7.79, stress-far 1.70 / 1.47 / 1.42 / 1.48 / 6.33, stress-repetitive 1.21 / 1.34 /
+    1.46 / 1.61 / 1.76, stress-blur 1.73 / 1.69 / 1.71 / 1.74 / 1.83, office 1.82 / 1.78 / 1.75 /
+    1.70 / 1.65, lab 2.17 / 2.27 / 2.31 / 2.41 / 2.57. 0.5: the smallest worst ratio to Open3D's
+    gap-1 error over these eight (1.04, stress-repetitive; 0.3: 1.09, 1: 1.14) and the
+    smallest geometric mean; 0.1 strands an edge of stress-fast. Only the hybrid maps of
+    synthetic scenes use it (real recordings: ``dense_method``). The fields around it
+    (``hybrid_cov_scale``, ``photo_blur_px``, ``photo_normalise``) were chosen at weight 1 and
+    not chosen again."""
     photo_blur_px: float = 2.0
     """Hybrid steps: Gaussian blur (sigma, pixels) of the grey image before its use (widens
     the photometric term's basin; the kernel's gradients are 3x3 Sobel at full resolution).
@@ -259,7 +285,14 @@ class TeacherConfig:
     motion prediction, ``path`` ``rgbd`` (:func:`teacher.odometry.rgbd_edge`);
     the depth alignment alone comes after it. Why first: on views of plain walls and ceiling
     (synthetic/stress-textureless, 40 frames) the depth alone slides along the planes (gap-1
-    RPE 15.3 mm, errors growing to 47 mm) where the hybrid's colour term holds (3.1 mm)."""
+    RPE 15.3 mm, errors growing to 47 mm) where the hybrid's colour term holds (3.1 mm).
+    With photometric maps (``dense_method`` hybrid) it also replaces a good sparse estimate
+    whose depth stage paired enough pixels but moved it farther than ``dense_max_shift_m`` /
+    ``_deg`` (keypoints agreeing on a wrong motion; ``sparse_status`` ``dense_disagrees``), when
+    it succeeds. On the whole 300-frame stress-textureless preset (the team's scene, ``gaps=1``)
+    it made 12 such gap-1 edges, among them one 34 mm off: gap-1 3.15 -> 2.24 mm; no gap-1 edge of
+    the 40-frame stress walks, office 0:60 or lab 0:100 changed (``gaps=1`` runs). Real recordings:
+    never (no maps)."""
     fallback_dense_iters: int = 20
     """Fallback 2: most iterations of the dense alignment (it starts farther from the answer
     than the refinement of a sparse estimate does; set a priori, not tuned)."""

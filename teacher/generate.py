@@ -46,7 +46,8 @@ from data.scenes import open_scene
 from data.sequence import Sequence
 from teacher import processes
 from teacher.config import TeacherConfig
-from teacher.odometry import KINECT_V1_COLOUR, ColourCamera, EdgeEstimate, FrameFeatures, extract, image_keys, make_orb
+from teacher.odometry import (KINECT_V1_COLOUR, ColourCamera, EdgeEstimate, FrameFeatures, extract, image_keys,
+                              make_orb, stale_stream)
 from teacher.window import EdgeWindow
 
 log = logging.getLogger(__name__)
@@ -180,7 +181,8 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
 
     # fingerprints of the frame before the chunk, to tell whether frame k0 repeats it
     prev_keys = image_keys(seq.rgb(k0 - 1), seq.depth(k0 - 1)) if k0 > 0 else None
-    window = EdgeWindow(intr, cfg, prev_keys, until=k1 - k0)
+    window = EdgeWindow(intr, cfg, prev_keys, until=k1 - k0,
+                        prev_photo=lambda: _photo_before(seq, k0, cfg, orb, colour))
     # OpenMP's thread count is per calling thread: limit this one and the helper
     with threadpool_limits(threads), ThreadPoolExecutor(1, initializer=threadpool_limits, initargs=(threads,)) as pool:
         ahead = 3
@@ -193,6 +195,24 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
             if on_frame is not None and k < k1:
                 on_frame(1)
     return edges
+
+
+def _photo_before(seq: Sequence, k: int, cfg: TeacherConfig, orb, colour: Optional[ColourCamera]):
+    """The photometric maps that match the depth of frame ``k - 1``, as a window that had
+    seen the sequence from its start would hold them (:mod:`teacher.window`): those of the
+    last frame up to ``k - 1`` whose depth is not a repeat with new colour; None when a
+    colour repeat with new depth comes first. For a chunk whose first frame repeats the
+    depth of the frame before it (rare: the frames are read again)."""
+    j = k - 1
+    while j > 0:
+        cur, prev = image_keys(seq.rgb(j), seq.depth(j)), image_keys(seq.rgb(j - 1), seq.depth(j - 1))
+        if not stale_stream(prev, cur):
+            break
+        if cur[0] == prev[0]:  # colour repeated, depth new: no colour of this depth's moment
+            return None
+        j -= 1
+    f = extract(seq.rgb(j), seq.depth(j), cfg, orb, seq.intrinsics.K, colour)
+    return f.dense.photo if f.dense is not None else None
 
 
 def colour_camera_for(seq: Sequence, cfg: TeacherConfig) -> Optional[ColourCamera]:

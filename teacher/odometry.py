@@ -300,6 +300,8 @@ def photo_maps(gray: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray, 
         inten *= np.float32(0.5 / max(float(inten[::4, ::4].mean()), 1e-3))
     if cfg.photo_blur_px > 0:
         inten = cv2.GaussianBlur(inten, (0, 0), cfg.photo_blur_px)
+    if cfg.photo_weight != 1.0:  # the kernel weighs both residuals alike: scale the grey instead
+        inten *= np.float32(np.sqrt(cfg.photo_weight))
     s = cfg.dense_scale
 
     def t(a: NDArray) -> o3d.core.Tensor:
@@ -309,6 +311,12 @@ def photo_maps(gray: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray, 
                      t(cv2.Sobel(d, cv2.CV_32F, 1, 0, ksize=3)), t(cv2.Sobel(d, cv2.CV_32F, 0, 1, ksize=3)),
                      t(cv2.Sobel(inten, cv2.CV_32F, 1, 0, ksize=3)), t(cv2.Sobel(inten, cv2.CV_32F, 0, 1, ksize=3)),
                      o3d.core.Tensor(np.asarray(K, dtype=np.float64)))
+
+
+def _photo_huber(cfg: TeacherConfig) -> float:
+    """Huber threshold of the photometric residual in the units of the scaled grey maps of
+    :func:`photo_maps` (``cfg.photo_huber`` times ``sqrt(cfg.photo_weight)``)."""
+    return cfg.photo_huber * float(np.sqrt(cfg.photo_weight))
 
 
 def hybrid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
@@ -325,7 +333,7 @@ def hybrid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConf
     for it in range(iters):
         step = o3d.t.pipelines.odometry.compute_odometry_result_hybrid(
             pj.src_depth, pi.depth, pj.src_intensity, pi.intensity, pi.depth_dx, pi.depth_dy, pi.intensity_dx,
-            pi.intensity_dy, dj.points, pi.K, T, cfg.dense_trunc_m, cfg.dense_huber_m, cfg.photo_huber)
+            pi.intensity_dy, dj.points, pi.K, T, cfg.dense_trunc_m, cfg.dense_huber_m, _photo_huber(cfg))
         T = step.transformation.matmul(T)
         fitness = float(step.fitness)
         delta = step.transformation.numpy()
@@ -351,7 +359,7 @@ def pyramid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherCon
         for _ in range(iters):
             step = o3d.t.pipelines.odometry.compute_odometry_result_hybrid(
                 tj[0], ti[0], tj[1], ti[1], ti[2], ti[3], ti[4], ti[5], tj[6], ti[7], T,
-                cfg.dense_trunc_m, cfg.dense_huber_m, cfg.photo_huber)
+                cfg.dense_trunc_m, cfg.dense_huber_m, _photo_huber(cfg))
             T = step.transformation.matmul(T)
             delta = step.transformation.numpy()
             if np.linalg.norm(delta[:3, 3]) < cfg.dense_stop_m and geo.rotation_angle_deg(delta) < cfg.dense_stop_deg:
@@ -691,7 +699,10 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
     Correspondences come from ``tracks`` ((M, 2) keypoint index pairs chained along the
     gap-1 matches) when given and numerous enough, else from matching: guided by the motion
     prediction ``T_pred`` when given, exhaustive otherwise or when the guided estimate fails.
-    ``dense``: refine a good sparse estimate with the dense step (:func:`dense_refine`).
+    When none passes, the fallback chain (``cfg.fallback_*``); a good estimate gets the dense
+    step (:func:`dense_refine`) unless ``dense`` is False, and with photometric maps, when its
+    depth stage moved it too far (:func:`_dense_disagrees`), the rgbd fallback from ``T_pred``
+    replaces it.
     """
     attempts = []
     if tracks is not None and len(tracks) >= cfg.min_matches:
@@ -725,18 +736,34 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
             if rgbd.ok:
                 return rgbd
             best.info["rgbd_fallback"] = rgbd.status
-        dense = dense_edge(i, j, fi.dense, fj.dense, cfg, dt, T0)
-        dense.info["sparse_status"] = best.status
-        if dense.ok:
-            return dense
-        best.info["dense_fallback"] = dense.status
+        depth_only = dense_edge(i, j, fi.dense, fj.dense, cfg, dt, T0)
+        depth_only.info["sparse_status"] = best.status
+        if depth_only.ok:
+            return depth_only
+        best.info["dense_fallback"] = depth_only.status
     if dense and best.ok and fi.dense is not None and fj.dense is not None:
         stale = fi.stale or fj.stale
         dense_refine(best, fi.dense, fj.dense, cfg, blend=1.0 if stale and cfg.dense_on_stale else None,
                      hybrid=tracks is None or cfg.hybrid_all_gaps)
         if "dense" in best.info:
             best.info["dense"]["stale_stream"] = stale
+        if (cfg.fallback_rgbd and T_pred is not None and _dense_disagrees(best.info.get("dense", {}), cfg)
+                and fi.dense.photo is not None and fj.dense.photo is not None):
+            # the depth, started at the keypoints' estimate, moved too far from it: the
+            # keypoints may agree on a wrong motion; the rgbd fallback from the prediction
+            rgbd = rgbd_edge(i, j, fi, fj, intr, cfg, dt, T_pred, chained=tracks is not None)
+            if rgbd.ok:
+                rgbd.info["sparse_status"] = "dense_disagrees"
+                return rgbd
     return best
+
+
+def _dense_disagrees(d: dict, cfg: TeacherConfig) -> bool:
+    """The depth stage of :func:`dense_refine` (``d`` = ``info["dense"]``) paired enough
+    pixels but was rejected for moving the pose farther than ``cfg.dense_max_shift_m`` /
+    ``cfg.dense_max_shift_deg`` from the sparse estimate."""
+    return (bool(d) and not d.get("accepted", True) and d.get("fitness", 0.0) >= cfg.dense_min_fitness
+            and (d.get("shift_m", 0.0) > cfg.dense_max_shift_m or d.get("shift_deg", 0.0) > cfg.dense_max_shift_deg))
 
 
 def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
@@ -760,12 +787,27 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     config field); ``blend`` overrides it (1 for a frame whose colour and depth were taken
     at different times, see ``cfg.dense_on_stale``). The covariance stays the sparse
     refinement's.
+
+    With photometric maps on both frames (``cfg.dense_method`` hybrid) and ``hybrid``, the
+    hybrid stage follows (:func:`hybrid_align`), information-fused with the estimate so far.
+    On a stale pair too when ``cfg.hybrid_on_stale``: the caller (:class:`teacher.window.EdgeWindow`)
+    gives a frame whose depth repeats the previous frame's that frame's photometric maps
+    (the colour taken with that depth) and a frame whose colour repeats none, so maps that
+    exist match their depth; the prior is then the depth stage's own covariance (times
+    ``cfg.dense_cov_scale``), as the sparse estimate was dropped.
     """
     if cfg.dense_iters <= 0:
         return
-    # a stale pair's colour shows another moment than its depth: depth alone there
-    hybrid = hybrid and di.photo is not None and dj.photo is not None and blend is None
+    # a stale pair's keypoints show another moment than its depth: depth alone there, then
+    # the hybrid stage where both frames' photometric maps match their depth (see above)
+    hybrid = hybrid and di.photo is not None and dj.photo is not None and (blend is None or cfg.hybrid_on_stale)
     cov = _dense_stage(res, di, dj, cfg, blend, False, res.cov)
+    if hybrid and blend is not None:
+        # the sparse estimate was dropped: the depth stage's own covariance is the prior
+        cov, _, _ = point_to_plane_covariance(res.T_i_j, di, dj, cfg, stride=cfg.dense_cov_stride)
+        if cov is None:
+            return
+        cov = cov * cfg.dense_cov_scale
     if hybrid:
         _dense_stage(res, di, dj, cfg, None, True, cov)
 
@@ -1068,7 +1110,8 @@ def hybrid_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg: Teacher
     bD = gDx[:, None] * du + gDy[:, None] * dv
     bD[:, 2] -= 1.0
     info = np.zeros((6, 6))
-    for b, r, k, floor in ((bI, rI, cfg.photo_huber, 1.0 / 255), (bD, rD, cfg.dense_huber_m, cfg.dense_min_sigma_m)):
+    a = float(np.sqrt(cfg.photo_weight))  # the grey maps' scale (photo_maps)
+    for b, r, k, floor in ((bI, rI, _photo_huber(cfg), a / 255), (bD, rD, cfg.dense_huber_m, cfg.dense_min_sigma_m)):
         m = b @ R  # R^T b per pixel
         J = np.concatenate([m, np.cross(q, m)], axis=1)
         _, wts, _ = _huber(r, k)

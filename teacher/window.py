@@ -14,20 +14,26 @@ For each new frame k (features from :func:`teacher.odometry.extract`):
 3. each longer edge (k-g, k), g = 2..K, is estimated from the tracks that survived from
    k-g to k, predicted by the chained motion;
 4. frames more than K - 1 behind the newest leave the window.
+
+A frame whose depth repeats the previous frame's while its colour is new (a dropped depth
+frame: the depth, and the ground truth that follows it, belong to the previous moment)
+takes the previous frame's photometric maps, the colour taken with that depth; a frame
+whose colour repeats while its depth is new has none (nothing shows its colour's moment in
+depth). So the hybrid dense steps never pair a colour with the depth of another moment.
 """
 
 from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 from numpy.typing import NDArray
 
 from data.sequence import Intrinsics
 from teacher.config import TeacherConfig
-from teacher.odometry import EdgeEstimate, FrameFeatures, estimate_edge, stale_stream
+from teacher.odometry import EdgeEstimate, FrameFeatures, PhotoMaps, estimate_edge, stale_stream
 
 
 @dataclass
@@ -48,12 +54,17 @@ class EdgeWindow:
     a repeated image at the first frame is caught. ``until``: only edges whose first frame
     is among the first ``until`` frames added are estimated and returned (a chunk reads
     ``gaps`` frames past its end for the edges that start inside it); None: every edge.
+    ``prev_photo``: with ``prev_keys``, returns the photometric maps that match the depth of
+    the frame before the first one (see the module's docstring; called only when the first
+    frame repeats that depth).
     """
 
     def __init__(self, intr: Intrinsics, cfg: TeacherConfig, prev_keys: Optional[tuple[bytes, bytes]] = None,
-                 until: Optional[int] = None) -> None:
+                 until: Optional[int] = None,
+                 prev_photo: Optional[Callable[[], Optional[PhotoMaps]]] = None) -> None:
         self.intr, self.cfg, self.until = intr, cfg, until
         self.prev_keys = prev_keys
+        self._prev_photo = prev_photo or (lambda: None)
         self.entries: deque[_Entry] = deque()
         self.v_prev: Optional[NDArray[np.float64]] = None  # last good gap-1 motion (constant-velocity prior)
         self.added = 0
@@ -79,7 +90,12 @@ class EdgeWindow:
         pos, self.added = self.added, self.added + 1
         if self.prev_keys is not None:
             fk.stale = stale_stream(self.prev_keys, fk.keys)
+            if fk.stale and fk.dense is not None and fk.dense.photo is not None:
+                # its colour shows another moment than its depth (see the module's docstring)
+                fk.dense.photo = self._prev_photo() if fk.keys[1] == self.prev_keys[1] else None
         self.prev_keys = fk.keys
+        photo = fk.dense.photo if fk.dense is not None else None
+        self._prev_photo = lambda: photo
         edges: list[EdgeEstimate] = []
         e = None
         if self.entries:

@@ -319,7 +319,9 @@ def test_cli_generate_writes_every_output(tmp_path):
     rows = read_edges_csv(out / "edges.csv")
     assert len(rows) == 30 and {r["status"] for r in rows} <= {"ok", "few_matches", "few_inliers", "low_inlier_ratio",
                                                                   "high_rmse", "degenerate", "implausible_motion"}
-    paths = {"tracks", "guided", "exhaustive", "wide", "crosscheck", "dense"}
+    # rgbd: here edges 4-6 and 4-7, whose keypoints agreed on a motion 20-30 mm off and whose
+    # depth stage moved too far from it (``dense_disagrees``; 4.6 and 5.2 mm off with it)
+    paths = {"tracks", "guided", "exhaustive", "wide", "crosscheck", "rgbd", "dense"}
     assert all((r["path"] in paths) == (r["status"] == "ok") for r in rows)
     assert sum(rep["edge_paths"].values()) == 30 and rep["constant_velocity_bridges"] == 0
     edges, vertices = read_g2o(out / "edges.g2o")
@@ -722,26 +724,154 @@ def test_hybrid_step_recovers_a_perturbed_pose(office_clean):
 
 def test_hybrid_dense_step_only_where_colour_and_depth_agree(office_clean):
     """``dense_method="hybrid"``: a gap-1 edge gets the point-to-plane stage and then the
-    hybrid one (``info["dense"]["hybrid"]``); an edge with a stale stream (colour of another
-    moment) and a longer edge (unless ``hybrid_all_gaps``) keep the depth alone."""
+    hybrid one (``info["dense"]["hybrid"]``); a longer edge (unless ``hybrid_all_gaps``)
+    keeps the depth alone; an edge with a stale stream (its keypoints of another moment)
+    takes the depth stage whole and then, with ``hybrid_on_stale`` (its photometric maps
+    match its depth, see :class:`teacher.window.EdgeWindow`), the hybrid stage fused with
+    the depth stage's covariance; without it the depth alone."""
     from teacher.odometry import dense_refine
 
     seq = office_clean
     cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid")
+    assert cfg.hybrid_on_stale
     fa, fb = _features(seq, 2, cfg), _features(seq, 3, cfg)
     gt = seq.groundtruth()
     T_true = geo.relative_pose(gt[2], gt[3])
     T0 = T_true @ geo.se3_exp([0.002, -0.0015, 0.0015, 0.002, -0.002, 0.0015])
     cov = np.diag([1e-6] * 3 + [3e-6] * 3)
     runs = {}
-    for name, kw in (("gap1", {}), ("stale", {"blend": 1.0}), ("long", {"hybrid": False})):
+    for name, kw, c in (("gap1", {}, cfg), ("stale", {"blend": 1.0}, cfg), ("long", {"hybrid": False}, cfg),
+                        ("stale_off", {"blend": 1.0}, dataclasses.replace(cfg, hybrid_on_stale=False))):
         res = EdgeEstimate(2, 3, "ok", T_i_j=T0.copy(), cov=cov)
-        dense_refine(res, fa.dense, fb.dense, cfg, **kw)
+        dense_refine(res, fa.dense, fb.dense, c, **kw)
         runs[name] = res
     assert runs["gap1"].info["dense"]["hybrid"]["accepted"], runs["gap1"].info
-    assert "hybrid" not in runs["stale"].info["dense"] and "hybrid" not in runs["long"].info["dense"]
+    assert runs["stale"].info["dense"]["hybrid"]["accepted"], runs["stale"].info
+    assert "hybrid" not in runs["stale_off"].info["dense"] and "hybrid" not in runs["long"].info["dense"]
     err = {k: relative_pose_error(T_true, r.T_i_j)[0] for k, r in runs.items()}
     assert err["gap1"] < 1e-3 and err["gap1"] < err["long"], err
+    assert err["stale"] < 1e-3, err
+
+
+def test_photo_weight_scales_the_grey_not_the_covariance(office_clean):
+    """``photo_weight`` w scales the grey maps by sqrt(w) (so the kernel weighs the
+    photometric residual w times the depth residual, its Huber threshold scaled alike); the
+    hybrid covariance, each term divided by its own residual variance, stays the same."""
+    from teacher.odometry import hybrid_covariance
+
+    seq = office_clean
+    maps = {}
+    for w in (1.0, 0.25):
+        cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid", photo_weight=w)
+        maps[w] = (cfg, _features(seq, 2, cfg), _features(seq, 3, cfg))
+    a, b = maps[1.0][1].dense.photo, maps[0.25][1].dense.photo
+    np.testing.assert_allclose(b.intensity.numpy(), 0.5 * a.intensity.numpy(), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(b.intensity_dx.numpy(), 0.5 * a.intensity_dx.numpy(), rtol=1e-5, atol=1e-6)
+    T = geo.relative_pose(seq.groundtruth()[2], seq.groundtruth()[3])
+    covs = [hybrid_covariance(T, fi.dense, fj.dense, cfg) for cfg, fi, fj in maps.values()]
+    np.testing.assert_allclose(covs[1], covs[0], rtol=1e-3, atol=1e-14)
+
+
+def test_keypoints_agreeing_on_a_wrong_motion_give_way_to_the_rgbd_fallback(office_clean, monkeypatch):
+    """A sparse estimate 4 cm off the truth (keypoints that agree on a wrong motion, e.g.
+    repeated structure): the point-to-plane and the hybrid stage, each started there, move
+    farther than ``dense_max_shift_m`` and are both rejected; the edge is then made by the
+    rgbd fallback from the motion prediction (``sparse_status`` ``dense_disagrees``), close
+    to the truth. With the depth stage alone (``point-to-plane``: real recordings) the
+    sparse estimate stays, as before."""
+    import teacher.odometry as od
+
+    seq = office_clean
+    gt = seq.groundtruth()
+    T_true = geo.relative_pose(gt[3], gt[4])
+    T_bad = T_true @ geo.se3_exp([0.04, 0.0, 0.0, 0.0, 0.0, 0.0])
+    T_pred = T_true @ geo.se3_exp([0.003, -0.002, 0.002, 0.002, -0.002, 0.002])
+
+    def wrong(i, j, fi, fj, intr, cfg, dt, pairs):
+        return EdgeEstimate(i, j, "ok", T_i_j=T_bad.copy(), cov=np.diag([1e-6] * 3 + [3e-6] * 3), matches=100,
+                            inliers=90, inlier_ratio=0.9, info={})
+
+    monkeypatch.setattr(od, "_estimate", wrong)
+    out = {}
+    for method in ("hybrid", "point-to-plane"):
+        cfg = dataclasses.replace(TeacherConfig(), dense_method=method)
+        fa, fb = _features(seq, 3, cfg), _features(seq, 4, cfg)
+        out[method] = estimate_edge(3, 4, fa, fb, seq.intrinsics, cfg, 1 / 30, T_pred=T_pred)
+    e = out["hybrid"]
+    assert e.ok and e.info["path"] == "rgbd" and e.info["sparse_status"] == "dense_disagrees", e.info
+    assert relative_pose_error(T_true, e.T_i_j)[0] < 2e-3
+    assert out["point-to-plane"].info["path"] == "guided" and np.array_equal(out["point-to-plane"].T_i_j, T_bad)
+
+
+class _DepthRepeats:
+    """A sequence whose frames listed in ``repeats`` carry the previous frame's depth (and
+    pose, as a dropped depth frame does) with their own colour."""
+
+    def __init__(self, seq, repeats):
+        self.seq, self.repeats = seq, set(repeats)
+        self.intrinsics, self.name = seq.intrinsics, seq.name
+
+    def __len__(self):
+        return len(self.seq)
+
+    def ids(self):
+        return self.seq.ids()
+
+    def times(self):
+        return self.seq.times()
+
+    def rgb(self, k):
+        return self.seq.rgb(k)
+
+    def depth(self, k):
+        while k in self.repeats:
+            k -= 1
+        return self.seq.depth(k)
+
+
+class _ColourRepeats(_DepthRepeats):
+    """As :class:`_DepthRepeats`, with the colour of the listed frames repeated instead."""
+
+    def rgb(self, k):
+        while k in self.repeats:
+            k -= 1
+        return self.seq.rgb(k)
+
+    def depth(self, k):
+        return self.seq.depth(k)
+
+
+def test_window_gives_a_depth_repeat_the_colour_of_its_depth(office_clean):
+    """A frame whose depth repeats the previous frame's (colour new) gets the previous
+    frame's photometric maps, the colour taken with that depth; a frame whose colour repeats
+    (depth new) gets none; a normal frame keeps its own. The gap-1 edge onto a depth repeat
+    is then the identity its depth shows, and a chunk that starts at a depth repeat
+    (``prev_photo``, :func:`teacher.generate._photo_before`) reads the maps the window
+    would hold back from the frames before it."""
+    from teacher.generate import _photo_before
+    from teacher.odometry import make_orb
+    from teacher.window import EdgeWindow
+
+    seq = office_clean
+    cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid", gaps=2)
+    f2, f3, f4 = _features(seq, 2, cfg), _features(seq, 3, cfg, depth=seq.depth(2)), _features(seq, 4, cfg)
+    f5 = _features(seq, 5, cfg, rgb=seq.rgb(4))
+    own = [f.dense.photo for f in (f2, f3, f4, f5)]
+    w = EdgeWindow(seq.intrinsics, cfg)
+    edges = w.add(2, 0.0, f2) + w.add(3, 1 / 30, f3) + w.add(4, 2 / 30, f4) + w.add(5, 3 / 30, f5)
+    assert f2.dense.photo is own[0] and f3.dense.photo is own[0] and f4.dense.photo is own[2]
+    assert f5.dense.photo is None and f3.stale and f5.stale and not f4.stale
+    e23 = next(e for e in edges if (e.i, e.j) == (2, 3))
+    assert e23.ok and relative_pose_error(np.eye(4), e23.T_i_j)[0] < 1e-4
+
+    # a chunk that starts after two depth repeats in a row (frames 5, 6 carry frame 4's depth)
+    # reads back to frame 4, whose maps the window would hold; after a colour repeat, none
+    rep = _DepthRepeats(seq, [5, 6])
+    got = _photo_before(rep, 7, cfg, make_orb(cfg), None)
+    want = _features(seq, 4, cfg).dense.photo
+    assert np.array_equal(got.intensity.numpy(), want.intensity.numpy())
+    assert np.array_equal(got.depth.numpy(), want.depth.numpy(), equal_nan=True)
+    assert _photo_before(_ColourRepeats(seq, [5]), 6, cfg, make_orb(cfg), None) is None
 
 
 @pytest.mark.parametrize("method", ["point-to-plane", "hybrid"])
