@@ -230,16 +230,24 @@ class PhotoMaps:
             inten = cv2.resize(full, (d.shape[1], d.shape[0]), interpolation=cv2.INTER_AREA)
             K = self.K.numpy().copy()
             K[:2] /= s
-
-            def t(a: NDArray) -> o3d.core.Tensor:
-                return o3d.core.Tensor(np.ascontiguousarray(a[..., None], dtype=np.float32))
-
             Kt = o3d.core.Tensor(K)
-            vertex = o3d.t.geometry.Image(t(d)).create_vertex_map(Kt, float("nan")).as_tensor()
-            self.levels[s] = (t(d), t(inten), t(cv2.Sobel(d, cv2.CV_32F, 1, 0, ksize=3)),
-                              t(cv2.Sobel(d, cv2.CV_32F, 0, 1, ksize=3)), t(cv2.Sobel(inten, cv2.CV_32F, 1, 0, ksize=3)),
-                              t(cv2.Sobel(inten, cv2.CV_32F, 0, 1, ksize=3)), vertex, Kt)
+            maps = _kernel_maps(d, inten)
+            vertex = o3d.t.geometry.Image(maps[0]).create_vertex_map(Kt, float("nan")).as_tensor()
+            self.levels[s] = (*maps, vertex, Kt)
         return self.levels[s]
+
+
+def _image_tensor(a: NDArray) -> o3d.core.Tensor:
+    """(H, W) array -> (H, W, 1) float32 Open3D tensor, as the odometry kernels take images."""
+    return o3d.core.Tensor(np.ascontiguousarray(a[..., None], dtype=np.float32))
+
+
+def _kernel_maps(depth: NDArray[np.float32], inten: NDArray[np.float32]) -> tuple[o3d.core.Tensor, ...]:
+    """What Open3D's hybrid kernel takes of a frame as its target: depth, intensity and
+    their unnormalised 3x3 Sobel derivatives (depth_dx, depth_dy, intensity_dx,
+    intensity_dy), each an (H, W, 1) float32 tensor."""
+    return (_image_tensor(depth), _image_tensor(inten),
+            *(_image_tensor(cv2.Sobel(a, cv2.CV_32F, dx, 1 - dx, ksize=3)) for a in (depth, inten) for dx in (1, 0)))
 
 
 def _subsampled(depth: NDArray[np.float32], K: NDArray, s: int,
@@ -303,13 +311,7 @@ def photo_maps(gray: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray, 
     if cfg.photo_weight != 1.0:  # the kernel weighs both residuals alike: scale the grey instead
         inten *= np.float32(np.sqrt(cfg.photo_weight))
     s = cfg.dense_scale
-
-    def t(a: NDArray) -> o3d.core.Tensor:
-        return o3d.core.Tensor(np.ascontiguousarray(a[..., None], dtype=np.float32))
-
-    return PhotoMaps(t(d[::s, ::s]), t(inten[::s, ::s]), t(d), t(inten),
-                     t(cv2.Sobel(d, cv2.CV_32F, 1, 0, ksize=3)), t(cv2.Sobel(d, cv2.CV_32F, 0, 1, ksize=3)),
-                     t(cv2.Sobel(inten, cv2.CV_32F, 1, 0, ksize=3)), t(cv2.Sobel(inten, cv2.CV_32F, 0, 1, ksize=3)),
+    return PhotoMaps(_image_tensor(d[::s, ::s]), _image_tensor(inten[::s, ::s]), *_kernel_maps(d, inten),
                      o3d.core.Tensor(np.asarray(K, dtype=np.float64)))
 
 
@@ -328,19 +330,34 @@ def hybrid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConf
     stopping at ``cfg.dense_stop_m`` / ``cfg.dense_stop_deg`` updates. Returns (T_i_j,
     fitness, iterations, converged). Raises RuntimeError when no point pairs up."""
     pi, pj = di.photo, dj.photo
-    T = o3d.core.Tensor(np.asarray(T_init, np.float64))
+    target = (pi.depth, pi.intensity, pi.depth_dx, pi.depth_dy, pi.intensity_dx, pi.intensity_dy)
+    T, fitness, n_it, converged = _hybrid_steps(pj.src_depth, pj.src_intensity, target, dj.points, pi.K,
+                                                o3d.core.Tensor(np.asarray(T_init, np.float64)), iters, cfg)
+    return geo.orthonormalize(T.numpy()), fitness, n_it, converged
+
+
+def _small_step(delta: NDArray, cfg: TeacherConfig) -> bool:
+    """An iteration's update ``delta`` (4x4) is below ``cfg.dense_stop_m`` and ``cfg.dense_stop_deg``."""
+    return bool(np.linalg.norm(delta[:3, 3]) < cfg.dense_stop_m and geo.rotation_angle_deg(delta) < cfg.dense_stop_deg)
+
+
+def _hybrid_steps(src_depth: o3d.core.Tensor, src_intensity: o3d.core.Tensor, target: tuple, points: o3d.core.Tensor,
+                  K: o3d.core.Tensor, T: o3d.core.Tensor, iters: int,
+                  cfg: TeacherConfig) -> tuple[o3d.core.Tensor, float, int, bool]:
+    """At most ``iters`` Gauss-Newton iterations of Open3D's hybrid kernel from ``T``
+    (``target``: :func:`_kernel_maps` of the frame aligned to), stopping at a small update
+    (:func:`_small_step`). Returns (T, fitness, iterations, converged)."""
     fitness, converged, it = 0.0, False, 0
     for it in range(iters):
         step = o3d.t.pipelines.odometry.compute_odometry_result_hybrid(
-            pj.src_depth, pi.depth, pj.src_intensity, pi.intensity, pi.depth_dx, pi.depth_dy, pi.intensity_dx,
-            pi.intensity_dy, dj.points, pi.K, T, cfg.dense_trunc_m, cfg.dense_huber_m, _photo_huber(cfg))
+            src_depth, target[0], src_intensity, target[1], *target[2:6], points, K, T, cfg.dense_trunc_m,
+            cfg.dense_huber_m, _photo_huber(cfg))
         T = step.transformation.matmul(T)
         fitness = float(step.fitness)
-        delta = step.transformation.numpy()
-        if np.linalg.norm(delta[:3, 3]) < cfg.dense_stop_m and geo.rotation_angle_deg(delta) < cfg.dense_stop_deg:
+        if _small_step(step.transformation.numpy(), cfg):
             converged = True
             break
-    return geo.orthonormalize(T.numpy()), fitness, it + 1, converged
+    return T, fitness, it + 1, converged
 
 
 def pyramid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
@@ -356,14 +373,7 @@ def pyramid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherCon
     T = o3d.core.Tensor(np.asarray(T_init, np.float64))
     for s, iters in cfg.fallback_levels if coarse else ():
         ti, tj = di.photo.level(s), dj.photo.level(s)
-        for _ in range(iters):
-            step = o3d.t.pipelines.odometry.compute_odometry_result_hybrid(
-                tj[0], ti[0], tj[1], ti[1], ti[2], ti[3], ti[4], ti[5], tj[6], ti[7], T,
-                cfg.dense_trunc_m, cfg.dense_huber_m, _photo_huber(cfg))
-            T = step.transformation.matmul(T)
-            delta = step.transformation.numpy()
-            if np.linalg.norm(delta[:3, 3]) < cfg.dense_stop_m and geo.rotation_angle_deg(delta) < cfg.dense_stop_deg:
-                break
+        T, _, _, _ = _hybrid_steps(tj[0], tj[1], ti[:6], tj[6], ti[7], T, iters, cfg)
     T_h = geo.orthonormalize(T.numpy())
     T_h, fitness, _, _ = hybrid_align(T_h, di, dj, cfg, max(cfg.fallback_finish_iters if coarse
                                                            else cfg.fallback_chained_iters, 1))
@@ -829,9 +839,7 @@ def _dense_stage(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
                 dj.points, di.vertex, di.normal, di.K, T, cfg.dense_trunc_m, cfg.dense_huber_m)
             T = step.transformation.matmul(T)
             fitness, rmse = float(step.fitness), float(step.inlier_rmse)
-            delta = step.transformation.numpy()
-            if (np.linalg.norm(delta[:3, 3]) < cfg.dense_stop_m
-                    and geo.rotation_angle_deg(delta) < cfg.dense_stop_deg):
+            if _small_step(step.transformation.numpy(), cfg):
                 break
     except RuntimeError:  # Open3D raises when no pixel pairs up
         out = {"accepted": False, "fitness": 0.0}
@@ -896,9 +904,7 @@ def dense_edge(i: int, j: int, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
                 dj.points, di.vertex, di.normal, di.K, T, cfg.dense_trunc_m, cfg.dense_huber_m)
             T = step.transformation.matmul(T)
             fitness = float(step.fitness)
-            delta = step.transformation.numpy()
-            if (np.linalg.norm(delta[:3, 3]) < cfg.dense_stop_m
-                    and geo.rotation_angle_deg(delta) < cfg.dense_stop_deg):
+            if _small_step(step.transformation.numpy(), cfg):
                 converged = True
                 break
     except RuntimeError as exc:  # no pixel pairs up, or a singular system (e.g. an exact plane)
