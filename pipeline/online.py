@@ -499,7 +499,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
             t_take, c_take = time.perf_counter(), time.thread_time()
             edges = teacher.add_gap1(frame, feats) if cfg.pose_after_gap1 else teacher.add(frame, feats)
             t_edges += edges
-            new = [Edge(e.i, e.j, e.T_i_j, e.cov, {"source": "teacher"}) for e in edges if e.ok]
+            new = _teacher_edges(edges)
             if learner is not None:
                 for g, mean, cov, head in learner.add(inputs):
                     e = Edge(teacher.ids[-1 - g], teacher.ids[-1], geo.se3_exp(mean), cov,
@@ -518,7 +518,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
             if cfg.pose_after_gap1:  # the longer edges of this frame, after its pose
                 later = teacher.add_longer()
                 t_edges += later
-                graph.add_edges([Edge(e.i, e.j, e.T_i_j, e.cov, {"source": "teacher"}) for e in later if e.ok])
+                graph.add_edges(_teacher_edges(later))
             work.append(t_prep + time.perf_counter() - t_take if cfg.pose_after_gap1 else to_pose[-1])
             if bar is not None:
                 bar.show(n, n / (time.perf_counter() - t_start), lat, len(t_edges) + len(l_edges))
@@ -536,15 +536,24 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     if n == 0:
         (out / TRAJECTORY).unlink(missing_ok=True)  # nothing to keep
         raise DataError(f"{source.name}: no frame arrived")
-    lat_ms = {f"p{q}": 1000 * float(np.percentile(lat, q)) for q in (50, 95, 99)} | {"max": 1000 * max(lat)}
-    work_ms = {f"p{q}": 1000 * float(np.percentile(work, q)) for q in (50, 95, 99)} | {"max": 1000 * max(work)}
-    pose_ms = {f"p{q}": 1000 * float(np.percentile(to_pose, q)) for q in (50, 95, 99)} | {"max": 1000 * max(to_pose)}
-    cpu_ms = {f"p{q}": 1000 * float(np.percentile(cpu_to_pose, q)) for q in (50, 95, 99)} | \
-        {"max": 1000 * max(cpu_to_pose)}
+    lat_ms = _percentiles_ms(lat)
     report = _finish(out, source, teacher, graph, t_edges, l_edges, gts, teacher_cfg, seconds,
-                     {"latency_ms": lat_ms, "work_ms": work_ms, "work_to_pose_ms": pose_ms,
-                      "work_to_pose_cpu_ms": cpu_ms}, interrupted, checkpoint)
+                     {"latency_ms": lat_ms, "work_ms": _percentiles_ms(work),
+                      "work_to_pose_ms": _percentiles_ms(to_pose), "work_to_pose_cpu_ms": _percentiles_ms(cpu_to_pose)},
+                     interrupted, checkpoint)
     return OnlineResult(out, n, n / seconds, lat_ms, interrupted, report)
+
+
+def _percentiles_ms(seconds: list[float]) -> dict[str, float]:
+    """p50, p95, p99 and max of durations in seconds, in milliseconds (report.json's form)."""
+    return {f"p{q}": 1000 * float(np.percentile(seconds, q)) for q in (50, 95, 99)} | {"max": 1000 * max(seconds)}
+
+
+def _teacher_edges(estimates: list) -> list:
+    """The graph edges (``data.formats.Edge``) of the good teacher estimates (``EdgeEstimate``)."""
+    from data.formats import Edge
+
+    return [Edge(e.i, e.j, e.T_i_j, e.cov, {"source": "teacher"}) for e in estimates if e.ok]
 
 
 def fingerprint(spec: str, source: FrameSource, teacher_cfg, checkpoint: Optional[Path] = None, predict_cfg=None,
