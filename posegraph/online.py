@@ -98,23 +98,13 @@ class OnlineGraph:
                 graph.add(gtsam.BetweenFactorPose3(prev, frame_id, geo.to_gtsam_pose3(self.v_prev),
                                                    gtsam.noiseModel.Diagonal.Sigmas(np.full(6, 0.1))))
         values.insert(int(frame_id), geo.to_gtsam_pose3(T0))
-        first_edge = graph.size()
-        for f in self._edge_factors(edges):
-            graph.add(f)
-        res = self._update(graph, values)
-        all_slots = list(res.getNewFactorsIndices())
-        self.live.update({int(k): graph.at(n) for n, k in enumerate(all_slots)})
-        slots = all_slots[first_edge:]
-        self.edges += edges
-        self.slots += slots
-        self.status = np.concatenate([self.status, np.zeros(len(edges), np.int64)])
+        self._insert(graph, values, edges)
         self.pos[int(frame_id)] = len(self.ids)
         self.ids.append(int(frame_id))
         if len(self.ids) >= self.next_review:
             self.next_review *= 2
             self._review()
-        for k in self.ids[-8:]:  # refresh the newest estimates (anchors of the next predictions)
-            self.latest[k] = geo.from_gtsam_pose3(self.isam.calculateEstimatePose3(k))
+        self._refresh_latest()
         return self.latest[int(frame_id)]
 
     def add_edges(self, edges: list) -> None:
@@ -125,15 +115,24 @@ class OnlineGraph:
 
         if not edges:
             return
-        graph = gtsam.NonlinearFactorGraph()
+        self._insert(gtsam.NonlinearFactorGraph(), gtsam.Values(), edges)
+        self._refresh_latest()
+
+    def _insert(self, graph, values, edges: list) -> None:
+        """One ISAM2 update with ``graph`` and ``values`` plus the factors of ``edges``
+        (added after the factors ``graph`` holds); records the edges and their factor slots."""
+        first_edge = graph.size()
         for f in self._edge_factors(edges):
             graph.add(f)
-        slots = list(self._update(graph, gtsam.Values()).getNewFactorsIndices())
-        self.live.update({int(k): graph.at(n) for n, k in enumerate(slots)})
+        all_slots = list(self._update(graph, values).getNewFactorsIndices())
+        self.live.update({int(k): graph.at(n) for n, k in enumerate(all_slots)})
         self.edges += edges
-        self.slots += slots
+        self.slots += all_slots[first_edge:]
         self.status = np.concatenate([self.status, np.zeros(len(edges), np.int64)])
-        for k in self.ids[-8:]:  # refresh the newest estimates (anchors of the next predictions)
+
+    def _refresh_latest(self) -> None:
+        """Refresh the newest estimates (the anchors of the next predictions)."""
+        for k in self.ids[-8:]:
             self.latest[k] = geo.from_gtsam_pose3(self.isam.calculateEstimatePose3(k))
 
     def _update(self, graph, values, remove: Sequence[int] = ()):
