@@ -1,13 +1,15 @@
 """``vo-online``: odometry frame by frame, as the frames arrive.
 
-    vo-online --scene SCENE [--checkpoint CKPT] [--out DIR] [--frames A:B] [--follow]
+    vo-online --scene SCENE [--checkpoint CKPT] [--out DIR] [--frames A:B] [--follow [--drop-late]]
 
 Frames come from any ``--scene`` (a folder, a ROS bag, ``synthetic/NAME``), read one at a
 time in order, or, with ``--follow``, from a folder that is still being written, polled
 every ``--poll`` s and ending after ``--timeout`` s without a new frame: a 7-Scenes-layout
 folder (``frame-NNNNNN.color.{png,jpg}`` + ``frame-NNNNNN.depth.png``, optional
 ``.pose.txt``) or a TUM RGB-D folder (``rgb.txt`` and ``depth.txt`` growing, colour and
-depth paired by timestamp as for a finished TUM folder).
+depth paired by timestamp as for a finished TUM folder). A followed frame's latency counts
+from when its last file was written; with ``--drop-late`` a run that falls behind takes
+the newest complete frame and skips the ones in between (bounded latency, fewer frames).
 
 For each new frame k:
 
@@ -94,6 +96,14 @@ class OnlineConfig:
     enter the graph in a second ISAM2 update, before the next frame. The same edges as
     without it (the final trajectory solves the same graph); the latency a frame waits
     for its own pose no longer includes its longer edges (bench/README.md, "Online mode")."""
+    drop_late: bool = False
+    """For a live source (``--follow``: frames arrive whether or not they are taken): when
+    frames arrive faster than they are processed, take the newest complete one and pass
+    over those in between, and let a newer prepared frame replace one still waiting for
+    the estimator. The latency stays bounded at the cost of frames (``report.json``:
+    ``frames_skipped``); the edges then join the frames taken (a gap-1 edge may span
+    several camera frames). One frame is prepared ahead (not ``prefetch``). Off: every
+    frame is taken, in order, however late."""
 
 
 # ----------------------------------------------------------------------------------
@@ -104,9 +114,18 @@ class FrameSource:
 
     name: str
     intrinsics: Intrinsics
+    skipped: int = 0
+    """Frames passed over to hand out a newer one (``OnlineConfig.drop_late``)."""
 
     def __iter__(self) -> Iterator[Frame]:
         raise NotImplementedError
+
+    def arrival(self) -> Optional[float]:
+        """When the frame just yielded reached the system (``time.perf_counter()``), for a
+        source whose frames come at their own pace whether or not they are taken (a camera,
+        a folder being written); a frame's latency counts from then. None: from when it was
+        yielded (a recording read as fast as it is taken)."""
+        return None
 
 
 class SequenceSource(FrameSource):
@@ -122,24 +141,44 @@ class SequenceSource(FrameSource):
 
 class FollowFolder(FrameSource):
     """A folder still being written (:func:`follow_folder` picks the layout): frames are
-    taken in order as they become complete; a frame whose files exist but do not decode
-    yet (written without a rename) is retried until ``timeout_s``; the run ends when no
-    new frame came for ``timeout_s``. Subclasses say what the next frame is."""
+    taken in order as they become complete (with ``cfg.drop_late``, the newest complete
+    one, passing over older ones not taken yet); a frame whose files exist but do not
+    decode yet (written without a rename) is retried until ``timeout_s``; the run ends
+    when no new frame came for ``timeout_s``. A frame's arrival is when the last of its
+    files was written (their modification time). Subclasses say which frames are ready."""
 
     def __init__(self, folder: Path, cfg: OnlineConfig) -> None:
         self.folder, self.cfg = Path(folder), cfg
         self.name = self.folder.resolve().name
         self.stop = threading.Event()
+        self._arrived: Optional[float] = None
 
-    def _next(self, taken: int, final: bool) -> Optional[object]:
-        """What frame ``taken`` (0-based) is, when the folder holds it complete (None: not
-        yet). ``final``: the folder has stopped growing (frames held back until later
-        files settle them are final now)."""
+    def _ready(self, final: bool) -> Iterator[object]:
+        """The frames after the last one read that the folder holds complete, in order, up
+        to the first one that is not. ``final``: the folder has stopped growing (frames
+        held back until later files settle them are final now)."""
         raise NotImplementedError
+
+    def _next(self, final: bool) -> Optional[object]:
+        """The frame to read next (None: none ready): the oldest ready one, or with
+        ``drop_late`` the newest (the ones before it count as skipped when it is read)."""
+        if not self.cfg.drop_late:
+            return next(iter(self._ready(final)), None)
+        ready = list(self._ready(final))
+        self._passed_over = len(ready) - 1
+        return ready[-1] if ready else None
 
     def _read(self, taken: int, item: object) -> Frame:
-        """The frame ``item`` (from :meth:`_next`); :class:`DataError` while it does not decode."""
+        """The frame ``item`` (from :meth:`_ready`); :class:`DataError` while it does not decode."""
         raise NotImplementedError
+
+    def _stamp(self, *files: Path) -> None:
+        """The arrival of the frame just read: when the last of ``files`` was written."""
+        written = max(f.stat().st_mtime for f in files)
+        self._arrived = time.perf_counter() - max(0.0, time.time() - written)
+
+    def arrival(self) -> Optional[float]:
+        return self._arrived
 
     def present_ids(self) -> NDArray[np.int64]:
         """The frame ids the folder holds now: what a run starting now would take."""
@@ -148,7 +187,8 @@ class FollowFolder(FrameSource):
     def __iter__(self) -> Iterator[Frame]:
         taken, final, waited_since = 0, False, time.monotonic()
         while not self.stop.is_set():
-            item = self._next(taken, final)
+            self._passed_over = 0
+            item = self._next(final)
             if item is not None:
                 try:
                     frame = self._read(taken, item)
@@ -157,6 +197,7 @@ class FollowFolder(FrameSource):
                         raise
                     time.sleep(self.cfg.poll_s)
                     continue
+                self.skipped += self._passed_over
                 yield frame
                 taken, waited_since = taken + 1, time.monotonic()
                 continue
@@ -182,14 +223,14 @@ class FollowSevenScenes(FollowFolder):
         self.intrinsics = sevenscenes.folder_intrinsics(self.folder)
         self.last = -1
 
-    def _next(self, taken: int, final: bool) -> Optional[object]:
+    def _ready(self, final: bool) -> Iterator[object]:
         from data import sevenscenes
 
-        later = [k for k in sevenscenes.frame_ids(self.folder) if k > self.last]
-        if not later:
-            return None
-        colour = sevenscenes.colour_file(self.folder, later[0])
-        return (later[0], colour) if colour is not None else None
+        for k in (k for k in sevenscenes.frame_ids(self.folder) if k > self.last):
+            colour = sevenscenes.colour_file(self.folder, k)
+            if colour is None:
+                return
+            yield k, colour
 
     def _read(self, taken: int, item: object) -> Frame:
         from data import sevenscenes
@@ -198,6 +239,7 @@ class FollowSevenScenes(FollowFolder):
         k, colour = item
         rgb = read_rgb(colour, self.intrinsics)
         depth = sevenscenes.read_depth_file(sevenscenes.depth_file(self.folder, k), self.intrinsics)
+        self._stamp(colour, sevenscenes.depth_file(self.folder, k))
         pose_file = self.folder / f"frame-{k:06d}.pose.txt"
         pose = sevenscenes.read_pose_file(pose_file) if pose_file.is_file() else None
         self.last = k
@@ -249,8 +291,8 @@ class FollowTum(FollowFolder):
         self._pairs_key, self._pairs_cache = key, pairs
         return pairs
 
-    def _next(self, taken: int, final: bool) -> Optional[object]:
-        return next((p for p in self._pairs(final) if p[0] > self.last_t), None)
+    def _ready(self, final: bool) -> Iterator[object]:
+        return (p for p in self._pairs(final) if p[0] > self.last_t)
 
     def _groundtruth(self, t: float) -> Optional[NDArray[np.float64]]:
         from data import tum
@@ -274,6 +316,7 @@ class FollowTum(FollowFolder):
         t, rgb_file, depth_file = item
         rgb = read_rgb(self.folder / rgb_file, self.intrinsics)
         depth = tum.read_depth_file(self.folder / depth_file, self.intrinsics)
+        self._stamp(self.folder / rgb_file, self.folder / depth_file)
         pose = self._groundtruth(t)
         self.last_t = t
         return Frame(taken, t, rgb, depth, pose)
@@ -458,19 +501,29 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     # prepares them (teacher features, learner inputs) up to cfg.prefetch frames ahead,
     # then adds what a frame's dense step needs only as the older frame of later edges;
     # this thread estimates edges, updates the graph and writes.
-    ahead: queue.Queue = queue.Queue(maxsize=max(cfg.prefetch, 1))
+    ahead: queue.Queue = queue.Queue(maxsize=1 if cfg.drop_late else max(cfg.prefetch, 1))
     stop = threading.Event()
+
+    replaced = [0]  # prepared frames a newer one replaced in the queue (drop_late)
 
     def produce() -> None:
         try:
             for k, frame in enumerate(source):
-                t_arr, c_arr = time.perf_counter(), time.thread_time()  # the frame is here: latency counts from now
-                item = (t_arr, *prepare(frame), time.perf_counter() - t_arr, time.thread_time() - c_arr)
+                t_take, c_arr = time.perf_counter(), time.thread_time()
+                t_arr = source.arrival()  # the frame is here: latency counts from then
+                t_arr = t_take if t_arr is None else min(t_arr, t_take)
+                item = (t_arr, *prepare(frame), time.perf_counter() - t_take, time.thread_time() - c_arr)
                 while not stop.is_set():
                     try:
                         ahead.put(item, timeout=0.1)
                         break
                     except queue.Full:
+                        if cfg.drop_late:  # the estimator has not taken the older one yet: replace it
+                            try:
+                                ahead.get_nowait()
+                                replaced[0] += 1
+                            except queue.Empty:
+                                pass
                         continue
                 # what frame k's dense step needs only in later frames' edges: built here,
                 # before frame k+1 is handed over (so before the estimator can need it)
@@ -538,7 +591,8 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
         raise DataError(f"{source.name}: no frame arrived")
     lat_ms = _percentiles_ms(lat)
     report = _finish(out, source, teacher, graph, t_edges, l_edges, gts, teacher_cfg, seconds,
-                     {"latency_ms": lat_ms, "work_ms": _percentiles_ms(work),
+                     {"latency_ms": lat_ms, "frames_skipped": source.skipped + replaced[0],
+                      "work_ms": _percentiles_ms(work),
                       "work_to_pose_ms": _percentiles_ms(to_pose), "work_to_pose_cpu_ms": _percentiles_ms(cpu_to_pose)},
                      interrupted, checkpoint)
     return OnlineResult(out, n, n / seconds, lat_ms, interrupted, report)
@@ -581,7 +635,8 @@ def fingerprint(spec: str, source: FrameSource, teacher_cfg, checkpoint: Optiona
         "checkpoint": file_digest(checkpoint) if checkpoint is not None else None,
         "calibration": file_digest(cal) if cal is not None and cal.is_file() else None,
         "predict": pconf if checkpoint is not None else None, "graph": (graph_cfg or ONLINE).to_dict(),
-        "pose_after_gap1": cfg.pose_after_gap1})
+        "pose_after_gap1": cfg.pose_after_gap1,
+        **({"drop_late": True} if cfg.drop_late else {})})  # absent when off: earlier runs stay valid
 
 
 def online(spec: str, out: Optional[Path] = None, *, frames: Optional[str] = None, follow: bool = False,
@@ -714,6 +769,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="default", choices=sorted(TEACHER_PRESETS), help="teacher preset")
     p.add_argument("--pose-after-gap1", action="store_true",
                    help="write each frame's pose once its gap-1 edge is in the graph; its longer edges follow")
+    p.add_argument("--drop-late", action="store_true",
+                   help="--follow: when frames come faster than they are processed, take the newest and skip "
+                   "the ones in between (bounded latency, fewer frames)")
     p.add_argument("--dense-max-gap", type=int, help="teacher: dense step only on edges of at most this many "
                    "frames (0: every edge; default: the preset's); less work per frame, see bench/README.md")
     p.add_argument("--samples", type=int, help="MC-dropout passes K (default 10)")
@@ -747,7 +805,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         pcfg = PredictConfig(**{k: v for k, v in (("samples", args.samples), ("max_gap", args.max_gap)) if v is not None})
         if args.timeout <= 0 or args.poll <= 0:
             raise ConfigError("--timeout and --poll must be positive")
-        ocfg = OnlineConfig(poll_s=args.poll, timeout_s=args.timeout, pose_after_gap1=args.pose_after_gap1)
+        if args.drop_late and not args.follow:
+            raise ConfigError("--drop-late needs --follow (a recording read from disk has every frame taken)")
+        ocfg = OnlineConfig(poll_s=args.poll, timeout_s=args.timeout, pose_after_gap1=args.pose_after_gap1,
+                            drop_late=args.drop_late)
         res = online(scene, args.out, frames=args.frames, follow=args.follow, teacher_cfg=tcfg,
                      checkpoint=args.checkpoint, predict_cfg=pcfg if args.checkpoint else None, cfg=ocfg,
                      device=args.device, overwrite=args.overwrite)

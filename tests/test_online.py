@@ -5,6 +5,7 @@ still being written, and keeps the trajectory so far when interrupted."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import threading
 import time
@@ -155,6 +156,59 @@ def test_follow_a_folder_being_written(tmp_path, online_run):
     assert (res.out / "teacher" / "edges.g2o").read_text() == (online_run.out / "teacher" / "edges.g2o").read_text()
 
 
+@pytest.mark.slow
+def test_drop_late_takes_the_newest_frame_when_behind(tmp_path, monkeypatch):
+    """A writer far faster than the estimator (slowed to 0.1 s a frame): with --drop-late
+    every written frame is either taken or counted as skipped, the taken ones in order and
+    the last one among them, and the edges join the frames taken."""
+    seq = open_scene("synthetic/tiny")[0]
+    live = tmp_path / "live"
+    live.mkdir()
+    shutil.copy(seq.root.parent / "config.json", tmp_path / "config.json")
+    add = online.OnlineTeacher.add
+
+    def slow_add(self, frame, fk):
+        time.sleep(0.1)
+        return add(self, frame, fk)
+
+    monkeypatch.setattr(online.OnlineTeacher, "add", slow_add)
+    cfg = online.OnlineConfig(poll_s=0.005, timeout_s=2.0, drop_late=True)
+    done = threading.Event()
+    writer = threading.Thread(target=_copy_frames_slowly, args=(seq.root, live, 0.01, done))
+    writer.start()
+    try:
+        res = online.run(online.open_source(str(live), follow=True, cfg=cfg), tmp_path / "out", TCFG,
+                         progress=False, cfg=cfg)
+    finally:
+        writer.join()
+    rep = res.report
+    assert done.is_set() and rep["frames_skipped"] > 0
+    assert res.frames + rep["frames_skipped"] == 20
+    ids = np.round(30 * read_tum(res.out / online.FINAL_TRAJECTORY).timestamps).astype(int)
+    assert len(ids) == res.frames and np.all(np.diff(ids) > 0) and ids[-1] == 19
+    edges, _ = read_g2o(res.out / "teacher" / "edges.g2o")
+    taken = set(ids.tolist())
+    assert edges and all(e.i in taken and e.j in taken for e in edges)
+    gap1 = {(e.i, e.j) for e in edges} & set(zip(ids[:-1].tolist(), ids[1:].tolist()))
+    assert len(gap1) >= len(ids) // 2  # consecutive frames taken are joined (a wide gap may fail)
+
+
+def test_follow_latency_counts_from_when_the_frame_was_written(tmp_path):
+    """A followed frame arrives when its last file was written (modification time), not
+    when the run gets to it; a recording read from disk arrives when it is handed over."""
+    seq = open_scene("synthetic/tiny")[0]
+    live = tmp_path / "live"
+    live.mkdir()
+    written = time.time() - 2.0
+    for f in seq.root.glob("frame-000000.*"):
+        shutil.copy(f, live / f.name)
+        os.utime(live / f.name, (written, written))
+    src = online.open_source(str(live), follow=True, cfg=online.OnlineConfig(poll_s=0.01, timeout_s=0.2))
+    next(iter(src))
+    assert 1.9 < time.perf_counter() - src.arrival() < 60
+    assert online.open_source("synthetic/tiny").arrival() is None
+
+
 def test_follow_times_out_without_frames(tmp_path):
     """A folder whose frames never become readable (a depth file without its colour image)."""
     (tmp_path / "stuck").mkdir()
@@ -203,6 +257,8 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert err.startswith("error: ") and "\n" not in err
     assert online.main(["--scene", "synthetic/tiny", "--follow", "--frames", "0:5", "--out", str(tmp_path / "o")]) == 1
     assert "--frames does not apply with --follow" in capsys.readouterr().err
+    assert online.main(["--scene", "synthetic/tiny", "--drop-late", "--out", str(tmp_path / "o")]) == 1
+    assert "--drop-late needs --follow" in capsys.readouterr().err
 
 
 @pytest.mark.slow
