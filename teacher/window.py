@@ -7,7 +7,8 @@ arrive, pipeline/online.py), so the two give the same edges bit for bit.
 For each new frame k (features from :func:`teacher.odometry.extract`):
 
 1. the gap-1 edge (k-1, k) is estimated with the constant-velocity prediction (the last
-   good gap-1 motion) guiding the matching;
+   good gap-1 motion, scaled to the time between the frames when a frame is missing:
+   :meth:`EdgeWindow.motion_over`) guiding the matching;
 2. its inlier matches extend the feature tracks of every frame in the window, and the
    gap-1 motion (or the constant-velocity guess when it failed) extends each frame's
    chained motion to the newest frame;
@@ -31,6 +32,7 @@ from typing import Callable, Optional
 import numpy as np
 from numpy.typing import NDArray
 
+from data import geometry as geo
 from data.sequence import Intrinsics
 from teacher.config import TeacherConfig
 from teacher.odometry import EdgeEstimate, FrameFeatures, PhotoMaps, estimate_edge, stale_stream
@@ -67,6 +69,7 @@ class EdgeWindow:
         self._prev_photo = prev_photo or (lambda: None)
         self.entries: deque[_Entry] = deque()
         self.v_prev: Optional[NDArray[np.float64]] = None  # last good gap-1 motion (constant-velocity prior)
+        self.dt_prev = 0.0  # its time (s)
         self.added = 0
         self._pending: Optional[tuple] = None  # the frame add_gap1 took, until add_longer
 
@@ -100,13 +103,14 @@ class EdgeWindow:
         e = None
         if self.entries:
             prev = self.entries[-1]
-            e = estimate_edge(prev.frame_id, frame_id, prev.feats, fk, intr, cfg, timestamp - prev.timestamp,
-                              T_pred=self.v_prev)
+            dt = timestamp - prev.timestamp
+            T_pred = self.motion_over(dt)
+            e = estimate_edge(prev.frame_id, frame_id, prev.feats, fk, intr, cfg, dt, T_pred=T_pred)
             if self._starts_inside(prev.pos):
                 edges.append(e)
-            step = e.T_i_j if e.ok else (self.v_prev if self.v_prev is not None else np.eye(4))
+            step = e.T_i_j if e.ok else (T_pred if T_pred is not None else np.eye(4))
             if e.ok:
-                self.v_prev = e.T_i_j
+                self.v_prev, self.dt_prev = e.T_i_j, dt
             m = np.full(len(prev.feats.uv) + 1, -1, np.int64)  # last slot maps -1 -> -1
             if e.ok and e.inlier_pairs is not None:
                 m[e.inlier_pairs[:, 0]] = e.inlier_pairs[:, 1]
@@ -115,6 +119,17 @@ class EdgeWindow:
                 w.T_k_cur = w.T_k_cur @ step
         self._pending = (pos, frame_id, timestamp, fk, e)
         return edges
+
+    def motion_over(self, dt: float) -> Optional[NDArray[np.float64]]:
+        """The constant-velocity prediction over ``dt`` seconds: the last good gap-1 motion,
+        scaled along its twist when ``dt`` is at least half again as long as that motion's
+        time, or at most two thirds of it (a dropped frame; frames ``vo-online --drop-late``
+        skipped). Timestamp jitter below that is left alone: it is the clock's, not the
+        camera's (TUM stamps frames on arrival). None before the first good gap-1 edge."""
+        if self.v_prev is None or self.dt_prev <= 0 or dt <= 0:
+            return self.v_prev
+        r = dt / self.dt_prev
+        return self.v_prev if 2 / 3 < r < 1.5 else geo.se3_exp(r * geo.se3_log(self.v_prev))
 
     def add_longer(self) -> list[EdgeEstimate]:
         """The second half of :meth:`add`: the edges (k-g, k), g = 2..K, of the frame

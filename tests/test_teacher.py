@@ -874,6 +874,34 @@ def test_window_gives_a_depth_repeat_the_colour_of_its_depth(office_clean):
     assert _photo_before(_ColourRepeats(seq, [5]), 6, cfg, make_orb(cfg), None) is None
 
 
+def test_constant_velocity_spans_a_dropped_frame(office_clean, monkeypatch):
+    """The gap-1 prediction is the last good gap-1 motion over the time between the frames:
+    unchanged under timestamp jitter, scaled along its twist over a dropped frame."""
+    from teacher import window as wmod
+
+    seq = office_clean
+    cfg = dataclasses.replace(TeacherConfig(), gaps=2)
+    w = wmod.EdgeWindow(seq.intrinsics, cfg)
+    assert w.motion_over(1 / 30) is None
+    preds = {}
+    est = wmod.estimate_edge
+
+    def spy(i, j, fi, fj, intr, c, dt, T_pred=None, *a, **k):
+        preds[(i, j)] = T_pred
+        return est(i, j, fi, fj, intr, c, dt, T_pred, *a, **k)
+
+    monkeypatch.setattr(wmod, "estimate_edge", spy)
+    e = [x for k, t in ((2, 2 / 30), (3, 3 / 30), (5, 5 / 30)) for x in w.add(k, t, _features(seq, k, cfg))]
+    v23 = next(x for x in e if (x.i, x.j) == (2, 3)).T_i_j
+    assert np.allclose(preds[(3, 5)], v23 @ v23, atol=1e-9)  # frame 4 missing: twice the motion
+    assert w.motion_over(1.2 * (2 / 30)) is w.v_prev  # jitter: the motion as it was
+    half = w.motion_over(1 / 30)
+    assert np.allclose(half @ half, w.v_prev, atol=1e-9)
+    gt = seq.groundtruth()
+    e35 = next(x for x in e if (x.i, x.j) == (3, 5))
+    assert e35.ok and relative_pose_error(geo.relative_pose(gt[3], gt[5]), e35.T_i_j)[0] < 5e-3
+
+
 @pytest.mark.parametrize("method", ["point-to-plane", "hybrid"])
 def test_rgbd_fallback_with_either_dense_method(office_clean, method):
     """The rgbd fallback on a pair with keypoints removed (colour blurred flat except for its
