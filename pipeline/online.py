@@ -435,14 +435,15 @@ class _Progress:
         self.every, self.stream, self.tty = every_s, stream, stream.isatty()
         self.last = 0.0
 
-    def show(self, n: int, fps: float, lat_s: list[float], edges: int) -> None:
+    def show(self, n: int, fps: float, lat_s: list[float], edges: int, skipped: int = 0) -> None:
         now = time.monotonic()
         if now - self.last < self.every:
             return
         self.last = now
         recent = lat_s[-300:]  # the percentile of the last 10 s at 30 Hz
         line = (f"online: {n} frames, {fps:.1f} fps, latency {1000 * lat_s[-1]:.0f} ms "
-                f"(p95 {1000 * float(np.percentile(recent, 95)):.0f} ms), {edges} edges")
+                f"(p95 {1000 * float(np.percentile(recent, 95)):.0f} ms), {edges} edges"
+                + (f", {skipped} skipped" if skipped else ""))
         if self.tty:
             self.stream.write("\r" + line + "\x1b[K")
             self.stream.flush()
@@ -574,7 +575,8 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
                 graph.add_edges(_teacher_edges(later))
             work.append(t_prep + time.perf_counter() - t_take if cfg.pose_after_gap1 else to_pose[-1])
             if bar is not None:
-                bar.show(n, n / (time.perf_counter() - t_start), lat, len(t_edges) + len(l_edges))
+                bar.show(n, n / (time.perf_counter() - t_start), lat, len(t_edges) + len(l_edges),
+                         source.skipped + replaced[0])
     except KeyboardInterrupt:
         interrupted = True
     finally:
