@@ -52,6 +52,7 @@ import argparse
 import dataclasses
 import logging
 import queue
+import signal
 import sys
 import threading
 import time
@@ -104,6 +105,11 @@ class OnlineConfig:
     ``frames_skipped``); the edges then join the frames taken (a gap-1 edge may span
     several camera frames). One frame is prepared ahead (not ``prefetch``). Off: every
     frame is taken, in order, however late."""
+    feature_process: bool = True
+    """Extract each frame's teacher features in a worker process
+    (:class:`teacher.processes.FeatureProcess`) rather than in the helper thread: Open3D's
+    image filters hold Python's GIL and would stall the estimating thread. The same
+    features bit for bit (the outputs do not depend on it)."""
 
 
 # ----------------------------------------------------------------------------------
@@ -369,9 +375,11 @@ class OnlineTeacher:
     generate`` (:class:`teacher.window.EdgeWindow`, the same code) over the frames as they
     arrive, and the frame ids and timestamps so far."""
 
-    def __init__(self, intr: Intrinsics, cfg, colour=None) -> None:
+    def __init__(self, intr: Intrinsics, cfg, colour=None, process: bool = False) -> None:
         """``colour``: the colour camera model (``teacher.odometry.ColourCamera``; None:
-        colour registered to depth), as :func:`teacher.generate.colour_camera_for` picks it."""
+        colour registered to depth), as :func:`teacher.generate.colour_camera_for` picks it.
+        ``process``: :meth:`features` and :meth:`finish` run in a worker process
+        (:class:`teacher.processes.FeatureProcess`; :meth:`close` ends it)."""
         from teacher.odometry import make_orb
         from teacher.window import EdgeWindow
 
@@ -380,6 +388,11 @@ class OnlineTeacher:
         self.window = EdgeWindow(intr, cfg)
         self.ids: list[int] = []
         self.times: list[float] = []
+        self.process = None
+        if process:
+            from teacher.processes import FeatureProcess
+
+            self.process = FeatureProcess(intr.K, cfg, colour)
 
     def features(self, frame: Frame):
         """Per-frame work (safe to run in one helper thread ahead of :meth:`add`), without
@@ -387,6 +400,8 @@ class OnlineTeacher:
         :meth:`finish` adds them, in the same thread, before the next frame's features."""
         from teacher.odometry import extract
 
+        if self.process is not None:
+            return self.process.features(frame.rgb, frame.depth)
         return extract(frame.rgb, frame.depth, self.cfg, self.orb, self.intr.K, self.colour, surface=False)
 
     def finish(self, fk) -> None:
@@ -394,8 +409,15 @@ class OnlineTeacher:
         the frame is handed over, so its own edges do not wait for it."""
         from teacher.odometry import add_surface
 
-        if fk.dense is not None:
+        if self.process is not None:
+            self.process.finish(fk)
+        elif fk.dense is not None:
             add_surface(fk.dense, fk.depth, self.intr.K, self.cfg)
+
+    def close(self) -> None:
+        """End the feature process, if any."""
+        if self.process is not None:
+            self.process.close()
 
     def add(self, frame: Frame, fk) -> list:
         """The edges ending at ``frame`` (``EdgeEstimate``; failed ones included)."""
@@ -478,7 +500,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
 
     teacher_cfg = teacher_cfg or TEACHER_DEFAULT
     out = ensure_dir(Path(out))
-    teacher = OnlineTeacher(source.intrinsics, teacher_cfg, _colour_camera(source, teacher_cfg))
+    teacher = OnlineTeacher(source.intrinsics, teacher_cfg, _colour_camera(source, teacher_cfg), cfg.feature_process)
     learner = None
     if checkpoint is not None:
         from learner.online import OnlineLearner  # torch: only with a checkpoint
@@ -513,7 +535,8 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
                 t_take, c_arr = time.perf_counter(), time.thread_time()
                 t_arr = source.arrival()  # the frame is here: latency counts from then
                 t_arr = t_take if t_arr is None else min(t_arr, t_take)
-                item = (t_arr, *prepare(frame), time.perf_counter() - t_take, time.thread_time() - c_arr)
+                item = (t_arr, *prepare(frame), time.perf_counter() - t_take,
+                        time.thread_time() - c_arr + (teacher.process.cpu_s if teacher.process is not None else 0.0))
                 while not stop.is_set():
                     try:
                         ahead.put(item, timeout=0.1)
@@ -537,6 +560,17 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
 
     producer = threading.Thread(target=produce, name="vo-online-frames", daemon=True)
     interrupted = False
+    # Ctrl-C ends the run after the frame in hand (a second one at once): a frame cut short
+    # would leave the teacher, the graph and the trajectory file with different frames
+    asked = threading.Event()
+
+    def on_sigint(signum, frame_) -> None:
+        if asked.is_set():
+            raise KeyboardInterrupt
+        asked.set()
+
+    handler = (signal.signal(signal.SIGINT, on_sigint) if threading.current_thread() is threading.main_thread()
+               else None)
     t_start = time.perf_counter()
     fh = open(out / TRAJECTORY, "w")
     fh.write("# timestamp tx ty tz qx qy qz qw  (T_world_cam, metres; each frame's estimate when it arrived)\n")
@@ -544,7 +578,12 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     producer.start()
     try:
         while True:
-            item = ahead.get()
+            if asked.is_set():
+                raise KeyboardInterrupt
+            try:
+                item = ahead.get(timeout=0.1)
+            except queue.Empty:
+                continue
             if item is None:
                 break
             if isinstance(item, BaseException):
@@ -580,6 +619,8 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     except KeyboardInterrupt:
         interrupted = True
     finally:
+        if handler is not None:
+            signal.signal(signal.SIGINT, handler)
         stop.set()
         if isinstance(source, FollowFolder):
             source.stop.set()
@@ -587,10 +628,16 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
         if bar is not None:
             bar.close()
         producer.join(timeout=5.0)
+        teacher.close()
     seconds = time.perf_counter() - t_start
     if n == 0:
         (out / TRAJECTORY).unlink(missing_ok=True)  # nothing to keep
         raise DataError(f"{source.name}: no frame arrived")
+    if len(teacher.ids) > n:  # interrupted inside a frame: keep the frames whose rows were written
+        del teacher.ids[n:], teacher.times[n:]
+        kept = set(teacher.ids)
+        t_edges = [e for e in t_edges if e.j in kept]
+        l_edges = [e for e in l_edges if e.j in kept]
     lat_ms = _percentiles_ms(lat)
     report = _finish(out, source, teacher, graph, t_edges, l_edges, gts, teacher_cfg, seconds,
                      {"latency_ms": lat_ms, "frames_skipped": source.skipped + replaced[0],
@@ -705,7 +752,7 @@ def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: Onlin
     ids = np.array(teacher.ids, dtype=np.int64)
     times = np.array(teacher.times)
     n = len(ids)
-    final = graph.final()
+    final = graph.final()[:n]  # the graph may hold a frame an interrupt cut short
     write_tum(out / FINAL_TRAJECTORY, Trajectory(times, final))
     t_edges = sorted(t_edges, key=lambda e: (e.i, e.j))  # the order of teacher generate's files
     good = [Edge(e.i, e.j, e.T_i_j, e.cov) for e in t_edges if e.ok]
@@ -733,7 +780,7 @@ def _finish(out: Path, source: FrameSource, teacher: OnlineTeacher, graph: Onlin
     if has_gt:
         report["final"] = trajectory_report(gt, Trajectory(times, final))
         if graph.polish is not None:
-            report["final_isam2"] = trajectory_report(gt, Trajectory(times, graph.isam2_poses))
+            report["final_isam2"] = trajectory_report(gt, Trajectory(times, graph.isam2_poses[:n]))
         report["online"] = trajectory_report(gt, Trajectory(times, _read_rows(out / TRAJECTORY, n)))
         report["teacher_chain"] = trajectory_report(gt, Trajectory(times, chained))
     report = json_safe(report)  # what a later run reads back from the file (tuples as lists)
@@ -785,6 +832,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    from teacher import processes
+
+    processes.start()  # the feature process's imports overlap this process's
     from data.io import setup_logging
 
     args = build_parser().parse_args(argv)

@@ -96,6 +96,32 @@ def test_pose_after_gap1_solves_the_same_edges(batch, online_run, tmp_path):
     assert 0 < rep["work_to_pose_cpu_ms"]["p50"] <= rep["work_to_pose_cpu_ms"]["max"]
 
 
+def test_feature_process_gives_the_features_of_extract():
+    """The feature process (vo-online's default) returns ``extract``'s features bit for bit,
+    and its :meth:`finish` the surface maps ``add_surface`` adds."""
+    from teacher.odometry import add_surface, extract, make_orb
+    from teacher.processes import FeatureProcess
+
+    seq = open_scene("synthetic/tiny")[0]
+    proc = FeatureProcess(seq.intrinsics.K, TCFG)
+    try:
+        for k in (0, 1):
+            f = seq.frame(k)
+            got = proc.features(f.rgb, f.depth)
+            assert got.dense.vertex is None and proc.cpu_s > 0
+            proc.finish(got)
+            want = extract(f.rgb, f.depth, TCFG, make_orb(TCFG), seq.intrinsics.K, surface=False)
+            add_surface(want.dense, want.depth, seq.intrinsics.K, TCFG)
+            for a in ("uv", "desc", "z", "gray", "depth"):
+                assert np.array_equal(getattr(got, a), getattr(want, a)), a
+            for a in ("points", "vertex", "normal", "K"):
+                assert np.array_equal(getattr(got.dense, a).numpy(), getattr(want.dense, a).numpy(),
+                                      equal_nan=True), a
+            assert got.keys == want.keys
+    finally:
+        proc.close()
+
+
 def test_window_halves_give_the_edges_of_add():
     """EdgeWindow.add_gap1 then add_longer gives add's edges; a second add_gap1 before
     add_longer is refused (the tracks of the first frame would be lost)."""
@@ -249,6 +275,40 @@ def test_ctrl_c_keeps_the_trajectory_so_far(tmp_path, monkeypatch, capsys):
     rep = json.loads((tmp_path / "o" / "report.json").read_text())
     assert rep["interrupted"] and rep["frames"] == n
     assert len(read_tum(tmp_path / "o" / online.FINAL_TRAJECTORY)) == n
+
+
+class _SigintAt(online.FrameSource):
+    """A source after whose frame ``n`` the user presses Ctrl-C (a real SIGINT, which the
+    main thread gets wherever it is in a frame's work)."""
+
+    def __init__(self, inner: online.FrameSource, n: int) -> None:
+        self.inner, self.n, self.name, self.intrinsics = inner, n, inner.name, inner.intrinsics
+
+    def __iter__(self):
+        import signal
+
+        for k, f in enumerate(self.inner):
+            if k == self.n:
+                os.kill(os.getpid(), signal.SIGINT)
+            yield f
+
+
+@pytest.mark.slow
+def test_sigint_ends_the_run_after_the_frame_in_hand(tmp_path):
+    """Ctrl-C in the middle of a frame's work ends the run once that frame is done: the
+    trajectory files, report and edges hold the same frames."""
+    import signal
+
+    before = signal.getsignal(signal.SIGINT)
+    res = online.run(_SigintAt(online.open_source("synthetic/tiny"), 6), tmp_path / "o", TCFG, progress=False,
+                     cfg=online.OnlineConfig(pose_after_gap1=True))
+    assert signal.getsignal(signal.SIGINT) is before  # the run's handler is gone
+    assert res.interrupted and 4 <= res.frames < 20
+    causal, final = read_tum(res.out / online.TRAJECTORY), read_tum(res.out / online.FINAL_TRAJECTORY)
+    assert len(causal) == len(final) == res.frames == res.report["frames"]
+    ids = set(np.round(30 * final.timestamps).astype(int).tolist())
+    edges, _ = read_g2o(res.out / "teacher" / "edges.g2o")
+    assert edges and all(e.i in ids and e.j in ids for e in edges)
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):
