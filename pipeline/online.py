@@ -500,13 +500,14 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
 
     teacher_cfg = teacher_cfg or TEACHER_DEFAULT
     out = ensure_dir(Path(out))
-    teacher = OnlineTeacher(source.intrinsics, teacher_cfg, _colour_camera(source, teacher_cfg), cfg.feature_process)
     learner = None
     if checkpoint is not None:
         from learner.online import OnlineLearner  # torch: only with a checkpoint
 
         learner = OnlineLearner(checkpoint, predict_cfg, device)
     graph = OnlineGraph(graph_cfg)
+    # last: its feature process is ended in the frame loop's `finally`
+    teacher = OnlineTeacher(source.intrinsics, teacher_cfg, _colour_camera(source, teacher_cfg), cfg.feature_process)
     t_edges: list = []
     l_edges: list[Edge] = []
     gts: list[Optional[NDArray]] = []
