@@ -183,15 +183,18 @@ class DenseMaps:
             self._cache[key] = q[np.all(np.isfinite(q), axis=1)].astype(np.float64)
         return self._cache[key]
 
-    def surface(self) -> tuple[NDArray[np.float64], NDArray[np.bool_], int, int, NDArray[np.float64]]:
-        """The frame as the one aligned to (i): (h * w, 6) float64 vertex and normal of each
-        pixel of ``vertex`` / ``normal`` (row-major), whether both are finite there, h, w and
-        the camera matrix; one gather per edge instead of two and their finiteness tests."""
+    def surface(self) -> tuple[NDArray[np.float32], NDArray[np.bool_], int, int, NDArray[np.float64]]:
+        """The frame as the one aligned to (i): (h * w, 6) vertex and normal of each pixel of
+        ``vertex`` / ``normal`` (row-major; float32 as Open3D keeps them: an edge converts
+        the rows it gathers to float64, the same numbers as converting the whole table
+        first, at a quarter of the per-frame cost), whether both are finite there, h, w
+        and the camera matrix; one gather per edge instead of two and their finiteness
+        tests."""
         if "surface" not in self._cache:
             vert, nrm = self.vertex.numpy(), self.normal.numpy()
             h, w = vert.shape[:2]
-            vn = np.concatenate([vert.reshape(-1, 3), nrm.reshape(-1, 3)], axis=1).astype(np.float64)
-            self._cache["surface"] = (vn, np.all(np.isfinite(vn), axis=1), h, w, self.K.numpy())
+            vn = np.concatenate([vert.reshape(-1, 3), nrm.reshape(-1, 3)], axis=1)
+            self._cache["surface"] = (vn, np.isfinite(vn).all(axis=1), h, w, self.K.numpy())
         return self._cache["surface"]
 
 
@@ -585,49 +588,56 @@ def _residuals(T: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDAr
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     n3 = 3 * B if w3 > 0 else 0
     r = np.empty(2 * F + 2 * B + n3)
-    # forward: Y projected into j; backward: X projected into i (rows (u, v) per point)
-    izf = 1.0 / Y[:, 2]
-    xf, yf = Y[:, 0] * izf, Y[:, 1] * izf  # normalised coordinates
+    # the points' coordinates as contiguous rows (x, y, z): whole-row operations, not
+    # strided columns (the same arithmetic, element by element)
+    Yt, Xt = Y.T.copy(), X.T.copy()
+    izf = 1.0 / Yt[2]
+    xf, yf = Yt[0] * izf, Yt[1] * izf
     rf = r[:2 * F].reshape(F, 2)
-    rf[:, 0] = fx * xf + cx - uv_j[:, 0]
-    rf[:, 1] = fy * yf + cy - uv_j[:, 1]
-    izb = 1.0 / X[:, 2]
-    xb, yb = X[:, 0] * izb, X[:, 1] * izb
+    uvt = uv_j.T
+    rf[:, 0] = fx * xf + cx - uvt[0]
+    rf[:, 1] = fy * yf + cy - uvt[1]
+    izb = 1.0 / Xt[2]
+    xb, yb = Xt[0] * izb, Xt[1] * izb
     rb = r[2 * F:2 * F + 2 * B].reshape(B, 2)
-    rb[:, 0] = fx * xb + cx - uv_i[:, 0]
-    rb[:, 1] = fy * yb + cy - uv_i[:, 1]
+    uvt = uv_i.T
+    rb[:, 0] = fx * xb + cx - uvt[0]
+    rb[:, 1] = fy * yb + cy - uvt[1]
     if w3 > 0:
-        s3 = w3 / (P_b[:, 2] ** 2)  # Kinect depth noise grows with z^2
+        s3 = w3 / (P_b[:, 2] ** 2)
         r[2 * F + 2 * B:] = ((X - P_b) * s3[:, None]).ravel()
     if not with_jac:
         return r, None
     J = np.empty((len(r), 6))
-    # forward, right perturbation: Y(delta) = exp(-delta) Y -> dY = [-I | hat(Y)]
-    Jf = J[:2 * F].reshape(F, 2, 6)
+    # forward, right perturbation: Y(delta) = exp(-delta) Y -> dY = [-I | hat(Y)]; the rows
+    # (u, v) of each point built as (2, 6, F) contiguous rows, then moved into place
+    Gf = np.empty((2, 6, F))
     a, b = fx * izf, fy * izf
-    Jf[:, 0, 0] = -a
-    Jf[:, 0, 1] = 0.0
-    Jf[:, 0, 2] = a * xf
-    Jf[:, 0, 3] = fx * xf * yf
-    Jf[:, 0, 4] = -fx * (1.0 + xf * xf)
-    Jf[:, 0, 5] = fx * yf
-    Jf[:, 1, 0] = 0.0
-    Jf[:, 1, 1] = -b
-    Jf[:, 1, 2] = b * yf
-    Jf[:, 1, 3] = fy * (1.0 + yf * yf)
-    Jf[:, 1, 4] = -fy * xf * yf
-    Jf[:, 1, 5] = -fy * xf
+    Gf[0, 0] = -a
+    Gf[0, 1] = 0.0
+    Gf[0, 2] = a * xf
+    Gf[0, 3] = fx * xf * yf
+    Gf[0, 4] = -fx * (1.0 + xf * xf)
+    Gf[0, 5] = fx * yf
+    Gf[1, 0] = 0.0
+    Gf[1, 1] = -b
+    Gf[1, 2] = b * yf
+    Gf[1, 3] = fy * (1.0 + yf * yf)
+    Gf[1, 4] = -fy * xf * yf
+    Gf[1, 5] = -fy * xf
+    J[:2 * F].reshape(F, 2, 6)[:] = Gf.transpose(2, 0, 1)
     # backward: X(delta) = R exp(delta) Q + t -> dX = R [I | -hat(Q)]; rows b = A R,
     # [b | -b hat(Q)] = [b | Q x b]
-    Jb = J[2 * F:2 * F + 2 * B].reshape(B, 2, 6)
-    Bu = (fx * izb)[:, None] * (R[0] - xb[:, None] * R[2])
-    Bv = (fy * izb)[:, None] * (R[1] - yb[:, None] * R[2])
-    Bb = np.stack([Bu, Bv], axis=1)  # (B, 2, 3)
-    Jb[:, :, :3] = Bb
-    Q = Q_j[:, None, :]
-    Jb[:, :, 3] = Q[..., 1] * Bb[..., 2] - Q[..., 2] * Bb[..., 1]
-    Jb[:, :, 4] = Q[..., 2] * Bb[..., 0] - Q[..., 0] * Bb[..., 2]
-    Jb[:, :, 5] = Q[..., 0] * Bb[..., 1] - Q[..., 1] * Bb[..., 0]
+    Gb = np.empty((2, 6, B))
+    Qt = Q_j.T.copy()
+    for k, (fk, nk) in enumerate(((fx * izb, xb), (fy * izb, yb))):
+        bb = Gb[k]
+        for c in range(3):
+            np.multiply(fk, R[k, c] - nk * R[2, c], out=bb[c])
+        bb[3] = Qt[1] * bb[2] - Qt[2] * bb[1]
+        bb[4] = Qt[2] * bb[0] - Qt[0] * bb[2]
+        bb[5] = Qt[0] * bb[1] - Qt[1] * bb[0]
+    J[2 * F:2 * F + 2 * B].reshape(B, 2, 6)[:] = Gb.transpose(2, 0, 1)
     if w3 > 0:
         # X(delta) - P_b, dX = R [I | -hat(Q)] = [R | -hat(R Q) R]
         J3 = J[2 * F + 2 * B:].reshape(B, 3, 6)
@@ -1041,19 +1051,24 @@ def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg:
         q, X = q[front], X[front]
     u = np.rint(K[0, 0] * X[:, 0] / X[:, 2] + K[0, 2]).astype(np.int64)
     v = np.rint(K[1, 1] * X[:, 1] / X[:, 2] + K[1, 2]).astype(np.int64)
-    sel = np.flatnonzero((u >= 0) & (u < w) & (v >= 0) & (v < h))
-    pix = v[sel] * w + u[sel]
+    idx = np.flatnonzero((u >= 0) & (u < w) & (v >= 0) & (v < h))
+    pix = v[idx] * w + u[idx]
     use = finite[pix]
-    sel, pn = sel[use], vn[pix[use]]
-    d = X[sel] - pn[:, :3]
+    idx, pn = idx[use], vn[pix[use]].astype(np.float64)  # gather, then convert: one pass each
+    Xs = X[idx]
+    d = Xs - pn[:, :3]
     ok = np.sqrt(np.add.reduce(d * d, axis=1)) < cfg.dense_trunc_m  # np.linalg.norm's formula
-    sel, pn = sel[ok], pn[ok]
-    q, X, p, n = q[sel], X[sel], pn[:, :3].copy(), pn[:, 3:].copy()
+    q, X, pn = q[idx[ok]], Xs[ok], pn[ok]
+    p, n = pn[:, :3].copy(), pn[:, 3:].copy()
     if len(q) < 6:
         return None, len(q), float("nan")
     r = np.einsum("ij,ij->i", n, X - p)
     m = n @ R
-    J = np.concatenate([m, np.cross(q, m)], axis=1)
+    J = np.empty((len(q), 6))
+    J[:, :3] = m
+    J[:, 3] = q[:, 1] * m[:, 2] - q[:, 2] * m[:, 1]  # q x m, written out (np.cross's formula)
+    J[:, 4] = q[:, 2] * m[:, 0] - q[:, 0] * m[:, 2]
+    J[:, 5] = q[:, 0] * m[:, 1] - q[:, 1] * m[:, 0]
     _, wts, _ = _huber(r, cfg.dense_huber_m)
     H = J.T @ (J * wts[:, None])
     sigma2 = max(float(np.sum(wts * r * r) / max(len(r) - 6, 1)), cfg.dense_min_sigma_m ** 2)
