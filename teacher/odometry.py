@@ -180,7 +180,7 @@ class DenseMaps:
         key = ("points", stride)
         if key not in self._cache:
             q = self.points.numpy()[::stride, ::stride].reshape(-1, 3)
-            self._cache[key] = q[np.all(np.isfinite(q), axis=1)].astype(np.float64)
+            self._cache[key] = np.compress(np.isfinite(q).all(axis=1), q, axis=0).astype(np.float64)
         return self._cache[key]
 
     def surface(self) -> tuple[NDArray[np.float32], NDArray[np.bool_], int, int, NDArray[np.float64]]:
@@ -448,18 +448,21 @@ def match(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
         return np.zeros((0, 2), np.int64)
     if T_i_j_pred is None:
         return _match_exhaustive(fi, fj, src, cfg)
-    P = _backproject(fi.uv[src], fi.z[src], K)
+    P = _backproject(np.take(fi.uv, src, axis=0), fi.z[src], K)
     Tji = geo.inv_T(T_i_j_pred)
     Y = P @ Tji[:3, :3].T + Tji[:3, 3]
-    src = src[Y[:, 2] > 1e-3]
-    pred = _project(Y[Y[:, 2] > 1e-3], K)
+    front = Y[:, 2] > 1e-3
+    src = src[front]
+    pred = _project(np.compress(front, Y, axis=0), K)
     near = cKDTree(pred).sparse_distance_matrix(fj.tree(), cfg.search_radius_px, output_type="ndarray")
     if len(near) == 0:
         return np.zeros((0, 2), np.int64)
     qi, cj = src[near["i"]], near["j"].astype(np.int64)
-    d = np.bitwise_count(fi.desc64[qi] ^ fj.desc64[cj]).sum(axis=1, dtype=np.int64)
+    x = np.take(fi.desc64, qi, axis=0)  # np.take: 4 times faster than fancy indexing here
+    x ^= np.take(fj.desc64, cj, axis=0)
+    d = np.add.reduce(np.bitwise_count(x), axis=1, dtype=np.int64)
     # best and second best in j for each i (one sort on the key (i, distance); d < 512)
-    o = np.argsort((qi << 9) | d, kind="stable")
+    o = _stable_argsort((qi << 9) | d)
     qi_s, cj_s, d_s = qi[o], cj[o], d[o]
     first = np.flatnonzero(np.r_[True, qi_s[1:] != qi_s[:-1]])
     has2 = np.r_[first[1:], len(qi_s)] - first >= 2
@@ -467,13 +470,25 @@ def match(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
     best_i, best_j, best_d = qi_s[first], cj_s[first], d_s[first]
     ok = (best_d <= cfg.max_hamming) & (best_d < cfg.ratio * second)
     # mutual check: the best i for each j among the compared pairs
-    o2 = np.argsort((cj << 9) | d, kind="stable")
+    o2 = _stable_argsort((cj << 9) | d)
     cj2, qi2 = cj[o2], qi[o2]
     first2 = np.flatnonzero(np.r_[True, cj2[1:] != cj2[:-1]])
     back = np.full(len(fj.desc), -1, np.int64)
     back[cj2[first2]] = qi2[first2]
     ok &= back[best_j] == best_i
     return np.stack([best_i[ok], best_j[ok]], axis=1)
+
+
+def _stable_argsort(key: NDArray[np.int64]) -> NDArray[np.int64]:
+    """``np.argsort(key, kind="stable")`` for non-negative int64 keys, as an unstable sort of
+    keys made unique by their position in the low bits (the same order: ties keep their
+    order). NumPy sorts int64 with timsort when stable and with a SIMD quicksort otherwise:
+    on guided matching's ~9,000 candidates 0.3 instead of 0.5-2.7 ms."""
+    n = len(key)
+    bits = max(n.bit_length(), 1)
+    if n == 0 or int(key.max()) >= 1 << (62 - bits):
+        return np.argsort(key, kind="stable")
+    return np.argsort((key << bits) | np.arange(n, dtype=np.int64))
 
 
 def match_wide(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
@@ -1046,19 +1061,21 @@ def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg:
     R, t = T_i_j[:3, :3], T_i_j[:3, 3]
     X = q @ R.T + t
     vn, finite, h, w, K = di.surface()
+    # rows are selected with np.take / np.compress: the same rows as fancy or boolean
+    # indexing, which NumPy does 4-10 times slower on (N, 3) arrays
     front = X[:, 2] > 1e-6
     if not front.all():
-        q, X = q[front], X[front]
+        q, X = np.compress(front, q, axis=0), np.compress(front, X, axis=0)
     u = np.rint(K[0, 0] * X[:, 0] / X[:, 2] + K[0, 2]).astype(np.int64)
     v = np.rint(K[1, 1] * X[:, 1] / X[:, 2] + K[1, 2]).astype(np.int64)
     idx = np.flatnonzero((u >= 0) & (u < w) & (v >= 0) & (v < h))
     pix = v[idx] * w + u[idx]
     use = finite[pix]
-    idx, pn = idx[use], vn[pix[use]].astype(np.float64)  # gather, then convert: one pass each
-    Xs = X[idx]
+    idx, pn = idx[use], np.take(vn, pix[use], axis=0).astype(np.float64)  # gather, then convert
+    Xs = np.take(X, idx, axis=0)
     d = Xs - pn[:, :3]
     ok = np.sqrt(np.add.reduce(d * d, axis=1)) < cfg.dense_trunc_m  # np.linalg.norm's formula
-    q, X, pn = q[idx[ok]], Xs[ok], pn[ok]
+    q, X, pn = np.take(q, idx[ok], axis=0), np.compress(ok, Xs, axis=0), np.compress(ok, pn, axis=0)
     p, n = pn[:, :3].copy(), pn[:, 3:].copy()
     if len(q) < 6:
         return None, len(q), float("nan")
@@ -1153,8 +1170,8 @@ def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     n_match = len(pairs)
     if n_match < cfg.min_matches:
         return EdgeEstimate(i, j, "few_matches", matches=n_match)
-    uv_i = fi.uv[pairs[:, 0]].astype(np.float64)
-    uv_j = fj.uv[pairs[:, 1]].astype(np.float64)
+    uv_i = np.take(fi.uv, pairs[:, 0], axis=0).astype(np.float64)
+    uv_j = np.take(fj.uv, pairs[:, 1], axis=0).astype(np.float64)
     if cfg.subpixel:
         uv_j = _subpixel(fi, fj, uv_i, uv_j, cfg.lk_window)
     P_i = _backproject(uv_i, fi.z[pairs[:, 0]].astype(np.float64), K)
