@@ -183,18 +183,16 @@ class DenseMaps:
             self._cache[key] = np.compress(np.isfinite(q).all(axis=1), q, axis=0).astype(np.float64)
         return self._cache[key]
 
-    def surface(self) -> tuple[NDArray[np.float32], NDArray[np.bool_], int, int, NDArray[np.float64]]:
-        """The frame as the one aligned to (i): (h * w, 6) vertex and normal of each pixel of
-        ``vertex`` / ``normal`` (row-major; float32 as Open3D keeps them: an edge converts
-        the rows it gathers to float64, the same numbers as converting the whole table
-        first, at a quarter of the per-frame cost), whether both are finite there, h, w
-        and the camera matrix; one gather per edge instead of two and their finiteness
-        tests."""
+    def surface(self) -> tuple[NDArray[np.float32], NDArray[np.float32], int, int, NDArray[np.float64]]:
+        """The frame as the one aligned to (i): (h * w, 3) vertex and normal of each pixel of
+        ``vertex`` / ``normal`` (row-major views of Open3D's float32 maps, NaN where
+        invalid), h, w and the camera matrix. An edge gathers the rows of the pixels it
+        hits and tests and converts those alone: cheaper than one (h * w, 6) float64 table
+        and its finiteness per frame (3.7 ms, more than the ~5 edges' gathers)."""
         if "surface" not in self._cache:
             vert, nrm = self.vertex.numpy(), self.normal.numpy()
             h, w = vert.shape[:2]
-            vn = np.concatenate([vert.reshape(-1, 3), nrm.reshape(-1, 3)], axis=1)
-            self._cache["surface"] = (vn, np.isfinite(vn).all(axis=1), h, w, self.K.numpy())
+            self._cache["surface"] = (vert.reshape(-1, 3), nrm.reshape(-1, 3), h, w, self.K.numpy())
         return self._cache["surface"]
 
 
@@ -691,7 +689,7 @@ def refine_two_way(T0: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i:
     cost, w, quad = _huber(r, huber)
     newton = True
     for _ in range(iters):
-        Jq = J[quad] if newton and quad.sum() >= 12 else J * np.sqrt(w)[:, None]
+        Jq = np.compress(quad, J, axis=0) if newton and quad.sum() >= 12 else J * np.sqrt(w)[:, None]
         H = Jq.T @ Jq
         g = J.T @ (w * r)  # psi(r) = w r
         step = -np.linalg.solve(H + lam * np.diag(np.diag(H)) + 1e-12 * np.eye(6), g)
@@ -1060,7 +1058,7 @@ def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg:
     q = dj.moved_points(stride)
     R, t = T_i_j[:3, :3], T_i_j[:3, 3]
     X = q @ R.T + t
-    vn, finite, h, w, K = di.surface()
+    vert, nrm, h, w, K = di.surface()
     # rows are selected with np.take / np.compress: the same rows as fancy or boolean
     # indexing, which NumPy does 4-10 times slower on (N, 3) arrays
     front = X[:, 2] > 1e-6
@@ -1070,13 +1068,15 @@ def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg:
     v = np.rint(K[1, 1] * X[:, 1] / X[:, 2] + K[1, 2]).astype(np.int64)
     idx = np.flatnonzero((u >= 0) & (u < w) & (v >= 0) & (v < h))
     pix = v[idx] * w + u[idx]
-    use = finite[pix]
-    idx, pn = idx[use], np.take(vn, pix[use], axis=0).astype(np.float64)  # gather, then convert
+    p, n = np.take(vert, pix, axis=0), np.take(nrm, pix, axis=0)
+    use = np.isfinite(p).all(axis=1) & np.isfinite(n).all(axis=1)
+    idx = idx[use]
+    p, n = np.compress(use, p, axis=0).astype(np.float64), np.compress(use, n, axis=0).astype(np.float64)
     Xs = np.take(X, idx, axis=0)
-    d = Xs - pn[:, :3]
+    d = Xs - p
     ok = np.sqrt(np.add.reduce(d * d, axis=1)) < cfg.dense_trunc_m  # np.linalg.norm's formula
-    q, X, pn = np.take(q, idx[ok], axis=0), np.compress(ok, Xs, axis=0), np.compress(ok, pn, axis=0)
-    p, n = pn[:, :3].copy(), pn[:, 3:].copy()
+    q, X = np.take(q, idx[ok], axis=0), np.compress(ok, Xs, axis=0)
+    p, n = np.compress(ok, p, axis=0), np.compress(ok, n, axis=0)
     if len(q) < 6:
         return None, len(q), float("nan")
     r = np.einsum("ij,ij->i", n, X - p)
@@ -1198,8 +1198,9 @@ def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
         if in_f.sum() < max(6, cfg.min_inliers):
             return EdgeEstimate(i, j, "few_inliers", matches=n_match, inliers=int(in_f.sum()))
         sf, sb = _even(np.flatnonzero(in_f), cfg.refine_max_points), _even(np.flatnonzero(in_b), cfg.refine_max_points)
-        T, cov, r = refine_two_way(T, P_i[sf], uv_j[sf], Q_all[sb], uv_i[sb], K, cfg.huber_px, iters,
-                                   cfg.min_sigma_px, P_i[sb], w3)
+        T, cov, r = refine_two_way(T, *(np.take(a, sf, axis=0) for a in (P_i, uv_j)),
+                                   *(np.take(a, sb, axis=0) for a in (Q_all, uv_i)), K, cfg.huber_px, iters,
+                                   cfg.min_sigma_px, np.take(P_i, sb, axis=0), w3)
     n_in = int(in_f.sum())
     res = EdgeEstimate(i, j, "ok", matches=n_match, inliers=n_in, inlier_ratio=n_in / n_match,
                        inlier_pairs=pairs[in_f])
