@@ -894,7 +894,7 @@ def _dense_stage(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
         if hybrid:
             cov_d = hybrid_covariance(T_d, di, dj, cfg, stride=2 * cfg.dense_cov_stride)
         else:
-            cov_d, _, _ = point_to_plane_covariance(T_d, di, dj, cfg, stride=cfg.dense_cov_stride)
+            cov_d, _, _ = point_to_plane_covariance(T_d, di, dj, cfg, stride=cfg.p2p_cov_stride)
         if cov_d is not None:
             scale = cfg.hybrid_cov_scale if hybrid else cfg.dense_cov_scale
             info_s, info_d = np.linalg.inv(cov_prior), np.linalg.inv(cov_d * scale)
