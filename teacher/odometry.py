@@ -605,7 +605,7 @@ def _residuals(T: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDAr
     # strided columns (the same arithmetic, element by element)
     Yt, Xt = Y.T.copy(), X.T.copy()
     izf = 1.0 / Yt[2]
-    xf, yf = Yt[0] * izf, Yt[1] * izf
+    xf, yf = Yt[0] * izf, Yt[1] * izf  # normalised coordinates
     rf = r[:2 * F].reshape(F, 2)
     uvt = uv_j.T
     rf[:, 0] = fx * xf + cx - uvt[0]
@@ -617,7 +617,7 @@ def _residuals(T: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDAr
     rb[:, 0] = fx * xb + cx - uvt[0]
     rb[:, 1] = fy * yb + cy - uvt[1]
     if w3 > 0:
-        s3 = w3 / (P_b[:, 2] ** 2)
+        s3 = w3 / (P_b[:, 2] ** 2)  # Kinect depth noise grows with z^2
         r[2 * F + 2 * B:] = ((X - P_b) * s3[:, None]).ravel()
     if not with_jac:
         return r, None
@@ -1198,15 +1198,15 @@ def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
         if in_f.sum() < max(6, cfg.min_inliers):
             return EdgeEstimate(i, j, "few_inliers", matches=n_match, inliers=int(in_f.sum()))
         sf, sb = _even(np.flatnonzero(in_f), cfg.refine_max_points), _even(np.flatnonzero(in_b), cfg.refine_max_points)
-        T, cov, r = refine_two_way(T, *(np.take(a, sf, axis=0) for a in (P_i, uv_j)),
-                                   *(np.take(a, sb, axis=0) for a in (Q_all, uv_i)), K, cfg.huber_px, iters,
-                                   cfg.min_sigma_px, np.take(P_i, sb, axis=0), w3)
+        P_f, uv_f = np.take(P_i, sf, axis=0), np.take(uv_j, sf, axis=0)
+        Q_b, uv_b, P_b = np.take(Q_all, sb, axis=0), np.take(uv_i, sb, axis=0), np.take(P_i, sb, axis=0)
+        T, cov, r = refine_two_way(T, P_f, uv_f, Q_b, uv_b, K, cfg.huber_px, iters, cfg.min_sigma_px, P_b, w3)
     n_in = int(in_f.sum())
     res = EdgeEstimate(i, j, "ok", matches=n_match, inliers=n_in, inlier_ratio=n_in / n_match,
                        inlier_pairs=pairs[in_f])
     n_px = 2 * (len(sf) + len(sb))  # the pixel residuals lead r (unless a point fell behind a camera)
     r_px = r[:n_px] if len(r) == n_px + (3 * len(sb) if w3 > 0 else 0) else \
-        _residuals(T, P_i[sf], uv_j[sf], Q_all[sb], uv_i[sb], K, False)[0]
+        _residuals(T, P_f, uv_f, Q_b, uv_b, K, False)[0]
     res.rmse_px = float(np.sqrt(np.mean(r_px * r_px)))
     res.T_i_j, res.cov = T, cov
     trans = float(np.linalg.norm(T[:3, 3]))
