@@ -142,7 +142,8 @@ def depth_at(depth: NDArray[np.float32], uv: NDArray, cfg: TeacherConfig) -> NDA
     u = np.rint(uv[:, 0]).astype(np.int64)
     v = np.rint(uv[:, 1]).astype(np.int64)
     idx = np.flatnonzero((u >= 2) & (u < w - 2) & (v >= 2) & (v < h - 2))
-    win = depth[v[idx, None] + _OFFS[:, 0], u[idx, None] + _OFFS[:, 1]]  # (M, 25)
+    # (M, 25): one flat np.take (the same pixels as 2-D fancy indexing, a few times faster)
+    win = np.take(depth.reshape(-1), (v[idx, None] + _OFFS[:, 0]) * w + (u[idx, None] + _OFFS[:, 1]))
     lo, hi, zc = win.min(axis=1), win.max(axis=1), win[:, 12]
     thr = np.maximum(cfg.depth_edge_abs, cfg.depth_edge_rel * zc)
     idx = idx[(lo > 0) & (hi - lo <= thr) & (zc >= cfg.depth_min) & (zc <= cfg.depth_max)]
@@ -1233,8 +1234,10 @@ def _even(idx: NDArray[np.int64], n: int) -> NDArray[np.int64]:
 
 def _reproj_err(T_j_i: NDArray, P_i: NDArray, uv_j: NDArray, K: NDArray) -> NDArray:
     Y = P_i @ T_j_i[:3, :3].T + T_j_i[:3, 3]
-    err = np.full(len(P_i), np.inf)
     front = Y[:, 2] > 1e-6
+    if front.all():  # the usual case: no masks
+        return np.linalg.norm(_project(Y, K) - uv_j, axis=1)
+    err = np.full(len(P_i), np.inf)
     err[front] = np.linalg.norm(_project(Y[front], K) - uv_j[front], axis=1)
     return err
 
