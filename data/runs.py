@@ -61,7 +61,8 @@ STAGE_VERSIONS: dict[str, int] = {
     # 2: issue 13's colour-camera model, fallback chain and hybrid gap-1 stage; 3: colour maps of
     # repeated frames, the hybrid stage on stale edges, photo_weight, the rgbd replacement of
     # far-moved sparse edges (synthetic labels change; real-data labels are bit-identical); 4: the
-    # constant-velocity prediction scaled over a dropped frame (labels change where timestamps skip one)
+    # constant-velocity prediction scaled over a dropped frame (labels change where timestamps skip
+    # one), the point-to-plane stage's fusion covariance from every 4th point (p2p_cov_stride)
     "teacher": 4,
     "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 1, "posegraph-calibrate": 1, "online": 1,
 }

@@ -220,10 +220,18 @@ class TeacherConfig:
     The smallest scale tried (most weight on the depth) whose redkitchen validation figures
     match those before this change (gap-1 error and rotation no worse, ATE within 0.1 mm)."""
     dense_cov_stride: int = 2
-    """Dense step, ``information`` fusion: the point-to-plane covariance is formed from every
-    ``dense_cov_stride``-th of the step's points in both axes (scaled back to all of them;
-    2 as before). 4 would be ~10 % faster on redkitchen 0:150 with labels 0.01-0.03 mm worse
-    (gap-1 4.14 vs 4.13 mm), kept at 2 so real data is unchanged."""
+    """Hybrid dense step, ``information`` fusion: its covariance is formed from every
+    ``2 * dense_cov_stride``-th of the step's points in both axes, and on a stale pair the
+    point-to-plane prior it starts from from every ``dense_cov_stride``-th (scaled back to
+    all of them). The point-to-plane stage's own covariance: ``p2p_cov_stride``."""
+    p2p_cov_stride: int = 4
+    """Point-to-plane dense step, ``information`` fusion: its covariance
+    (:func:`teacher.odometry.point_to_plane_covariance`) is formed from every
+    ``p2p_cov_stride``-th of the step's points in both axes (scaled back to all of them).
+    4 (was 2): a third of the cost (0.56 against 1.55 ms per edge on redkitchen), labels
+    unchanged within noise on the validation data (bench/README.md, "Teacher CPU per
+    frame"): redkitchen 350:450 gap-1 4.827 against 4.825 mm, ATE 13.2 against 13.2 mm;
+    synthetic/lab 0:100 (validation scene) see there."""
     dense_on_stale: bool = True
     """Dense step: take the dense estimate whole (``dense_blend`` 1) for an edge with a frame
     whose colour and depth were taken at different times - exactly one of its two images

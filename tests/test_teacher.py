@@ -664,7 +664,7 @@ def test_information_fusion_weighs_by_covariance(office_clean):
     full = geo.se3_log(geo.inv_T(T0) @ whole.T_i_j)
     from teacher.odometry import point_to_plane_covariance
 
-    equal = cfg.dense_cov_scale * point_to_plane_covariance(whole.T_i_j, *maps, cfg, stride=2)[0]
+    equal = cfg.dense_cov_scale * point_to_plane_covariance(whole.T_i_j, *maps, cfg, stride=cfg.p2p_cov_stride)[0]
     moved = {}
     for name, cov in (("huge", np.eye(6) * 1e2), ("tiny", np.eye(6) * 1e-14), ("equal", equal)):
         res = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy(), cov=cov)
@@ -993,3 +993,62 @@ def test_dense_max_gap_keeps_the_dense_step_to_short_edges(tmp_path, capsys):
     assert cli.main([*args, "--out", str(tmp_path / "bad"), "--dense-max-gap", "-1"]) == 1
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert err.startswith("error: ") and "--dense-max-gap" in err
+
+
+# ---------------------------------------------------------------------------- fast paths
+
+def test_stable_argsort_is_numpys_stable_order():
+    """Guided matching's sort (:func:`teacher.odometry._stable_argsort`): NumPy's stable
+    order, ties kept in input order, on keys with many ties; keys too large for the
+    position bits take NumPy's stable sort itself."""
+    from teacher.odometry import _stable_argsort
+
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 7, 9100):
+        key = (rng.integers(0, 400, n) << 9) | rng.integers(0, 40, n)  # (index, distance), many ties
+        np.testing.assert_array_equal(_stable_argsort(key), np.argsort(key, kind="stable"))
+    big = np.array([1 << 60, 5, 1 << 60, 5, 0], np.int64)
+    np.testing.assert_array_equal(_stable_argsort(big), [4, 1, 3, 0, 2])
+
+
+def _reference_point_to_plane_covariance(T, di, dj, cfg, stride):
+    """:func:`teacher.odometry.point_to_plane_covariance` written plainly (its docstring's
+    recipe): j's points moved into i, projected and rounded to i's pixel, paired with i's
+    vertex there when finite and within ``dense_trunc_m``, Huber-weighted J^T W J."""
+    q = dj.points.numpy()[::stride, ::stride].reshape(-1, 3).astype(np.float64)
+    q = q[np.all(np.isfinite(q), axis=1)]
+    vert, nrm = di.vertex.numpy().astype(np.float64), di.normal.numpy().astype(np.float64)
+    K, (h, w) = di.K.numpy(), vert.shape[:2]
+    X = q @ T[:3, :3].T + T[:3, 3]
+    rows = []
+    for qk, x in zip(q, X):
+        if x[2] <= 1e-6:
+            continue
+        u, v = int(np.rint(K[0, 0] * x[0] / x[2] + K[0, 2])), int(np.rint(K[1, 1] * x[1] / x[2] + K[1, 2]))
+        if 0 <= u < w and 0 <= v < h and np.all(np.isfinite(vert[v, u])) and np.all(np.isfinite(nrm[v, u])) \
+                and np.linalg.norm(x - vert[v, u]) < cfg.dense_trunc_m:
+            n = nrm[v, u]
+            m = T[:3, :3].T @ n
+            rows.append((n @ (x - vert[v, u]), *m, *np.cross(qk, m)))
+    a = np.array(rows)
+    r, J = a[:, 0], a[:, 1:]
+    wts = np.where(np.abs(r) <= cfg.dense_huber_m, 1.0, cfg.dense_huber_m / np.abs(r))
+    sigma2 = max(np.sum(wts * r * r) / (len(r) - 6), cfg.dense_min_sigma_m ** 2)
+    return sigma2 * np.linalg.inv(J.T @ (J * wts[:, None])) / stride ** 2, len(r)
+
+
+@pytest.mark.parametrize("stride", [2, 4])
+def test_point_to_plane_covariance_follows_its_definition(office_clean, stride):
+    """The vectorised covariance (row gathers of the surface each edge hits, no per-frame
+    table) equals the plain per-point recipe, on a pair of office frames at a perturbed pose
+    (some points leave the image or the truncation distance)."""
+    from teacher.odometry import dense_maps, point_to_plane_covariance
+
+    seq, cfg = office_clean, TeacherConfig()
+    gt = seq.groundtruth()
+    T = geo.relative_pose(gt[3], gt[6]) @ geo.se3_exp([0.02, -0.01, 0.03, 0.01, -0.02, 0.005])
+    di, dj = dense_maps(seq.depth(3), seq.intrinsics.K, cfg), dense_maps(seq.depth(6), seq.intrinsics.K, cfg)
+    cov, n, _ = point_to_plane_covariance(T, di, dj, cfg, stride=stride)
+    ref, n_ref = _reference_point_to_plane_covariance(T, di, dj, cfg, stride)
+    assert n == n_ref > 100
+    np.testing.assert_allclose(cov, ref, rtol=1e-9, atol=1e-20)

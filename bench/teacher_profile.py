@@ -1,0 +1,191 @@
+"""Where the teacher's CPU time goes, per frame, and whether a change moved its labels.
+
+Runs :func:`teacher.generate.run_sequence` in this process (``workers`` 1: the main thread
+estimates the edges, one helper thread decodes frames and extracts features) with the
+teacher's expensive functions wrapped in timers of the CPU time of the thread that runs
+them (``time.thread_time``: waits for the GIL or for the other thread do not count), and
+prints:
+
+* the process's CPU time per frame (``time.process_time``, both threads);
+* per function: CPU ms per frame, calls, ms per call (inclusive: ``estimate_edge`` holds
+  ``dense_refine`` holds ``point_to_plane_covariance`` ...);
+* a SHA-1 of every edge's (i, j), pose and covariance bytes: equal digests mean labels
+  equal to the bit;
+* the gap-1 RPE, ATE and se(3) L2 of the run's report.
+
+``--save-edges FILE.npz`` keeps the edges with the ground truth; ``--compare A.npz B.npz``
+then compares two runs edge by edge against the ground truth: gap-1 and all edges, the
+mean paired difference of squared translation errors with its standard error (the noise
+figure for a label-changing choice: the teacher is deterministic, two runs are equal),
+and how far each label moved.
+
+    OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python -m bench.teacher_profile ../shared/data/7scenes/redkitchen --frames 350:450
+    OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python -m bench.teacher_profile synthetic/lab --frames 0:100 --set p2p_cov_stride=2 --save-edges /tmp/a.npz
+    .venv/bin/python -m bench.teacher_profile --compare /tmp/a.npz /tmp/b.npz
+
+Choose parameters on validation ranges only (redkitchen 350:450, synthetic/lab; see
+bench/README.md, "Ranges").
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import hashlib
+import sys
+import time
+from typing import Callable
+
+import numpy as np
+
+from data import geometry as geo
+from data.scenes import open_scene
+from teacher import generate as gen
+from teacher import odometry as od
+from teacher import window as win
+from teacher.config import TeacherConfig
+
+#: teacher.odometry functions timed (module globals, so calls between them are timed too)
+TIMED = ("estimate_edge", "match", "match_wide", "_estimate", "refine_two_way", "dense_refine",
+         "point_to_plane_covariance", "hybrid_covariance", "rgbd_edge", "dense_edge", "_reproj_err", "depth_at",
+         "dense_maps", "_fill_surface", "image_keys")
+
+
+class Timers:
+    """CPU time (of the calling thread) and calls per label."""
+
+    def __init__(self) -> None:
+        self.cpu: dict[str, float] = collections.defaultdict(float)
+        self.calls: collections.Counter = collections.Counter()
+
+    def wrap(self, f: Callable, label: str) -> Callable:
+        def timed(*a, **k):
+            t = time.thread_time()
+            try:
+                return f(*a, **k)
+            finally:
+                self.cpu[label] += time.thread_time() - t
+                self.calls[label] += 1
+        return timed
+
+
+def instrument(timers: Timers, seq_cls: type) -> None:
+    """Wrap the teacher's functions, OpenCV's PnP calls, Open3D's point-to-plane kernel and
+    the sequence's image readers (this process only; for profiling, never in the tools)."""
+    import cv2
+    import open3d as o3d
+
+    for name in TIMED:
+        setattr(od, name, timers.wrap(getattr(od, name), name))
+    win.estimate_edge = od.estimate_edge
+    gen.extract = timers.wrap(gen.extract, "extract")
+
+    class _CV:  # cv2 as teacher.odometry sees it, with its PnP calls timed
+        def __getattr__(self, name):
+            f = getattr(cv2, name)
+            return timers.wrap(f, name) if name in ("solvePnPRansac", "solvePnPRefineLM") else f
+
+    od.cv2 = _CV()
+    kern = o3d.t.pipelines.odometry
+    kern.compute_odometry_result_point_to_plane = timers.wrap(kern.compute_odometry_result_point_to_plane,
+                                                              "open3d point-to-plane kernel")
+    for name in ("rgb", "depth"):
+        setattr(seq_cls, name, timers.wrap(getattr(seq_cls, name), f"read {name}"))
+
+
+def edges_digest(edges) -> str:
+    h = hashlib.sha1()
+    for e in edges:
+        h.update(np.int64([e.i, e.j]).tobytes())
+        if e.ok:
+            h.update(np.ascontiguousarray(e.T_i_j).tobytes())
+            h.update(np.ascontiguousarray(e.cov).tobytes())
+    return h.hexdigest()[:16]
+
+
+def parse_set(items: list[str]) -> dict:
+    """``key=value`` overrides of :class:`TeacherConfig`, typed by the field's default."""
+    base, out = TeacherConfig(), {}
+    for kv in items:
+        key, _, value = kv.partition("=")
+        if not hasattr(base, key):
+            raise SystemExit(f"error: TeacherConfig has no field {key!r}")
+        kind = type(getattr(base, key))
+        out[key] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
+    return out
+
+
+def profile(spec: str, frames: str, overrides: dict, save: str | None) -> None:
+    seq = open_scene(spec, frames=frames)[0]
+    timers = Timers()
+    instrument(timers, type(seq))
+    cfg = dataclasses.replace(TeacherConfig(), workers=1, **overrides)
+    c0, w0 = time.process_time(), time.perf_counter()
+    run = gen.run_sequence(seq, cfg, progress=False)
+    cpu, wall = time.process_time() - c0, time.perf_counter() - w0
+    if save:
+        ok = [e for e in run.edges if e.ok]
+        np.savez(save, ij=np.array([(e.i, e.j) for e in ok], np.int64).reshape(-1, 2),
+                 T=np.array([e.T_i_j for e in ok]).reshape(-1, 4, 4), cov=np.array([e.cov for e in ok]).reshape(-1, 6, 6),
+                 ids=seq.ids(), gt=seq.groundtruth() if seq.has_groundtruth else np.zeros((0, 4, 4)))
+    n = len(seq)
+    print(f"{spec} {frames}{' ' + str(overrides) if overrides else ''}: {n} frames, CPU {1000 * cpu / n:.1f} ms/frame, "
+          f"wall {1000 * wall / n:.1f} ms/frame, edges sha1 {edges_digest(run.edges)}")
+    rep = gen.build_report(seq, run, cfg)
+    if "rpe_trans_rmse_m" in rep:
+        print(f"  gap-1 RPE {1000 * rep['rpe_trans_rmse_m']:.3f} mm / {rep['rpe_rot_rmse_deg']:.4f} deg, "
+              f"ATE {1000 * rep['ate_rmse_m']:.2f} mm, se(3) L2 {rep['se3_l2_mean']:.6f}, "
+              f"failed edges {rep['failed_edges']}")
+    for k, v in sorted(timers.cpu.items(), key=lambda x: -x[1]):
+        c = timers.calls[k]
+        print(f"  {k:30s} {1000 * v / n:7.2f} ms/frame {c:6d} calls {1000 * v / max(c, 1):6.2f} ms/call")
+
+
+def compare(a_path: str, b_path: str) -> None:
+    a, b = np.load(a_path), np.load(b_path)
+    if len(a["gt"]) == 0:
+        raise SystemExit("error: the runs were saved without ground truth")
+    pos = {int(i): k for k, i in enumerate(a["ids"])}
+    gt = a["gt"]
+
+    def table(d) -> dict:
+        out = {}
+        for (i, j), T in zip(d["ij"], d["T"]):
+            G = geo.relative_pose(gt[pos[int(i)]], gt[pos[int(j)]])
+            out[(int(i), int(j))] = (T, float(np.linalg.norm((geo.inv_T(G) @ T)[:3, 3])), pos[int(j)] - pos[int(i)])
+        return out
+
+    ea, eb = table(a), table(b)
+    keys = sorted(set(ea) & set(eb))
+    for name, keep in (("gap 1", lambda k: ea[k][2] == 1), ("all edges", lambda k: True)):
+        ks = [k for k in keys if keep(k)]
+        ta = 1000 * np.array([ea[k][1] for k in ks])
+        tb = 1000 * np.array([eb[k][1] for k in ks])
+        d = tb ** 2 - ta ** 2
+        se = d.std(ddof=1) / np.sqrt(len(d)) if len(d) > 1 else float("nan")
+        print(f"{name}: {len(ks)} edges, trans RMSE {np.sqrt(np.mean(ta ** 2)):.3f} -> {np.sqrt(np.mean(tb ** 2)):.3f} mm, "
+              f"paired difference of squared errors {d.mean():+.4f} +- {se:.4f} mm^2")
+    moved = np.array([1000 * np.linalg.norm((geo.inv_T(ea[k][0]) @ eb[k][0])[:3, 3]) for k in keys])
+    print(f"labels moved: median {np.median(moved):.4f} mm, max {moved.max():.4f} mm; "
+          f"{int((moved > 0).sum())} of {len(keys)} edges; edges in one run only: {len(set(ea) ^ set(eb))}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scene", nargs="?", help="a scene as `teacher generate --scene` takes it")
+    ap.add_argument("--frames", default="0:100")
+    ap.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="TeacherConfig overrides")
+    ap.add_argument("--save-edges", metavar="FILE.npz")
+    ap.add_argument("--compare", nargs=2, metavar=("A.npz", "B.npz"))
+    args = ap.parse_args(argv)
+    if args.compare:
+        compare(*args.compare)
+    elif args.scene:
+        profile(args.scene, args.frames, parse_set(args.set), args.save_edges)
+    else:
+        ap.error("give a scene, or --compare A.npz B.npz")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
