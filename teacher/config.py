@@ -293,6 +293,21 @@ class TeacherConfig:
     it made 12 such gap-1 edges, among them one 34 mm off: gap-1 3.15 -> 2.24 mm; no gap-1 edge of
     the 40-frame stress walks, office 0:60 or lab 0:100 changed (``gaps=1`` runs). Real recordings:
     never (no maps)."""
+    depth_beside_colour_repeat: bool = True
+    """A gap-1 edge with a frame whose colour image shows an earlier moment than its depth (a
+    repeated colour image with new depth, or a whole repeat of such a frame; the sensor
+    model's ``rgb_repeat_prob``, redkitchen's 16 of 599 pairs) is made by the rgbd fallback's
+    coarse-to-fine alignment with the **depth term alone** (:meth:`teacher.odometry.PhotoMaps.depth_only`)
+    from the motion prediction, ``path`` ``depth``; the covariance and checks are the rgbd
+    fallback's (when they fail, the usual chain). Such a frame's keypoints and grey show the
+    moment before its depth (and ground truth): on the 300-frame stress-textureless preset
+    (the team's scene, ``gaps=1``) the 16 gap-1 edges beside its 6 colour repeats and 2
+    whole repeats of them were 7.55 mm off (RMSE) with the keypoints and a point-to-plane
+    step taken whole, the point-to-plane step alone from the prediction slid along the
+    walls (30 mm on 6 of them, 20 iterations), Open3D from the same start 2.5 mm (its
+    colour term weighed 0.03); this step 1.6-2.2 mm on those 6. Only with photometric maps
+    (``dense_method`` hybrid: synthetic scenes); real recordings keep the stale-stream rule
+    (``dense_on_stale``)."""
     fallback_dense_iters: int = 20
     """Fallback 2: most iterations of the dense alignment (it starts farther from the answer
     than the refinement of a sparse estimate does; set a priori, not tuned)."""
