@@ -60,8 +60,9 @@ FINGERPRINT_FILE = "fingerprint.json"
 STAGE_VERSIONS: dict[str, int] = {
     # 2: issue 13's colour-camera model, fallback chain and hybrid gap-1 stage; 3: colour maps of
     # repeated frames, the hybrid stage on stale edges, photo_weight, the rgbd replacement of
-    # far-moved sparse edges (synthetic labels change; real-data labels are bit-identical)
-    "teacher": 3,
+    # far-moved sparse edges (synthetic labels change; real-data labels are bit-identical); 4: gap-1
+    # edges beside a colour repeat aligned by the depth alone (synthetic only, path ``depth``)
+    "teacher": 4,
     "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 1, "posegraph-calibrate": 1, "online": 1,
 }
 SYNTHETIC_PREFIX = "synthetic/"

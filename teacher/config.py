@@ -308,6 +308,17 @@ class TeacherConfig:
     colour term weighed 0.03); this step 1.6-2.2 mm on those 6. Only with photometric maps
     (``dense_method`` hybrid: synthetic scenes); real recordings keep the stale-stream rule
     (``dense_on_stale``)."""
+    depth_levels: tuple[tuple[int, int], ...] = ((8, 30), (4, 30), (2, 20))
+    """``depth_beside_colour_repeat``: (scale, most iterations) of each coarse level of the
+    depth-alone alignment, coarse to fine, before ``depth_finish_iters`` at full resolution.
+    More than the rgbd fallback's (``fallback_levels``): the depth alone converges slowly
+    along walls. Chosen on the edges beside the colour repeats of office (training), lab
+    (validation) and stress-textureless, started from the true previous motion (RMSE mm,
+    office / lab / textureless): ``fallback_levels`` with 3 finishing iterations 4.34 /
+    1.66 / 1.94; these with 20: 2.58 / 1.52 / 1.47; the same with stops 1000x tighter 2.26 /
+    1.79 / 1.54; (8, 20), (4, 10), (2, 10), finish 10, tight stops: 2.51 / 1.68 / 1.62."""
+    depth_finish_iters: int = 20
+    """``depth_beside_colour_repeat``: most full-resolution iterations after ``depth_levels``."""
     fallback_dense_iters: int = 20
     """Fallback 2: most iterations of the dense alignment (it starts farther from the answer
     than the refinement of a sparse estimate does; set a priori, not tuned)."""

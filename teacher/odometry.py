@@ -404,15 +404,18 @@ def pyramid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherCon
     frames' pyramids on every call; on synthetic/stress-lowfreq, where this fallback makes
     nearly every edge at every gap, that cost ~4 times the alignment itself.
     ``depth_only``: the depth term alone (:func:`_photo_pair`, which also picks it when
-    either frame's grey is void)."""
+    either frame's grey is void), at the scales and iteration counts of ``cfg.depth_levels``
+    and ``cfg.depth_finish_iters``."""
     pi, pj = _photo_pair(di, dj, depth_only)
+    levels, finish = (cfg.depth_levels, cfg.depth_finish_iters) if depth_only else (cfg.fallback_levels,
+                                                                                     cfg.fallback_finish_iters)
     T = o3d.core.Tensor(np.asarray(T_init, np.float64))
-    for s, iters in cfg.fallback_levels if coarse else ():
+    for s, iters in levels if coarse else ():
         ti, tj = pi.level(s), pj.level(s)
         T, _, _, _ = _hybrid_steps(tj[0], tj[1], ti[:6], tj[6], ti[7], T, iters, cfg)
     T_h = geo.orthonormalize(T.numpy())
-    T_h, fitness, _, _ = hybrid_align(T_h, di, dj, cfg, max(cfg.fallback_finish_iters if coarse
-                                                           else cfg.fallback_chained_iters, 1), depth_only)
+    T_h, fitness, _, _ = hybrid_align(T_h, di, dj, cfg, max(finish if coarse else cfg.fallback_chained_iters, 1),
+                                      depth_only)
     return T_h, fitness
 
 

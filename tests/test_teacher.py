@@ -321,7 +321,7 @@ def test_cli_generate_writes_every_output(tmp_path):
                                                                   "high_rmse", "degenerate", "implausible_motion"}
     # rgbd: here edges 4-6 and 4-7, whose keypoints agreed on a motion 20-30 mm off and whose
     # depth stage moved too far from it (``dense_disagrees``; 4.6 and 5.2 mm off with it)
-    paths = {"tracks", "guided", "exhaustive", "wide", "crosscheck", "rgbd", "dense"}
+    paths = {"tracks", "guided", "exhaustive", "wide", "crosscheck", "depth", "rgbd", "dense"}
     assert all((r["path"] in paths) == (r["status"] == "ok") for r in rows)
     assert sum(rep["edge_paths"].values()) == 30 and rep["constant_velocity_bridges"] == 0
     edges, vertices = read_g2o(out / "edges.g2o")
