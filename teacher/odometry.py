@@ -786,6 +786,7 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
         depth = rgbd_edge(i, j, fi, fj, intr, cfg, dt, np.eye(4) if T_pred is None else T_pred, depth_only=True)
         if depth.ok:
             depth.info["path"], depth.info["sparse_status"] = "depth", best.status
+            depth.info["dense"]["stale_stream"] = fi.stale or fj.stale
             depth.inlier_pairs = best.inlier_pairs if best.ok else None  # the feature tracks go on
             return depth
         best.info["depth_step"] = depth.status
