@@ -296,18 +296,20 @@ class TeacherConfig:
     depth_beside_colour_repeat: bool = True
     """A gap-1 edge with a frame whose colour image shows an earlier moment than its depth (a
     repeated colour image with new depth, or a whole repeat of such a frame; the sensor
-    model's ``rgb_repeat_prob``, redkitchen's 16 of 599 pairs) is made by the rgbd fallback's
-    coarse-to-fine alignment with the **depth term alone** (:meth:`teacher.odometry.PhotoMaps.depth_only`)
-    from the motion prediction, ``path`` ``depth``; the covariance and checks are the rgbd
-    fallback's (when they fail, the usual chain). Such a frame's keypoints and grey show the
-    moment before its depth (and ground truth): on the 300-frame stress-textureless preset
-    (the team's scene, ``gaps=1``) the 16 gap-1 edges beside its 6 colour repeats and 2
-    whole repeats of them were 7.55 mm off (RMSE) with the keypoints and a point-to-plane
-    step taken whole, the point-to-plane step alone from the prediction slid along the
-    walls (30 mm on 6 of them, 20 iterations), Open3D from the same start 2.5 mm (its
-    colour term weighed 0.03); this step 1.6-2.2 mm on those 6. Only with photometric maps
-    (``dense_method`` hybrid: synthetic scenes); real recordings keep the stale-stream rule
-    (``dense_on_stale``)."""
+    model's ``rgb_repeat_prob``, redkitchen's 16 of 599 pairs), unless both depth maps are
+    the same image, is made by the rgbd fallback's coarse-to-fine alignment with the **depth
+    term alone** (:meth:`teacher.odometry.PhotoMaps.depth_only`, ``depth_levels``) from the
+    motion prediction, ``path`` ``depth``; the covariance and checks are the rgbd fallback's
+    (when they fail, the usual chain). Such a frame's keypoints and grey show the moment
+    before its depth (and ground truth); before, its edges took the keypoints' estimate and a
+    point-to-plane step taken whole, which slid along the walls. Gap-1 RMSE of these edges
+    (``gaps=1``, the whole 300-frame scenes): stress-textureless 8.02 -> 1.47 mm (18 edges),
+    office (training) 14.51 -> 2.62 (17), lab (validation) 8.95 -> 1.56 (14); on 6 of
+    stress-textureless's, from the true previous motion, the point-to-plane step alone
+    30 mm (20 iterations), Open3D's legacy hybrid odometry 2.5, the hybrid kernel with the
+    frame's grey of the wrong moment 3.6, with the depth term alone 1.6 (bench/README.md,
+    issue 13, fourth session). Only with photometric maps (``dense_method`` hybrid:
+    synthetic scenes); real recordings keep the stale-stream rule (``dense_on_stale``)."""
     depth_levels: tuple[tuple[int, int], ...] = ((8, 30), (4, 30), (2, 20))
     """``depth_beside_colour_repeat``: (scale, most iterations) of each coarse level of the
     depth-alone alignment, coarse to fine, before ``depth_finish_iters`` at full resolution.
