@@ -301,6 +301,34 @@ class TeacherConfig:
     it made 12 such gap-1 edges, among them one 34 mm off: gap-1 3.15 -> 2.24 mm; no gap-1 edge of
     the 40-frame stress walks, office 0:60 or lab 0:100 changed (``gaps=1`` runs). Real recordings:
     never (no maps)."""
+    depth_beside_colour_repeat: bool = True
+    """A gap-1 edge with a frame whose colour image shows an earlier moment than its depth (a
+    repeated colour image with new depth, or a whole repeat of such a frame; the sensor
+    model's ``rgb_repeat_prob``, redkitchen's 16 of 599 pairs), unless both depth maps are
+    the same image, is made by the rgbd fallback's coarse-to-fine alignment with the **depth
+    term alone** (:meth:`teacher.odometry.PhotoMaps.depth_only`, ``depth_levels``) from the
+    motion prediction, ``path`` ``depth``; the covariance and checks are the rgbd fallback's
+    (when they fail, the usual chain). Such a frame's keypoints and grey show the moment
+    before its depth (and ground truth); before, its edges took the keypoints' estimate and a
+    point-to-plane step taken whole, which slid along the walls. Gap-1 RMSE of these edges
+    (``gaps=1``, the whole 300-frame scenes): stress-textureless 8.02 -> 1.47 mm (18 edges),
+    office (training) 14.51 -> 2.62 (17), lab (validation) 8.95 -> 1.56 (14); on 6 of
+    stress-textureless's, from the true previous motion, the point-to-plane step alone
+    30 mm (20 iterations), Open3D's legacy hybrid odometry 2.5, the hybrid kernel with the
+    frame's grey of the wrong moment 3.6, with the depth term alone 1.6 (bench/README.md,
+    issue 13, fourth session). Only with photometric maps (``dense_method`` hybrid:
+    synthetic scenes); real recordings keep the stale-stream rule (``dense_on_stale``)."""
+    depth_levels: tuple[tuple[int, int], ...] = ((8, 30), (4, 30), (2, 20))
+    """``depth_beside_colour_repeat``: (scale, most iterations) of each coarse level of the
+    depth-alone alignment, coarse to fine, before ``depth_finish_iters`` at full resolution.
+    More than the rgbd fallback's (``fallback_levels``): the depth alone converges slowly
+    along walls. Chosen on the edges beside the colour repeats of office (training), lab
+    (validation) and stress-textureless, started from the true previous motion (RMSE mm,
+    office / lab / textureless): ``fallback_levels`` with 3 finishing iterations 4.34 /
+    1.66 / 1.94; these with 20: 2.58 / 1.52 / 1.47; the same with stops 1000x tighter 2.26 /
+    1.79 / 1.54; (8, 20), (4, 10), (2, 10), finish 10, tight stops: 2.51 / 1.68 / 1.62."""
+    depth_finish_iters: int = 20
+    """``depth_beside_colour_repeat``: most full-resolution iterations after ``depth_levels``."""
     fallback_dense_iters: int = 20
     """Fallback 2: most iterations of the dense alignment (it starts farther from the answer
     than the refinement of a sparse estimate does; set a priori, not tuned)."""

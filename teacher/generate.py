@@ -46,8 +46,8 @@ from data.scenes import open_scene
 from data.sequence import Sequence
 from teacher import processes
 from teacher.config import TeacherConfig
-from teacher.odometry import (KINECT_V1_COLOUR, ColourCamera, EdgeEstimate, FrameFeatures, extract, image_keys,
-                              make_orb, stale_stream)
+from teacher.odometry import (KINECT_V1_COLOUR, ColourCamera, EdgeEstimate, FrameFeatures, PhotoMaps, extract,
+                              image_keys, make_orb)
 from teacher.window import EdgeWindow
 
 log = logging.getLogger(__name__)
@@ -197,22 +197,30 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     return edges
 
 
-def _photo_before(seq: Sequence, k: int, cfg: TeacherConfig, orb, colour: Optional[ColourCamera]):
-    """The photometric maps that match the depth of frame ``k - 1``, as a window that had
-    seen the sequence from its start would hold them (:mod:`teacher.window`): those of the
-    last frame up to ``k - 1`` whose depth is not a repeat with new colour; None when a
-    colour repeat with new depth comes first. For a chunk whose first frame repeats the
-    depth of the frame before it (rare: the frames are read again)."""
-    j = k - 1
+def _photo_before(seq: Sequence, k: int, cfg: TeacherConfig, orb,
+                  colour: Optional[ColourCamera]) -> tuple[Optional[PhotoMaps], bool]:
+    """The photometric maps and ``colour_behind`` mark of frame ``k - 1`` as a window that
+    had seen the sequence from its start would hold them (:mod:`teacher.window`): back over
+    the frames that repeat the previous frame's depth to the last one that does not, whose
+    own maps (only their depth when its colour repeats: :meth:`PhotoMaps.depth_only`) they
+    share; marked when that frame's colour repeats and every frame after it repeated its
+    colour too. For a chunk whose first frame repeats the depth of the frame before it
+    (rare: the frames are read again)."""
+    j, behind, grey = k - 1, True, True
     while j > 0:
         cur, prev = image_keys(seq.rgb(j), seq.depth(j)), image_keys(seq.rgb(j - 1), seq.depth(j - 1))
-        if not stale_stream(prev, cur):
+        behind = behind and cur[0] == prev[0]
+        if cur[1] != prev[1]:  # new depth: this frame's own maps, only their depth when its colour repeats
+            grey = cur[0] != prev[0]
             break
-        if cur[0] == prev[0]:  # colour repeated, depth new: no colour of this depth's moment
-            return None
         j -= 1
+    else:
+        behind = False  # the sequence's first frame: its own maps
     f = extract(seq.rgb(j), seq.depth(j), cfg, orb, seq.intrinsics.K, colour)
-    return f.dense.photo if f.dense is not None else None
+    photo = f.dense.photo if f.dense is not None else None
+    if photo is None:
+        return None, False
+    return (photo if grey else photo.depth_only()), behind
 
 
 def colour_camera_for(seq: Sequence, cfg: TeacherConfig) -> Optional[ColourCamera]:

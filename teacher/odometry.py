@@ -34,7 +34,10 @@ class FrameFeatures:
     vertex and normal maps of the depth subsampled by ``cfg.dense_scale`` (None when the
     dense step is off). ``keys`` fingerprints the colour and the depth image (to find
     repeated images); ``stale`` is set by the caller when exactly one of the two streams
-    repeats the previous frame's image (see :func:`stale_stream`).
+    repeats the previous frame's image (see :func:`stale_stream`); ``colour_behind`` by
+    :class:`teacher.window.EdgeWindow` when the colour image shows an earlier moment than
+    the depth (a repeated colour image, or a whole repeat of such a frame), with photometric
+    maps only.
     """
 
     uv: NDArray[np.float32]
@@ -45,6 +48,7 @@ class FrameFeatures:
     dense: Optional["DenseMaps"] = None
     keys: tuple[bytes, bytes] = (b"", b"")
     stale: bool = False
+    colour_behind: bool = False
     _tree: Optional[cKDTree] = None
 
     @property
@@ -222,6 +226,24 @@ class PhotoMaps:
     levels: dict = field(default_factory=dict)
     """Coarser levels for :func:`pyramid_align`, built on first use: scale -> (depth,
     intensity, depth_dx, depth_dy, intensity_dx, intensity_dy, vertex map, K) at that scale."""
+    grey: bool = True
+    """False: the intensity maps are zeros (:meth:`depth_only`), so the kernel's photometric
+    term is void and only its depth term acts."""
+    _depth_only: Optional["PhotoMaps"] = field(default=None, repr=False)
+
+    def depth_only(self) -> "PhotoMaps":
+        """These maps with every intensity map zero (``grey`` False; built once, kept): for
+        a frame whose colour shows another moment than its depth, and for the frame it is
+        paired with, so Open3D's hybrid kernel aligns the depth alone (the projective depth
+        term, coarse to fine in :func:`pyramid_align`)."""
+        if not self.grey:
+            return self
+        if self._depth_only is None:
+            z_src = o3d.core.Tensor(np.zeros(tuple(self.src_intensity.shape), np.float32))
+            z = o3d.core.Tensor(np.zeros(tuple(self.intensity.shape), np.float32))
+            self._depth_only = PhotoMaps(self.src_depth, z_src, self.depth, z, self.depth_dx, self.depth_dy, z, z,
+                                         self.K, grey=False)
+        return self._depth_only
 
     def level(self, s: int) -> tuple:
         """The maps of every ``s``-th pixel (intensity averaged over ``s x s`` blocks, depth
@@ -323,15 +345,26 @@ def _photo_huber(cfg: TeacherConfig) -> float:
     return cfg.photo_huber * float(np.sqrt(cfg.photo_weight))
 
 
+def _photo_pair(di: DenseMaps, dj: DenseMaps, depth_only: bool = False) -> tuple[PhotoMaps, PhotoMaps]:
+    """The photometric maps of an edge's two frames for Open3D's hybrid kernel: both
+    :meth:`PhotoMaps.depth_only` when ``depth_only`` or when either frame's grey is void
+    (its colour shows another moment than its depth), else both as they are."""
+    pi, pj = di.photo, dj.photo
+    if depth_only or not (pi.grey and pj.grey):
+        return pi.depth_only(), pj.depth_only()
+    return pi, pj
+
+
 def hybrid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
-                 iters: int) -> tuple[NDArray, float, int, bool]:
+                 iters: int, depth_only: bool = False) -> tuple[NDArray, float, int, bool]:
     """Align frame j to frame i with Open3D's hybrid RGB-D odometry kernel (photometric and
     depth residuals, Huber-weighted Gauss-Newton; Park, Zhou & Koltun 2017) at one level:
     frame j's points of ``dj.points`` (every ``cfg.dense_scale``-th pixel) against frame i's
     full-resolution maps, from ``T_init`` (``T_i_j``), at most ``iters`` iterations,
     stopping at ``cfg.dense_stop_m`` / ``cfg.dense_stop_deg`` updates. Returns (T_i_j,
-    fitness, iterations, converged). Raises RuntimeError when no point pairs up."""
-    pi, pj = di.photo, dj.photo
+    fitness, iterations, converged). Raises RuntimeError when no point pairs up.
+    ``depth_only``: the depth term alone (:func:`_photo_pair`)."""
+    pi, pj = _photo_pair(di, dj, depth_only)
     target = (pi.depth, pi.intensity, pi.depth_dx, pi.depth_dy, pi.intensity_dx, pi.intensity_dy)
     T, fitness, n_it, converged = _hybrid_steps(pj.src_depth, pj.src_intensity, target, dj.points, pi.K,
                                                 o3d.core.Tensor(np.asarray(T_init, np.float64)), iters, cfg)
@@ -363,7 +396,7 @@ def _hybrid_steps(src_depth: o3d.core.Tensor, src_intensity: o3d.core.Tensor, ta
 
 
 def pyramid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
-                  coarse: bool = True) -> tuple[NDArray, float]:
+                  coarse: bool = True, depth_only: bool = False) -> tuple[NDArray, float]:
     """Coarse-to-fine hybrid alignment of frame j to frame i from ``T_init`` (``T_i_j``):
     Open3D's hybrid kernel at the scales and iteration counts of ``cfg.fallback_levels``
     (frames at the same scale; the maps of each frame are built once and kept, so the
@@ -371,14 +404,20 @@ def pyramid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherCon
     resolution (``cfg.fallback_finish_iters``). Returns (T_i_j, fitness). Raises
     RuntimeError when no pixel pairs up. The multi-scale function of Open3D rebuilds both
     frames' pyramids on every call; on synthetic/stress-lowfreq, where this fallback makes
-    nearly every edge at every gap, that cost ~4 times the alignment itself."""
+    nearly every edge at every gap, that cost ~4 times the alignment itself.
+    ``depth_only``: the depth term alone (:func:`_photo_pair`, which also picks it when
+    either frame's grey is void), at the scales and iteration counts of ``cfg.depth_levels``
+    and ``cfg.depth_finish_iters``."""
+    pi, pj = _photo_pair(di, dj, depth_only)
+    levels, finish = (cfg.depth_levels, cfg.depth_finish_iters) if depth_only else (cfg.fallback_levels,
+                                                                                     cfg.fallback_finish_iters)
     T = o3d.core.Tensor(np.asarray(T_init, np.float64))
-    for s, iters in cfg.fallback_levels if coarse else ():
-        ti, tj = di.photo.level(s), dj.photo.level(s)
+    for s, iters in levels if coarse else ():
+        ti, tj = pi.level(s), pj.level(s)
         T, _, _, _ = _hybrid_steps(tj[0], tj[1], ti[:6], tj[6], ti[7], T, iters, cfg)
     T_h = geo.orthonormalize(T.numpy())
-    T_h, fitness, _, _ = hybrid_align(T_h, di, dj, cfg, max(cfg.fallback_finish_iters if coarse
-                                                           else cfg.fallback_chained_iters, 1))
+    T_h, fitness, _, _ = hybrid_align(T_h, di, dj, cfg, max(finish if coarse else cfg.fallback_chained_iters, 1),
+                                      depth_only)
     return T_h, fitness
 
 
@@ -762,6 +801,19 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
         if res.ok:
             break
     best.info["path"] = best.info["source"] if best.ok else "none"
+    if (tracks is None and cfg.depth_beside_colour_repeat and (fi.colour_behind or fj.colour_behind)
+            and fi.keys[1] != fj.keys[1] and fi.dense is not None and fj.dense is not None
+            and fi.dense.photo is not None and fj.dense.photo is not None):
+        # a gap-1 edge beside a frame whose colour shows an earlier moment than its depth:
+        # neither its keypoints nor its grey belong to its depth; the depth term alone (a
+        # repeated depth map is left to the keypoints: the same image, the identity)
+        depth = rgbd_edge(i, j, fi, fj, intr, cfg, dt, np.eye(4) if T_pred is None else T_pred, depth_only=True)
+        if depth.ok:
+            depth.info["path"], depth.info["sparse_status"] = "depth", best.status
+            depth.info["dense"]["stale_stream"] = fi.stale or fj.stale
+            depth.inlier_pairs = best.inlier_pairs if best.ok else None  # the feature tracks go on
+            return depth
+        best.info["depth_step"] = depth.status
     if not best.ok and cfg.fallback_dense and fi.dense is not None and fj.dense is not None:
         T0 = np.eye(4) if T_pred is None else T_pred
         if cfg.fallback_rgbd:
@@ -834,7 +886,8 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
         return
     # a stale pair's keypoints show another moment than its depth: depth alone there, then
     # the hybrid stage where both frames' photometric maps match their depth (see above)
-    hybrid = hybrid and di.photo is not None and dj.photo is not None and (blend is None or cfg.hybrid_on_stale)
+    hybrid = (hybrid and di.photo is not None and dj.photo is not None and di.photo.grey and dj.photo.grey
+              and (blend is None or cfg.hybrid_on_stale))
     cov = _dense_stage(res, di, dj, cfg, blend, False, res.cov)
     if hybrid and blend is not None:
         # the sparse estimate was dropped: the depth stage's own covariance is the prior
@@ -983,7 +1036,7 @@ def _rgbd_image(f: FrameFeatures, s: int) -> o3d.t.geometry.RGBDImage:
 
 
 def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics, cfg: TeacherConfig,
-              dt: float, T_init: NDArray, chained: bool = False) -> EdgeEstimate:
+              dt: float, T_init: NDArray, chained: bool = False, depth_only: bool = False) -> EdgeEstimate:
     """Fallback 2, first step (``cfg.fallback_rgbd``), for a pair whose colour gave no usable
     sparse estimate; it also holds where the depth alone does not pin the motion down (e.g.
     a bare wall and the ceiling, slid along their corner): Open3D's hybrid RGB-D
@@ -993,10 +1046,12 @@ def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     (the colour term that fixed it is not counted, so it errs on the safe side). Failed
     when too few pixels pair up, when that covariance cannot be formed or is as poorly
     conditioned as one plane's (``cfg.fallback_min_conditioning``: a textured single plane
-    is refused too, conservatively), or when the motion is implausibly fast."""
+    is refused too, conservatively), or when the motion is implausibly fast. With the hybrid
+    maps and ``depth_only`` (or a frame whose grey is void, :func:`_photo_pair`) the kernel's
+    depth term alone aligns them."""
     if fi.dense.photo is not None and fj.dense.photo is not None:
         try:
-            T, fitness = pyramid_align(T_init, fi.dense, fj.dense, cfg, coarse=not chained)
+            T, fitness = pyramid_align(T_init, fi.dense, fj.dense, cfg, coarse=not chained, depth_only=depth_only)
         except RuntimeError as exc:
             return EdgeEstimate(i, j, "degenerate" if "Singular" in str(exc) else "few_matches",
                                 info={"path": "none", "error": str(exc)[-200:]})
@@ -1114,7 +1169,7 @@ def hybrid_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg: Teacher
     of j in both axes (scaled back to all). None without photometric maps, with fewer
     than 12 pairs or a singular system."""
     pi, pj = di.photo, dj.photo
-    if pi is None or pj is None:
+    if pi is None or pj is None or not (pi.grey and pj.grey):
         return None
     q = dj.points.numpy()[::stride, ::stride].reshape(-1, 3)
     Ij = pj.src_intensity.numpy()[::stride, ::stride].reshape(-1)

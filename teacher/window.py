@@ -16,11 +16,15 @@ For each new frame k (features from :func:`teacher.odometry.extract`):
    k-g to k, predicted by the chained motion;
 4. frames more than K - 1 behind the newest leave the window.
 
-A frame whose depth repeats the previous frame's while its colour is new (a dropped depth
-frame: the depth, and the ground truth that follows it, belong to the previous moment)
-takes the previous frame's photometric maps, the colour taken with that depth; a frame
-whose colour repeats while its depth is new has none (nothing shows its colour's moment in
-depth). So the hybrid dense steps never pair a colour with the depth of another moment.
+Photometric maps (synthetic scenes' hybrid dense step) always pair a colour with the depth
+of its own moment. A frame whose depth repeats the previous frame's while its colour is new
+(a dropped depth frame: the depth, and the ground truth that follows it, belong to the
+previous moment) takes the previous frame's photometric maps, the colour taken with that
+depth; a frame whose colour repeats while its depth is new keeps only the depth of its maps
+(:meth:`teacher.odometry.PhotoMaps.depth_only`: nothing shows its colour's moment in depth)
+and is marked ``colour_behind``, so its gap-1 edges are aligned by the depth alone
+(``cfg.depth_beside_colour_repeat``); a whole repeat of a frame takes that frame's maps and
+mark.
 """
 
 from __future__ import annotations
@@ -56,20 +60,24 @@ class EdgeWindow:
     a repeated image at the first frame is caught. ``until``: only edges whose first frame
     is among the first ``until`` frames added are estimated and returned (a chunk reads
     ``gaps`` frames past its end for the edges that start inside it); None: every edge.
-    ``prev_photo``: with ``prev_keys``, returns the photometric maps that match the depth of
-    the frame before the first one (see the module's docstring; called only when the first
-    frame repeats that depth).
+    ``prev_photo``: with ``prev_keys``, returns the photometric maps and the ``colour_behind``
+    mark of the frame before the first one, as a window that had seen the sequence from its
+    start would hold them (see the module's docstring; called only when the first frame
+    repeats that frame's depth).
     """
 
     def __init__(self, intr: Intrinsics, cfg: TeacherConfig, prev_keys: Optional[tuple[bytes, bytes]] = None,
                  until: Optional[int] = None,
-                 prev_photo: Optional[Callable[[], Optional[PhotoMaps]]] = None) -> None:
+                 prev_photo: Optional[Callable[[], tuple[Optional[PhotoMaps], bool]]] = None) -> None:
         self.intr, self.cfg, self.until = intr, cfg, until
         self.prev_keys = prev_keys
-        self._prev_photo = prev_photo or (lambda: None)
+        self._prev_photo = prev_photo or (lambda: (None, False))
         self.entries: deque[_Entry] = deque()
         self.v_prev: Optional[NDArray[np.float64]] = None  # last good gap-1 motion (constant-velocity prior)
         self.dt_prev = 0.0  # its time (s)
+        # the last good gap-1 motion over one frame period of the depth (see _prediction)
+        self.v_moving: Optional[NDArray[np.float64]] = None
+        self._depth_repeat = False  # the newest frame's depth repeats the one before it
         self.added = 0
         self._pending: Optional[tuple] = None  # the frame add_gap1 took, until add_longer
 
@@ -91,26 +99,37 @@ class EdgeWindow:
             raise RuntimeError("EdgeWindow.add_longer() must follow add_gap1() before the next frame")
         cfg, intr = self.cfg, self.intr
         pos, self.added = self.added, self.added + 1
+        prev_depth_repeat, self._depth_repeat = self._depth_repeat, False
         if self.prev_keys is not None:
+            self._depth_repeat = fk.keys[1] == self.prev_keys[1]
             fk.stale = stale_stream(self.prev_keys, fk.keys)
-            if fk.stale and fk.dense is not None and fk.dense.photo is not None:
-                # its colour shows another moment than its depth (see the module's docstring)
-                fk.dense.photo = self._prev_photo() if fk.keys[1] == self.prev_keys[1] else None
+            if fk.dense is not None and fk.dense.photo is not None:
+                # which moments its colour and depth show (see the module's docstring)
+                same_colour, same_depth = fk.keys[0] == self.prev_keys[0], fk.keys[1] == self.prev_keys[1]
+                if same_depth:  # the previous frame's depth: its maps (and mark, for a whole repeat)
+                    photo, behind = self._prev_photo()
+                    fk.dense.photo, fk.colour_behind = photo, behind and same_colour
+                elif same_colour:
+                    fk.dense.photo, fk.colour_behind = fk.dense.photo.depth_only(), True
         self.prev_keys = fk.keys
         photo = fk.dense.photo if fk.dense is not None else None
-        self._prev_photo = lambda: photo
+        state = (photo, fk.colour_behind)
+        self._prev_photo = lambda: state
         edges: list[EdgeEstimate] = []
         e = None
         if self.entries:
             prev = self.entries[-1]
             dt = timestamp - prev.timestamp
-            T_pred = self.motion_over(dt)
-            e = estimate_edge(prev.frame_id, frame_id, prev.feats, fk, intr, cfg, dt, T_pred=T_pred)
+            e = estimate_edge(prev.frame_id, frame_id, prev.feats, fk, intr, cfg, dt,
+                              T_pred=self._prediction(prev.feats, fk, prev_depth_repeat, dt))
             if self._starts_inside(prev.pos):
                 edges.append(e)
-            step = e.T_i_j if e.ok else (T_pred if T_pred is not None else np.eye(4))
+            cv = self.motion_over(dt)
+            step = e.T_i_j if e.ok else (cv if cv is not None else np.eye(4))
             if e.ok:
                 self.v_prev, self.dt_prev = e.T_i_j, dt
+                if not (self._depth_repeat or prev_depth_repeat):
+                    self.v_moving = e.T_i_j
             m = np.full(len(prev.feats.uv) + 1, -1, np.int64)  # last slot maps -1 -> -1
             if e.ok and e.inlier_pairs is not None:
                 m[e.inlier_pairs[:, 0]] = e.inlier_pairs[:, 1]
@@ -130,6 +149,20 @@ class EdgeWindow:
             return self.v_prev
         r = dt / self.dt_prev
         return self.v_prev if 2 / 3 < r < 1.5 else geo.se3_exp(r * geo.se3_log(self.v_prev))
+
+    def _prediction(self, fi: FrameFeatures, fj: FrameFeatures, i_repeats_depth: bool,
+                    dt: float) -> Optional[NDArray[np.float64]]:
+        """The motion prediction of the gap-1 edge (i, j), ``dt`` s apart: the constant-velocity
+        one (:meth:`motion_over`); for an
+        edge aligned by the depth alone (a frame ``colour_behind``, new depth), which
+        converges slowly along plain walls and so leans on its start, the last good motion
+        over one frame period of the depth instead, twice when frame i's depth (and pose)
+        repeats the frame's before it (a dropped frame: the edge spans two periods). On the
+        office and lab scenes a whole repeat's identity as the start left such edges
+        5.6-15 mm off."""
+        if not (fi.colour_behind or fj.colour_behind) or fi.keys[1] == fj.keys[1] or self.v_moving is None:
+            return self.motion_over(dt)
+        return self.v_moving @ self.v_moving if i_repeats_depth else self.v_moving
 
     def add_longer(self) -> list[EdgeEstimate]:
         """The second half of :meth:`add`: the edges (k-g, k), g = 2..K, of the frame

@@ -321,7 +321,7 @@ def test_cli_generate_writes_every_output(tmp_path):
                                                                   "high_rmse", "degenerate", "implausible_motion"}
     # rgbd: here edges 4-6 and 4-7, whose keypoints agreed on a motion 20-30 mm off and whose
     # depth stage moved too far from it (``dense_disagrees``; 4.6 and 5.2 mm off with it)
-    paths = {"tracks", "guided", "exhaustive", "wide", "crosscheck", "rgbd", "dense"}
+    paths = {"tracks", "guided", "exhaustive", "wide", "crosscheck", "depth", "rgbd", "dense"}
     assert all((r["path"] in paths) == (r["status"] == "ok") for r in rows)
     assert sum(rep["edge_paths"].values()) == 30 and rep["constant_velocity_bridges"] == 0
     edges, vertices = read_g2o(out / "edges.g2o")
@@ -481,7 +481,9 @@ def test_stale_stream_needs_exactly_one_repeated_image():
 def test_edges_at_a_repeated_colour_image_follow_the_depth(tmp_path):
     """Frames whose colour repeats the previous frame's (depth and pose new) are flagged, and
     their edges take the dense depth alignment whole: closer to the ground truth than the
-    colour-keypoint estimate blended a quarter of the way (``dense_on_stale=False``)."""
+    colour-keypoint estimate blended a quarter of the way (``dense_on_stale=False``). (The
+    rule of real recordings and of longer edges: the gap-1 edges of synthetic scenes have
+    the depth-alone step, ``depth_beside_colour_repeat``, off here.)"""
     from data.synthetic import REPEAT_RGB, repeat_plan, synthetic_sequence
     from data.synthetic.config import PRESETS
 
@@ -494,8 +496,8 @@ def test_edges_at_a_repeated_colour_image_follow_the_depth(tmp_path):
     gt, ids = seq.groundtruth(), list(seq.ids())
     errs = {}
     for on in (True, False):
-        run = run_sequence(seq, dataclasses.replace(TeacherConfig(), workers=1, dense_on_stale=on, dense_fusion="blend"),
-                           progress=False)
+        run = run_sequence(seq, dataclasses.replace(TeacherConfig(), workers=1, dense_on_stale=on, dense_fusion="blend",
+                                                    depth_beside_colour_repeat=False), progress=False)
         stale = [e for e in run.edges if e.ok and e.info["dense"]["stale_stream"]]
         # flagged: exactly the edges with an end whose colour was repeated
         flagged = {(e.i, e.j) for e in stale}
@@ -841,13 +843,28 @@ class _ColourRepeats(_DepthRepeats):
         return self.seq.depth(k)
 
 
+class _WholeRepeats(_ColourRepeats):
+    """As :class:`_ColourRepeats`, with the frames in ``whole`` repeating the previous frame
+    whole (colour and depth)."""
+
+    def __init__(self, seq, repeats, whole):
+        super().__init__(seq, set(repeats) | set(whole))
+        self.whole = set(whole)
+
+    def depth(self, k):
+        while k in self.whole:
+            k -= 1
+        return self.seq.depth(k)
+
+
 def test_window_gives_a_depth_repeat_the_colour_of_its_depth(office_clean):
     """A frame whose depth repeats the previous frame's (colour new) gets the previous
     frame's photometric maps, the colour taken with that depth; a frame whose colour repeats
-    (depth new) gets none; a normal frame keeps its own. The gap-1 edge onto a depth repeat
-    is then the identity its depth shows, and a chunk that starts at a depth repeat
-    (``prev_photo``, :func:`teacher.generate._photo_before`) reads the maps the window
-    would hold back from the frames before it."""
+    (depth new) keeps only the depth of its maps and is marked ``colour_behind``; a normal
+    frame keeps its own. The gap-1 edge onto a depth repeat is then the identity its depth
+    shows, and a chunk that starts at a depth repeat (``prev_photo``,
+    :func:`teacher.generate._photo_before`) reads the maps the window would hold back from
+    the frames before it."""
     from teacher.generate import _photo_before
     from teacher.odometry import make_orb
     from teacher.window import EdgeWindow
@@ -860,18 +877,23 @@ def test_window_gives_a_depth_repeat_the_colour_of_its_depth(office_clean):
     w = EdgeWindow(seq.intrinsics, cfg)
     edges = w.add(2, 0.0, f2) + w.add(3, 1 / 30, f3) + w.add(4, 2 / 30, f4) + w.add(5, 3 / 30, f5)
     assert f2.dense.photo is own[0] and f3.dense.photo is own[0] and f4.dense.photo is own[2]
-    assert f5.dense.photo is None and f3.stale and f5.stale and not f4.stale
+    assert f5.dense.photo is own[3].depth_only() and not f5.dense.photo.grey and f5.colour_behind
+    assert f3.stale and f5.stale and not f4.stale and not f3.colour_behind and not f4.colour_behind
     e23 = next(e for e in edges if (e.i, e.j) == (2, 3))
     assert e23.ok and relative_pose_error(np.eye(4), e23.T_i_j)[0] < 1e-4
 
     # a chunk that starts after two depth repeats in a row (frames 5, 6 carry frame 4's depth)
     # reads back to frame 4, whose maps the window would hold; after a colour repeat, none
     rep = _DepthRepeats(seq, [5, 6])
-    got = _photo_before(rep, 7, cfg, make_orb(cfg), None)
+    got, behind = _photo_before(rep, 7, cfg, make_orb(cfg), None)
     want = _features(seq, 4, cfg).dense.photo
-    assert np.array_equal(got.intensity.numpy(), want.intensity.numpy())
+    assert np.array_equal(got.intensity.numpy(), want.intensity.numpy()) and got.grey and not behind
     assert np.array_equal(got.depth.numpy(), want.depth.numpy(), equal_nan=True)
-    assert _photo_before(_ColourRepeats(seq, [5]), 6, cfg, make_orb(cfg), None) is None
+    # after a colour repeat: only its depth, marked; a whole repeat of it keeps both
+    for rep, k in ((_ColourRepeats(seq, [5]), 6), (_WholeRepeats(seq, [5], [6]), 7)):
+        got, behind = _photo_before(rep, k, cfg, make_orb(cfg), None)
+        assert behind and not got.grey and not np.any(got.intensity.numpy()), k
+        assert np.array_equal(got.depth.numpy(), _features(seq, 5, cfg).dense.photo.depth.numpy(), equal_nan=True)
 
 
 def test_constant_velocity_spans_a_dropped_frame(office_clean, monkeypatch):
@@ -1052,3 +1074,39 @@ def test_point_to_plane_covariance_follows_its_definition(office_clean, stride):
     ref, n_ref = _reference_point_to_plane_covariance(T, di, dj, cfg, stride)
     assert n == n_ref > 100
     np.testing.assert_allclose(cov, ref, rtol=1e-9, atol=1e-20)
+
+
+def test_gap1_edges_beside_a_colour_repeat_use_the_depth_alone(office_clean):
+    """A frame whose colour repeats the previous frame's while its depth is new (and a whole
+    repeat of that frame after it): its keypoints and grey show the moment before its depth,
+    so its gap-1 edges are made by the depth term of the hybrid kernel alone (``path``
+    ``depth``), from the motion prediction, and match the ground truth, which follows the
+    depth; between the two, the same depth map twice, the keypoints give the identity. The
+    feature tracks go on through them (the gap-2 edges keep their tracks). Off
+    (``depth_beside_colour_repeat`` False), the usual chain makes them."""
+    from teacher.window import EdgeWindow
+
+    seq = office_clean
+    gt = seq.groundtruth()
+    for on in (True, False):
+        cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid", gaps=2, depth_beside_colour_repeat=on)
+        feats = {2: _features(seq, 2, cfg), 3: _features(seq, 3, cfg),
+                 4: _features(seq, 4, cfg, rgb=seq.rgb(3)),  # colour repeated, depth new
+                 5: _features(seq, 5, cfg, rgb=seq.rgb(3), depth=seq.depth(4)),  # frame 4 again, whole
+                 6: _features(seq, 6, cfg)}
+        w = EdgeWindow(seq.intrinsics, cfg)
+        edges = {(e.i, e.j): e for k, f in feats.items() for e in w.add(k, k / 30, f)}
+        assert [feats[k].colour_behind for k in range(2, 7)] == [False, False, True, True, False]
+        truth = {(3, 4): geo.relative_pose(gt[3], gt[4]), (4, 5): np.eye(4), (5, 6): geo.relative_pose(gt[4], gt[6])}
+        for ij, T in truth.items():
+            e = edges[ij]
+            assert e.ok and (e.info["path"] == "depth") == (on and ij != (4, 5)), (on, ij, e.info)
+            if on:
+                dt, dr = relative_pose_error(T, e.T_i_j)
+                # noise-free frames, but the depth alone pins the pose less well than colour
+                # and depth (measured 2.4 mm / 0.08 deg); (5, 6) spans two frames' motion
+                # from the prediction (4.5 mm / 0.17 deg); (4, 5) is the identity
+                bound = (7e-3, 0.3) if ij == (5, 6) else (4e-3, 0.15)
+                assert dt < bound[0] and dr < bound[1], (ij, dt, dr)
+                assert np.all(np.linalg.eigvalsh(e.cov) > 0)
+        assert edges[(2, 4)].ok and edges[(2, 4)].info["source"] == "tracks", edges[(2, 4)].info
