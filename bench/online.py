@@ -93,7 +93,7 @@ def bench_scene(spec: str, frames: str, checkpoint: Path | None, tmp: Path, tcfg
     seq = open_scene(spec, frames=frames)[0]
     row: dict = {"scene": seq.name, "frames": len(seq), "load_avg_1min": [os.getloadavg()[0]],
                  "online_teacher": {k: getattr(tcfg, k) for k in ("gaps", "dense_max_gap")},
-                 "pose_after_gap1": ocfg.pose_after_gap1, "feature_process": ocfg.feature_process}
+                 "pose_after_gap1": ocfg.pose_after_gap1}
     run = run_sequence(seq, DEFAULT, progress=False)  # batch, 2 processes
     row["batch_fps"] = len(seq) / run.seconds
     # the batch pipeline's own figure: the pose graph on the batch teacher's edges
@@ -169,8 +169,7 @@ def table(rows: list[dict]) -> str:
             f"{1000 * a['causal']:.1f} mm vs {1000 * b:.1f} mm ({a['final'] / b:.2f}x / {a['isam2'] / b:.2f}x / "
             f"{a['causal'] / b:.2f}x) | {lrn} |"
             + (f" gaps {r['online_teacher']['gaps']}, dense_max_gap {r['online_teacher']['dense_max_gap']}"
-               f"{', pose after gap 1' if r.get('pose_after_gap1') else ''}"
-               f"{', features in a thread' if r.get('feature_process') is False else ''}; "
+               f"{', pose after gap 1' if r.get('pose_after_gap1') else ''}; "
                f"{1000 * a['final']:.1f} vs {1000 * r['batch_teacher_posegraph_ate_m']:.1f} mm "
                f"({a['final'] / r['batch_teacher_posegraph_ate_m']:.2f}x) |" if "batch_teacher_posegraph_ate_m" in r
                else ""))
@@ -189,8 +188,6 @@ def main() -> int:
     ap.add_argument("--dense-max-gap", type=int, default=DEFAULT.dense_max_gap,
                     help="the online teacher's dense_max_gap (batch: the default's, 0)")
     ap.add_argument("--pose-after-gap1", action="store_true", help="vo-online --pose-after-gap1 in the online runs")
-    ap.add_argument("--feature-thread", action="store_true",
-                    help="the online runs extract features in a helper thread, not the feature process")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     tcfg = replace(DEFAULT, gaps=args.gaps, dense_max_gap=args.dense_max_gap)
@@ -198,8 +195,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for spec in args.scenes:
             rows.append(bench_scene(spec, args.frames, args.checkpoint, Path(tmp), tcfg,
-                                    online.OnlineConfig(pose_after_gap1=args.pose_after_gap1,
-                                                        feature_process=not args.feature_thread)))
+                                    online.OnlineConfig(pose_after_gap1=args.pose_after_gap1)))
             print(json.dumps(rows[-1]), file=sys.stderr)
     print(table(rows))
     if args.json:

@@ -105,11 +105,6 @@ class OnlineConfig:
     ``frames_skipped``); the edges then join the frames taken (a gap-1 edge may span
     several camera frames). One frame is prepared ahead (not ``prefetch``). Off: every
     frame is taken, in order, however late."""
-    feature_process: bool = True
-    """Extract each frame's teacher features in a worker process
-    (:class:`teacher.processes.FeatureProcess`) rather than in the helper thread: Open3D's
-    image filters hold Python's GIL and would stall the estimating thread. The same
-    features bit for bit (the outputs do not depend on it)."""
 
 
 # ----------------------------------------------------------------------------------
@@ -375,11 +370,9 @@ class OnlineTeacher:
     generate`` (:class:`teacher.window.EdgeWindow`, the same code) over the frames as they
     arrive, and the frame ids and timestamps so far."""
 
-    def __init__(self, intr: Intrinsics, cfg, colour=None, process: bool = False) -> None:
+    def __init__(self, intr: Intrinsics, cfg, colour=None) -> None:
         """``colour``: the colour camera model (``teacher.odometry.ColourCamera``; None:
-        colour registered to depth), as :func:`teacher.generate.colour_camera_for` picks it.
-        ``process``: :meth:`features` and :meth:`finish` run in a worker process
-        (:class:`teacher.processes.FeatureProcess`; :meth:`close` ends it)."""
+        colour registered to depth), as :func:`teacher.generate.colour_camera_for` picks it."""
         from teacher.odometry import make_orb
         from teacher.window import EdgeWindow
 
@@ -388,11 +381,6 @@ class OnlineTeacher:
         self.window = EdgeWindow(intr, cfg)
         self.ids: list[int] = []
         self.times: list[float] = []
-        self.process = None
-        if process:
-            from teacher.processes import FeatureProcess
-
-            self.process = FeatureProcess(intr.K, cfg, colour)
 
     def features(self, frame: Frame):
         """Per-frame work (safe to run in one helper thread ahead of :meth:`add`), without
@@ -400,8 +388,6 @@ class OnlineTeacher:
         :meth:`finish` adds them, in the same thread, before the next frame's features."""
         from teacher.odometry import extract
 
-        if self.process is not None:
-            return self.process.features(frame.rgb, frame.depth)
         return extract(frame.rgb, frame.depth, self.cfg, self.orb, self.intr.K, self.colour, surface=False)
 
     def finish(self, fk) -> None:
@@ -409,15 +395,8 @@ class OnlineTeacher:
         the frame is handed over, so its own edges do not wait for it."""
         from teacher.odometry import add_surface
 
-        if self.process is not None:
-            self.process.finish(fk)
-        elif fk.dense is not None:
+        if fk.dense is not None:
             add_surface(fk.dense, fk.depth, self.intr.K, self.cfg)
-
-    def close(self) -> None:
-        """End the feature process, if any."""
-        if self.process is not None:
-            self.process.close()
 
     def add(self, frame: Frame, fk) -> list:
         """The edges ending at ``frame`` (``EdgeEstimate``; failed ones included)."""
@@ -506,8 +485,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
 
         learner = OnlineLearner(checkpoint, predict_cfg, device)
     graph = OnlineGraph(graph_cfg)
-    # last: its feature process is ended in the frame loop's `finally`
-    teacher = OnlineTeacher(source.intrinsics, teacher_cfg, _colour_camera(source, teacher_cfg), cfg.feature_process)
+    teacher = OnlineTeacher(source.intrinsics, teacher_cfg, _colour_camera(source, teacher_cfg))
     t_edges: list = []
     l_edges: list[Edge] = []
     gts: list[Optional[NDArray]] = []
@@ -536,8 +514,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
                 t_take, c_arr = time.perf_counter(), time.thread_time()
                 t_arr = source.arrival()  # the frame is here: latency counts from then
                 t_arr = t_take if t_arr is None else min(t_arr, t_take)
-                item = (t_arr, *prepare(frame), time.perf_counter() - t_take,
-                        time.thread_time() - c_arr + (teacher.process.cpu_s if teacher.process is not None else 0.0))
+                item = (t_arr, *prepare(frame), time.perf_counter() - t_take, time.thread_time() - c_arr)
                 while not stop.is_set():
                     try:
                         ahead.put(item, timeout=0.1)
@@ -629,7 +606,6 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
         if bar is not None:
             bar.close()
         producer.join(timeout=5.0)
-        teacher.close()
     seconds = time.perf_counter() - t_start
     if n == 0:
         (out / TRAJECTORY).unlink(missing_ok=True)  # nothing to keep
@@ -833,9 +809,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
-    from teacher import processes
-
-    processes.start()  # the feature process's imports overlap this process's
     from data.io import setup_logging
 
     args = build_parser().parse_args(argv)

@@ -96,32 +96,6 @@ def test_pose_after_gap1_solves_the_same_edges(batch, online_run, tmp_path):
     assert 0 < rep["work_to_pose_cpu_ms"]["p50"] <= rep["work_to_pose_cpu_ms"]["max"]
 
 
-def test_feature_process_gives_the_features_of_extract():
-    """The feature process (vo-online's default) returns ``extract``'s features bit for bit,
-    and its :meth:`finish` the surface maps ``add_surface`` adds."""
-    from teacher.odometry import add_surface, extract, make_orb
-    from teacher.processes import FeatureProcess
-
-    seq = open_scene("synthetic/tiny")[0]
-    proc = FeatureProcess(seq.intrinsics.K, TCFG)
-    try:
-        for k in (0, 1):
-            f = seq.frame(k)
-            got = proc.features(f.rgb, f.depth)
-            assert got.dense.vertex is None and proc.cpu_s > 0
-            proc.finish(got)
-            want = extract(f.rgb, f.depth, TCFG, make_orb(TCFG), seq.intrinsics.K, surface=False)
-            add_surface(want.dense, want.depth, seq.intrinsics.K, TCFG)
-            for a in ("uv", "desc", "z", "gray", "depth"):
-                assert np.array_equal(getattr(got, a), getattr(want, a)), a
-            for a in ("points", "vertex", "normal", "K"):
-                assert np.array_equal(getattr(got.dense, a).numpy(), getattr(want.dense, a).numpy(),
-                                      equal_nan=True), a
-            assert got.keys == want.keys
-    finally:
-        proc.close()
-
-
 def test_window_halves_give_the_edges_of_add():
     """EdgeWindow.add_gap1 then add_longer gives add's edges; a second add_gap1 before
     add_longer is refused (the tracks of the first frame would be lost)."""
