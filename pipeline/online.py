@@ -96,7 +96,10 @@ class OnlineConfig:
     the graph; its longer teacher edges (k-g, k), g >= 2, are estimated after that and
     enter the graph in a second ISAM2 update, before the next frame. The same edges as
     without it (the final trajectory solves the same graph); the latency a frame waits
-    for its own pose no longer includes its longer edges (bench/README.md, "Online mode")."""
+    for its own pose no longer includes its longer edges (bench/README.md, "Online mode").
+    The helper thread then builds a frame's surface maps only once its pose is out (Open3D's
+    filters hold Python's GIL and would hold up the gap-1 edge), and prepares the next frame
+    after that: one frame ahead, not ``prefetch``."""
     drop_late: bool = False
     """For a live source (``--follow``: frames arrive whether or not they are taken): when
     frames arrive faster than they are processed, take the newest complete one and pass
@@ -507,6 +510,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     stop = threading.Event()
 
     replaced = [0]  # prepared frames a newer one replaced in the queue (drop_late)
+    posed = threading.Semaphore(0)  # pose_after_gap1: a frame's pose is written
 
     def produce() -> None:
         try:
@@ -528,7 +532,11 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
                                 pass
                         continue
                 # what frame k's dense step needs only in later frames' edges: built here,
-                # before frame k+1 is handed over (so before the estimator can need it)
+                # before frame k+1 is handed over (so before the estimator can need it);
+                # with pose_after_gap1 once frame k's pose is out, so that Open3D's filters,
+                # which hold the GIL, do not hold up that pose
+                while cfg.pose_after_gap1 and not stop.is_set() and not posed.acquire(timeout=0.1):
+                    pass
                 teacher.finish(item[2])
                 if stop.is_set() or (max_frames is not None and k + 1 >= max_frames):
                     break
@@ -587,6 +595,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
             to_pose.append(t_prep + t_pose - t_take)
             cpu_to_pose.append(c_prep + time.thread_time() - c_take)
             if cfg.pose_after_gap1:  # the longer edges of this frame, after its pose
+                posed.release()
                 later = teacher.add_longer()
                 t_edges += later
                 graph.add_edges(_teacher_edges(later))
