@@ -163,14 +163,14 @@ class FollowFolder(FrameSource):
         held back until later files settle them are final now)."""
         raise NotImplementedError
 
-    def _next(self, final: bool) -> Optional[object]:
-        """The frame to read next (None: none ready): the oldest ready one, or with
-        ``drop_late`` the newest (the ones before it count as skipped when it is read)."""
+    def _next(self, final: bool) -> tuple[Optional[object], int]:
+        """The frame to read next (None: none ready) and how many ready ones it passes over:
+        the oldest ready one, or with ``drop_late`` the newest (the ones before it count as
+        skipped once it is read)."""
         if not self.cfg.drop_late:
-            return next(iter(self._ready(final)), None)
+            return next(iter(self._ready(final)), None), 0
         ready = list(self._ready(final))
-        self._passed_over = len(ready) - 1
-        return ready[-1] if ready else None
+        return (ready[-1], len(ready) - 1) if ready else (None, 0)
 
     def _read(self, taken: int, item: object) -> Frame:
         """The frame ``item`` (from :meth:`_ready`); :class:`DataError` while it does not decode."""
@@ -191,8 +191,7 @@ class FollowFolder(FrameSource):
     def __iter__(self) -> Iterator[Frame]:
         taken, final, waited_since = 0, False, time.monotonic()
         while not self.stop.is_set():
-            self._passed_over = 0
-            item = self._next(final)
+            item, passed_over = self._next(final)
             if item is not None:
                 try:
                     frame = self._read(taken, item)
@@ -201,7 +200,7 @@ class FollowFolder(FrameSource):
                         raise
                     time.sleep(self.cfg.poll_s)
                     continue
-                self.skipped += self._passed_over
+                self.skipped += passed_over
                 yield frame
                 taken, waited_since = taken + 1, time.monotonic()
                 continue

@@ -436,6 +436,14 @@ def stale_stream(prev: tuple[bytes, bytes], cur: tuple[bytes, bytes]) -> bool:
     return (prev[0] == cur[0]) != (prev[1] == cur[1])
 
 
+def beside_colour_repeat(fi: FrameFeatures, fj: FrameFeatures) -> bool:
+    """True for a pair one of whose frames shows its colour from an earlier moment than its
+    depth (``colour_behind``) while the pair's depths differ: neither the keypoints nor the
+    grey of that frame belong to its depth, so the depth alone aligns the pair (a repeated
+    depth map is the same image: left to the keypoints)."""
+    return (fi.colour_behind or fj.colour_behind) and fi.keys[1] != fj.keys[1]
+
+
 def dense_method(cfg: TeacherConfig, colour: Optional[ColourCamera]) -> str:
     """``cfg.dense_method`` resolved for a colour camera model: ``auto`` is ``hybrid`` for a
     synchronous one (:attr:`ColourCamera.synchronous`), else ``point-to-plane``."""
@@ -801,8 +809,8 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
         if res.ok:
             break
     best.info["path"] = best.info["source"] if best.ok else "none"
-    if (tracks is None and cfg.depth_beside_colour_repeat and (fi.colour_behind or fj.colour_behind)
-            and fi.keys[1] != fj.keys[1] and fi.dense is not None and fj.dense is not None
+    if (tracks is None and cfg.depth_beside_colour_repeat and beside_colour_repeat(fi, fj)
+            and fi.dense is not None and fj.dense is not None
             and fi.dense.photo is not None and fj.dense.photo is not None):
         # a gap-1 edge beside a frame whose colour shows an earlier moment than its depth:
         # neither its keypoints nor its grey belong to its depth; the depth term alone (a

@@ -39,7 +39,8 @@ from numpy.typing import NDArray
 from data import geometry as geo
 from data.sequence import Intrinsics
 from teacher.config import TeacherConfig
-from teacher.odometry import EdgeEstimate, FrameFeatures, PhotoMaps, estimate_edge, stale_stream
+from teacher.odometry import (EdgeEstimate, FrameFeatures, PhotoMaps, beside_colour_repeat, estimate_edge,
+                              stale_stream)
 
 
 @dataclass
@@ -105,8 +106,8 @@ class EdgeWindow:
             fk.stale = stale_stream(self.prev_keys, fk.keys)
             if fk.dense is not None and fk.dense.photo is not None:
                 # which moments its colour and depth show (see the module's docstring)
-                same_colour, same_depth = fk.keys[0] == self.prev_keys[0], fk.keys[1] == self.prev_keys[1]
-                if same_depth:  # the previous frame's depth: its maps (and mark, for a whole repeat)
+                same_colour = fk.keys[0] == self.prev_keys[0]
+                if self._depth_repeat:  # the previous frame's depth: its maps (and mark, for a whole repeat)
                     photo, behind = self._prev_photo()
                     fk.dense.photo, fk.colour_behind = photo, behind and same_colour
                 elif same_colour:
@@ -120,11 +121,11 @@ class EdgeWindow:
         if self.entries:
             prev = self.entries[-1]
             dt = timestamp - prev.timestamp
+            cv = self.motion_over(dt)
             e = estimate_edge(prev.frame_id, frame_id, prev.feats, fk, intr, cfg, dt,
-                              T_pred=self._prediction(prev.feats, fk, prev_depth_repeat, dt))
+                              T_pred=self._prediction(prev.feats, fk, prev_depth_repeat, cv))
             if self._starts_inside(prev.pos):
                 edges.append(e)
-            cv = self.motion_over(dt)
             step = e.T_i_j if e.ok else (cv if cv is not None else np.eye(4))
             if e.ok:
                 self.v_prev, self.dt_prev = e.T_i_j, dt
@@ -151,17 +152,16 @@ class EdgeWindow:
         return self.v_prev if 2 / 3 < r < 1.5 else geo.se3_exp(r * geo.se3_log(self.v_prev))
 
     def _prediction(self, fi: FrameFeatures, fj: FrameFeatures, i_repeats_depth: bool,
-                    dt: float) -> Optional[NDArray[np.float64]]:
-        """The motion prediction of the gap-1 edge (i, j), ``dt`` s apart: the constant-velocity
-        one (:meth:`motion_over`); for an
-        edge aligned by the depth alone (a frame ``colour_behind``, new depth), which
-        converges slowly along plain walls and so leans on its start, the last good motion
-        over one frame period of the depth instead, twice when frame i's depth (and pose)
-        repeats the frame's before it (a dropped frame: the edge spans two periods). On the
-        office and lab scenes a whole repeat's identity as the start left such edges
-        5.6-15 mm off."""
-        if not (fi.colour_behind or fj.colour_behind) or fi.keys[1] == fj.keys[1] or self.v_moving is None:
-            return self.motion_over(dt)
+                    cv: Optional[NDArray[np.float64]]) -> Optional[NDArray[np.float64]]:
+        """The motion prediction of the gap-1 edge (i, j): ``cv``, the constant-velocity one
+        (:meth:`motion_over`); for an edge aligned by the depth alone
+        (:func:`teacher.odometry.beside_colour_repeat`), which converges slowly along plain
+        walls and so leans on its start, the last good motion over one frame period of the
+        depth instead, twice when frame i's depth (and pose) repeats the frame's before it (a
+        dropped frame: the edge spans two periods). On the office and lab scenes a whole
+        repeat's identity as the start left such edges 5.6-15 mm off."""
+        if not beside_colour_repeat(fi, fj) or self.v_moving is None:
+            return cv
         return self.v_moving @ self.v_moving if i_repeats_depth else self.v_moving
 
     def add_longer(self) -> list[EdgeEstimate]:
