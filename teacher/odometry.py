@@ -774,8 +774,12 @@ def _huber(r: NDArray, k: float) -> tuple[float, NDArray, NDArray]:
 
 def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
                   cfg: TeacherConfig, dt: float, T_pred: Optional[NDArray] = None,
-                  tracks: Optional[NDArray[np.int64]] = None, dense: bool = True) -> EdgeEstimate:
-    """Estimate ``T_i_j`` between two frames (ids ``i``, ``j``, ``dt`` seconds apart).
+                  tracks: Optional[NDArray[np.int64]] = None, dense: bool = True,
+                  T_alt: Optional[NDArray] = None) -> EdgeEstimate:
+    """Estimate ``T_i_j`` between two frames (ids ``i``, ``j``; ``dt``: the most seconds the
+    motion can span, the bound of the plausibility tests ``cfg.max_speed`` /
+    ``cfg.max_angular_speed_deg``: from the earliest moment frame i's images show, which is
+    before its timestamp when one of them repeats an earlier frame's, to frame j's timestamp).
 
     Correspondences come from ``tracks`` ((M, 2) keypoint index pairs chained along the
     gap-1 matches) when given and numerous enough, else from matching: guided by the motion
@@ -783,7 +787,9 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
     When none passes, the fallback chain (``cfg.fallback_*``); a good estimate gets the dense
     step (:func:`dense_refine`) unless ``dense`` is False, and with photometric maps, when its
     depth stage moved it too far (:func:`_dense_disagrees`), the rgbd fallback from ``T_pred``
-    replaces it.
+    replaces it. ``T_alt``: a second start of the rgbd fallback of a gap-1 edge
+    (``cfg.fallback_span_start``) when it differs from ``T_pred``; of the two results that
+    pass its checks, the one that pairs more pixels (fitness) is taken.
     """
     attempts = []
     if tracks is not None and len(tracks) >= cfg.min_matches:
@@ -825,7 +831,13 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
     if not best.ok and cfg.fallback_dense and fi.dense is not None and fj.dense is not None:
         T0 = np.eye(4) if T_pred is None else T_pred
         if cfg.fallback_rgbd:
-            rgbd = rgbd_edge(i, j, fi, fj, intr, cfg, dt, T0, chained=tracks is not None and T_pred is not None)
+            chained = tracks is not None and T_pred is not None
+            rgbd = rgbd_edge(i, j, fi, fj, intr, cfg, dt, T0, chained=chained)
+            if T_alt is not None and tracks is None and not np.allclose(T_alt, T0, rtol=0.0, atol=1e-9):
+                alt = rgbd_edge(i, j, fi, fj, intr, cfg, dt, T_alt, chained=chained)
+                if alt.ok and (not rgbd.ok or alt.info["dense"]["fitness"] > rgbd.info["dense"]["fitness"]):
+                    alt.info["start"] = "span"
+                    rgbd = alt
             rgbd.info["sparse_status"] = best.status
             if rgbd.ok:
                 return rgbd
