@@ -374,7 +374,12 @@ class TeacherConfig:
     """Inliers must cover at least this fraction of the image in both axes (std of u and
     v over width/height), else the geometry is ``degenerate``."""
     max_speed: float = 1.5
-    """Translations faster than this (m/s) are ``implausible_motion``."""
+    """Translations faster than this (m/s) are ``implausible_motion``: over the time from the
+    earliest moment frame i's images show (a repeated image shows its first frame's moment)
+    to frame j's timestamp (:func:`teacher.odometry.estimate_edge`). Before (to ``STAGE_VERSIONS``
+    teacher 4) over the timestamps alone, which on synthetic/stress-fast refused the edges out
+    of a repeated frame in a fast turn (two periods of the depth, 30-62 mm, in one period of
+    the clock: 6 failed gap-1 edges whose rgbd result was 5-8 mm off)."""
     max_angular_speed_deg: float = 180.0
     """Rotations faster than this (deg/s) are ``implausible_motion``."""
     workers: int = 2
