@@ -133,9 +133,10 @@ class EdgeWindow:
             dt = timestamp - prev.timestamp
             cv = self.motion_over(dt)
             span = moments[1] - self._moments[1]
-            e = estimate_edge(prev.frame_id, frame_id, prev.feats, fk, intr, cfg, timestamp - prev.since,
+            e = estimate_edge(prev.frame_id, frame_id, prev.feats, fk, intr, cfg, dt,
                               T_pred=self._prediction(prev.feats, fk, prev_depth_repeat, cv),
-                              T_alt=self.motion_between(span) if cfg.fallback_span_start else None)
+                              T_alt=self.motion_between(span) if cfg.fallback_span_start else None,
+                              span=timestamp - prev.since)
             if self._starts_inside(prev.pos):
                 edges.append(e)
             step = e.T_i_j if e.ok else (cv if cv is not None else np.eye(4))
@@ -225,9 +226,10 @@ class EdgeWindow:
                 tracks = np.flatnonzero(w.link >= 0)
                 tracks = np.stack([tracks, w.link[tracks]], axis=1)
                 gap = pos - w.pos
-                edges.append(estimate_edge(w.frame_id, frame_id, w.feats, fk, intr, cfg, timestamp - w.since,
+                edges.append(estimate_edge(w.frame_id, frame_id, w.feats, fk, intr, cfg, timestamp - w.timestamp,
                                            w.T_k_cur.copy(), tracks,
-                                           dense=cfg.dense_max_gap <= 0 or gap <= cfg.dense_max_gap))
+                                           dense=cfg.dense_max_gap <= 0 or gap <= cfg.dense_max_gap,
+                                           span=timestamp - w.since))
             e.inlier_pairs = None  # only needed for the tracks above
         self.entries.append(_Entry(pos, int(frame_id), timestamp, fk, np.arange(len(fk.uv)), np.eye(4),
                                    min(self._moments)))

@@ -1179,7 +1179,8 @@ def test_edge_out_of_a_repeat_spans_two_periods_of_a_fast_turn(tmp_path):
 
 def test_plausibility_bound_and_second_start_follow_the_depth_moments(office_clean, monkeypatch):
     """The window hands ``estimate_edge`` the time from the earliest moment frame i's images
-    show (a repeated image shows its first frame's moment) to frame j's timestamp, and as the
+    show (a repeated image shows its first frame's moment) to frame j's timestamp (``span``,
+    the dense alignments' plausibility bound; the keypoints' stays the timestamps'), and as the
     rgbd fallback's second start the constant velocity between the two depth moments: twice
     the last motion out of a whole repeat, the identity onto a depth repeat. A chunk that
     starts after repeats reads those moments back (:func:`teacher.generate._moments_before`)."""
@@ -1191,9 +1192,9 @@ def test_plausibility_bound_and_second_start_follow_the_depth_moments(office_cle
     got = {}
     est = wmod.estimate_edge
 
-    def spy(i, j, fi, fj, intr, c, dt, T_pred=None, tracks=None, dense=True, T_alt=None):
-        got[(i, j)] = (dt, T_alt)
-        return est(i, j, fi, fj, intr, c, dt, T_pred, tracks, dense, T_alt)
+    def spy(i, j, fi, fj, intr, c, dt, T_pred=None, tracks=None, dense=True, T_alt=None, span=None):
+        got[(i, j)] = (span, T_alt, dt)
+        return est(i, j, fi, fj, intr, c, dt, T_pred, tracks, dense, T_alt, span)
 
     monkeypatch.setattr(wmod, "estimate_edge", spy)
     feats = {2: _features(seq, 2, cfg), 3: _features(seq, 3, cfg),
@@ -1203,6 +1204,7 @@ def test_plausibility_bound_and_second_start_follow_the_depth_moments(office_cle
     edges = {(e.i, e.j): e for k, f in feats.items() for e in w.add(k, k / 30, f)}
     assert np.isclose(got[(3, 4)][0], 1 / 30) and np.isclose(got[(4, 5)][0], 2 / 30)  # 4 shows 3's moment
     assert np.isclose(got[(3, 5)][0], 2 / 30) and np.isclose(got[(5, 6)][0], 1 / 30)
+    assert all(np.isclose(v[2], (j - i) / 30) for (i, j), v in got.items())  # the keypoints' bound: timestamps
     v23 = edges[(2, 3)].T_i_j
     assert np.allclose(got[(3, 4)][1], np.eye(4)) and np.allclose(got[(4, 5)][1], v23 @ v23, atol=1e-9)
     assert np.allclose(got[(5, 6)][1], np.eye(4))
