@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from collections import Counter
@@ -34,6 +35,7 @@ if __name__ == "__main__":  # as `teacher generate` does: its worker imports whi
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
+from threadpoolctl import threadpool_limits  # noqa: E402
 
 from data import geometry as geo  # noqa: E402
 from data.chain import chain_steps  # noqa: E402
@@ -52,7 +54,7 @@ SYNTHETIC = ["synthetic/office", "synthetic/lab", "synthetic/kitchen", "syntheti
 
 def run_open3d(seq) -> tuple[np.ndarray, float, int]:
     """Gap-1 chain of Open3D's compute_rgbd_odometry (hybrid term), T_k_{k+1} = inv(T_target_source)."""
-    import open3d as o3d
+    from data.open3d_import import o3d
 
     K = seq.intrinsics
     intr = o3d.camera.PinholeCameraIntrinsic(K.width, K.height, K.fx, K.fy, K.cx, K.cy)
@@ -116,10 +118,12 @@ def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frame
     rows = []
     # Each method runs as it is meant to be used: the teacher as `teacher generate` runs it
     # (one OpenCV thread per process, data.sequence's default: it uses the cores through
-    # its own processes), the single-process peers with OpenCV / OpenMP on both cores.
+    # its own processes and threads), the single-process peers with OpenCV and OpenMP on
+    # every core, whatever OMP_NUM_THREADS says (it limits only the teacher here).
+    cores = os.cpu_count() or 1
     cv2.setNumThreads(1)
     run = run_sequence(seq, TeacherConfig(), progress=False)
-    cv2.setNumThreads(2)
+    cv2.setNumThreads(cores)
     pos = {int(f): p for p, f in enumerate(seq.ids())}
     gap1 = [e for e in run.edges if pos[e.j] - pos[e.i] == 1]
     paths = Counter(e.info.get("path", "none") for e in gap1)
@@ -127,12 +131,13 @@ def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frame
                  "fails": sum(1 for e in gap1 if not e.ok),
                  "cv_bridges": sum(1 for b in run.bridges if b["method"] == "constant velocity"),
                  "gap1_paths": dict(sorted(paths.items()))})
-    if "open3d" in peers:
-        poses, sec, fails = run_open3d(seq)
-        rows.append({"method": "Open3D hybrid (gap 1)", "poses": poses, "seconds": sec, "fails": fails})
-    if "cv2" in peers:
-        poses, sec, fails = run_opencv(seq)
-        rows.append({"method": "cv2.Odometry RGB_DEPTH (gap 1)", "poses": poses, "seconds": sec, "fails": fails})
+    with threadpool_limits(cores, user_api="openmp"):
+        if "open3d" in peers:
+            poses, sec, fails = run_open3d(seq)
+            rows.append({"method": "Open3D hybrid (gap 1)", "poses": poses, "seconds": sec, "fails": fails})
+        if "cv2" in peers:
+            poses, sec, fails = run_opencv(seq)
+            rows.append({"method": "cv2.Odometry RGB_DEPTH (gap 1)", "poses": poses, "seconds": sec, "fails": fails})
     out = []
     for r in rows:
         rep = trajectory_report(gt, Trajectory(seq.times(), r["poses"]))

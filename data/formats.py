@@ -64,8 +64,7 @@ def write_tum(path: Path, traj: Trajectory) -> None:
         raise FormatError(f"refusing to write non-finite poses to {path}")
     with atomic_write(path) as fh:
         fh.write("# timestamp tx ty tz qx qy qz qw  (T_world_cam, metres)\n")
-        for t, T in zip(traj.timestamps, traj.poses):
-            row = geo.T_to_tum(T)
+        for t, row in zip(traj.timestamps, geo.T_to_tum(np.asarray(traj.poses).reshape(-1, 4, 4))):
             fh.write(f"{t:.6f} " + " ".join(f"{x:.9f}" for x in row) + "\n")
 
 
@@ -163,31 +162,60 @@ class Edge:
         return np.linalg.inv(self.cov)
 
 
-def _check_cov(cov: NDArray[np.float64], what: str) -> None:
-    if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
-        raise FormatError(f"{what}: covariance must be a finite 6x6 matrix")
-    if not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-12):
-        raise FormatError(f"{what}: covariance is not symmetric")
-    if np.linalg.eigvalsh(0.5 * (cov + cov.T)).min() <= 0:
-        raise FormatError(f"{what}: covariance is not positive definite")
+def _check_covs(covs: list, whats: list[str], poses: Optional[list] = None) -> None:
+    """Raise :class:`FormatError` for the first covariance that is not a finite symmetric
+    positive-definite 6x6 matrix, or (with ``poses``) the first relative pose that is not a
+    finite rigid transform; checked in batches, reported in order."""
+    shaped = np.array([np.shape(c) == (6, 6) for c in covs], dtype=bool)
+    C = np.zeros((len(covs), 6, 6))
+    if shaped.any():
+        C[shaped] = np.asarray([c for c, s in zip(covs, shaped) if s], dtype=np.float64)
+    finite = shaped & np.isfinite(C).all(axis=(1, 2))
+    C[~finite] = np.eye(6)
+    symmetric = np.isclose(C, C.transpose(0, 2, 1), rtol=1e-6, atol=1e-12).all(axis=(1, 2))
+    posdef = np.linalg.eigvalsh(0.5 * (C + C.transpose(0, 2, 1))).min(axis=1) > 0 if len(C) else symmetric
+    rigid = np.ones(len(covs), dtype=bool)
+    if poses is not None:
+        P = [np.asarray(T, dtype=np.float64) for T in poses]
+        four = np.array([T.shape == (4, 4) for T in P], dtype=bool)
+        rigid = four.copy()
+        if four.any():
+            rigid[four] = geo.rigid_mask(np.stack([T for T, f in zip(P, four) if f]), atol=1e-4)
+    bad = np.flatnonzero(~(finite & symmetric & posdef & rigid))
+    if not len(bad):
+        return
+    k = int(bad[0])
+    if not finite[k]:
+        raise FormatError(f"{whats[k]}: covariance must be a finite 6x6 matrix")
+    if not symmetric[k]:
+        raise FormatError(f"{whats[k]}: covariance is not symmetric")
+    if not posdef[k]:
+        raise FormatError(f"{whats[k]}: covariance is not positive definite")
+    raise FormatError(f"{whats[k]}: relative pose is not a finite rigid transform")
 
 
 def write_g2o(path: Path, edges: Iterable[Edge], vertices: Optional[dict[int, NDArray[np.float64]]] = None) -> None:
-    """Write ``VERTEX_SE3:QUAT`` lines (id -> ``T_world_cam``) and ``EDGE_SE3:QUAT`` lines."""
+    """Write ``VERTEX_SE3:QUAT`` lines (id -> ``T_world_cam``) and ``EDGE_SE3:QUAT`` lines.
+
+    Every edge is checked first (covariance, rigid pose), so a bad edge leaves no file."""
+    edges = list(edges)
+    _check_covs([e.cov for e in edges], [f"edge {e.i}->{e.j}" for e in edges], [e.T_i_j for e in edges])
     iu = np.triu_indices(6)
     buf = io.StringIO()
-    for vid, T in sorted((vertices or {}).items()):
-        buf.write(f"VERTEX_SE3:QUAT {vid} " + " ".join(f"{x:.9f}" for x in geo.T_to_tum(T)) + "\n")
-    for e in edges:
-        what = f"edge {e.i}->{e.j}"
-        _check_cov(np.asarray(e.cov), what)
-        if not geo.is_rigid(e.T_i_j, atol=1e-4):
-            raise FormatError(f"{what}: relative pose is not a finite rigid transform")
-        info = np.linalg.inv(e.cov)
-        info = 0.5 * (info + info.T)
-        pose = " ".join(f"{x:.9f}" for x in geo.T_to_tum(e.T_i_j))
-        inf = " ".join(f"{x:.17g}" for x in info[iu])  # exact float round trip
-        buf.write(f"EDGE_SE3:QUAT {e.i} {e.j} {pose} {inf}\n")
+    vids = sorted(vertices or {})
+    if vids:
+        rows = geo.T_to_tum(np.stack([np.asarray(vertices[v], dtype=np.float64) for v in vids]))
+        for vid, row in zip(vids, rows):
+            buf.write(f"VERTEX_SE3:QUAT {vid} " + " ".join(f"{x:.9f}" for x in row) + "\n")
+    if edges:
+        covs = np.stack([np.asarray(e.cov, dtype=np.float64) for e in edges])
+        infos = np.linalg.inv(covs)
+        infos = 0.5 * (infos + infos.transpose(0, 2, 1))
+        poses = geo.T_to_tum(np.stack([np.asarray(e.T_i_j, dtype=np.float64) for e in edges]))
+        for e, row, info in zip(edges, poses, infos):
+            pose = " ".join(f"{x:.9f}" for x in row)
+            inf = " ".join(f"{x:.17g}" for x in info[iu])  # exact float round trip
+            buf.write(f"EDGE_SE3:QUAT {e.i} {e.j} {pose} {inf}\n")
     with atomic_write(path) as fh:
         fh.write(buf.getvalue())
 

@@ -61,14 +61,18 @@ def relative_pose(T_world_i: ArrayLike, T_world_j: ArrayLike) -> Mat4:
 def is_rigid(T: ArrayLike, atol: float = 1e-5) -> bool:
     """True if ``T`` is a finite 4x4 rigid transform (orthonormal, det +1)."""
     T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        return False
-    R = T[:3, :3]
-    return bool(
-        np.allclose(R.T @ R, np.eye(3), atol=atol)
-        and abs(np.linalg.det(R) - 1.0) < atol
-        and np.allclose(T[3], [0, 0, 0, 1], atol=atol)
-    )
+    return T.shape == (4, 4) and bool(rigid_mask(T[None], atol)[0])
+
+
+def rigid_mask(Ts: ArrayLike, atol: float = 1e-5) -> NDArray[np.bool_]:
+    """:func:`is_rigid` of each of a batch of transforms (N, 4, 4): a bool array (N,)."""
+    Ts = np.asarray(Ts, dtype=np.float64).reshape(-1, 4, 4)
+    ok = np.isfinite(Ts).all(axis=(1, 2))
+    R = np.where(ok[:, None, None], Ts[:, :3, :3], np.eye(3))  # no warnings from non-finite rows
+    ok &= np.isclose(R.transpose(0, 2, 1) @ R, np.eye(3), rtol=1e-5, atol=atol).all(axis=(1, 2))
+    ok &= np.abs(np.linalg.det(R) - 1.0) < atol
+    ok &= np.isclose(Ts[:, 3], [0, 0, 0, 1], rtol=1e-5, atol=atol).all(axis=1)
+    return ok
 
 
 def orthonormalize(T: ArrayLike) -> NDArray[np.float64]:
@@ -117,9 +121,12 @@ def quat_xyzw_to_R(q_xyzw: ArrayLike) -> NDArray[np.float64]:
 
 
 def R_to_quat_xyzw(R: ArrayLike) -> NDArray[np.float64]:
-    """Quaternion ``(qx, qy, qz, qw)`` of a rotation matrix, with ``qw >= 0``."""
-    q = Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_quat()
-    return -q if q[3] < 0 else q
+    """Quaternion ``(qx, qy, qz, qw)`` of a rotation matrix (3, 3), with ``qw >= 0``; of a
+    batch (..., 3, 3): (..., 4)."""
+    R = np.asarray(R, dtype=np.float64)
+    q = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()
+    q[q[:, 3] < 0] *= -1.0
+    return q.reshape(R.shape[:-2] + (4,))
 
 
 def tum_to_T(row: ArrayLike) -> Mat4:
@@ -129,9 +136,10 @@ def tum_to_T(row: ArrayLike) -> Mat4:
 
 
 def T_to_tum(T: ArrayLike) -> NDArray[np.float64]:
-    """The 7 pose entries ``tx ty tz qx qy qz qw`` of a TUM row."""
+    """The 7 pose entries ``tx ty tz qx qy qz qw`` of a TUM row; of a batch (..., 4, 4):
+    (..., 7)."""
     T = np.asarray(T, dtype=np.float64)
-    return np.concatenate([T[:3, 3], R_to_quat_xyzw(T[:3, :3])])
+    return np.concatenate([T[..., :3, 3], R_to_quat_xyzw(T[..., :3, :3])], axis=-1)
 
 
 def quat_xyzw_to_wxyz(q_xyzw: ArrayLike) -> NDArray[np.float64]:

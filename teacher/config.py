@@ -11,80 +11,117 @@ class TeacherConfig:
     """Parameters of the ORB + PnP-RANSAC RGB-D odometry teacher."""
 
     gaps: int = 5
-    """Edges are estimated for every frame pair (i, i+g), g = 1..gaps."""
+    """Edges are estimated for every frame pair (i, i+g), g = 1..gaps. The paper's range, not
+    tuned: its pre-training pairs are 1-5 frames apart (../shared/PAPER.md, "Training")."""
     n_features: int = 1000
-    """ORB features per frame (cv2.ORB nfeatures)."""
+    """ORB features per frame (cv2.ORB nfeatures). Chosen on the whole redkitchen sample, test
+    range included: 1000 by hand when written (fa44eca), 2000 in 3f131cf (gap-1 6.6 -> 6.1 mm,
+    mostly in test frames 460-470), 1000 again since b8ac45d, where the dense step made up for
+    it at less cost. ORB-SLAM2's RGB-D setting is also 1000; OpenCV's default is 500."""
     fast_threshold: int = 12
-    """FAST threshold of the ORB detector; lower finds corners in weak texture."""
+    """FAST threshold of the ORB detector; lower finds corners in weak texture. Not measured:
+    set by hand when written (fa44eca); OpenCV and ORB-SLAM2 start at 20."""
     orb_levels: int = 6
-    """ORB pyramid levels (scale factor 1.2 each)."""
+    """ORB pyramid levels (scale factor 1.2 each). Not measured: set by hand when written
+    (fa44eca); OpenCV's and ORB-SLAM2's default is 8 levels at the same factor."""
     ratio: float = 0.85
-    """Lowe ratio test on Hamming distances (best / second best)."""
+    """Lowe ratio test on Hamming distances (best / second best). Not measured: set by hand when
+    written (fa44eca)."""
     search_radius_px: float = 12.0
     """Guided matching: a keypoint is compared only with keypoints of the other frame
-    within this radius of its position predicted by the motion prior."""
+    within this radius of its position predicted by the motion prior. Not measured: set by hand
+    when written (fa44eca)."""
     max_hamming: int = 64
-    """Reject matches whose Hamming distance exceeds this (of 256 bits)."""
+    """Reject matches whose Hamming distance exceeds this (of 256 bits). Not measured: set by
+    hand when written (fa44eca)."""
     subpixel: bool = False
     """Refine each match in frame j to sub-pixel precision with pyramidal Lucas-Kanade
-    started at the matched keypoint (ORB keypoints are integer pixels of pyramid levels)."""
+    started at the matched keypoint (ORB keypoints are integer pixels of pyramid levels). Off
+    since b8ac45d, chosen on the whole redkitchen sample, test range included: the dense step
+    superseded it at less cost (on in c7da6eb, where it halved the error on noise-free
+    synthetic/office frames, the training scene)."""
     lk_window: int = 11
-    """Window (pixels) of the Lucas-Kanade sub-pixel refinement."""
+    """Window (pixels) of the Lucas-Kanade sub-pixel refinement. Not measured: set by hand when
+    written (3f131cf); unused while ``subpixel`` is off."""
     depth_min: float = 0.3
-    """Keypoint depths below this (m) are ignored."""
+    """Keypoint depths below this (m) are ignored. Set by hand for the Kinect's range when
+    written (fa44eca), not measured."""
     depth_max: float = 4.5
-    """Keypoint depths above this (m) are ignored (Kinect-v1 noise grows with z^2)."""
+    """Keypoint depths above this (m) are ignored (Kinect-v1 noise grows with z^2). Set by hand
+    for the Kinect's range when written (fa44eca), not measured."""
     depth_edge_rel: float = 0.02
     """A keypoint is on a depth discontinuity (rejected) if the depth range in its 5x5
-    neighbourhood exceeds ``max(depth_edge_abs, depth_edge_rel * z)``."""
+    neighbourhood exceeds ``max(depth_edge_abs, depth_edge_rel * z)``. Not measured: set by hand
+    when written (fa44eca)."""
     depth_edge_abs: float = 0.02
-    """Absolute part of the depth-discontinuity test, metres."""
+    """Absolute part of the depth-discontinuity test, metres. Not measured: set by hand when
+    written (fa44eca)."""
     ransac_reproj_px: float = 2.5
-    """RANSAC inlier threshold on the reprojection error, pixels."""
+    """RANSAC inlier threshold on the reprojection error, pixels. Not measured: set by hand when
+    written (fa44eca); OpenCV's default is 8 px."""
     ransac_iters: int = 300
-    """Maximum RANSAC iterations of cv2.solvePnPRansac."""
+    """Maximum RANSAC iterations of cv2.solvePnPRansac. Not measured: set by hand when written
+    (fa44eca); OpenCV's default is 100."""
     refine_inlier_px: float = 2.0
-    """After refinement, correspondences within this reprojection error are inliers."""
+    """After refinement, correspondences within this reprojection error are inliers. Not
+    measured: set by hand when written (fa44eca)."""
     huber_px: float = 1.0
-    """Huber threshold (pixels) of the robust two-way refinement."""
+    """Huber threshold (pixels) of the robust two-way refinement. Not measured: set by hand when
+    written (fa44eca)."""
     min_sigma_px: float = 0.29
     """Floor of the residual standard deviation in the covariance: keypoints sit on integer
     pixels of their pyramid level, so their localisation error is at least the 1/sqrt(12)
-    px of uniform quantisation even when the residuals of a small motion look smaller."""
+    px of uniform quantisation even when the residuals of a small motion look smaller. Derived
+    from that quantisation when written (c7da6eb), not tuned."""
     refine_max_points: int = 300
     """At most this many correspondences (evenly spaced) enter the refinement; more add
-    time but little accuracy, as their errors are correlated."""
+    time but little accuracy, as their errors are correlated. Not measured: set by hand when
+    written (fa44eca); no run with more points is recorded."""
     two_way: bool = True
     """Refine on the reprojection error in both directions (frame-i points into j and
-    frame-j points into i, using the depth of both frames); else forward only."""
+    frame-j points into i, using the depth of both frames); else forward only. Not measured: on
+    since it was written (fa44eca); no forward-only comparison is recorded."""
     depth_weight: float = 1000.0
     """Weight of the 3-D point-to-point term (frame-j points moved into frame i vs the
     frame-i points, divided by z^2 as Kinect depth noise grows with z^2) in the refinement,
     in pixel-equivalent units per metre; 0 disables it. 1000 treats a 1 mm disagreement at
     1 m like a 1 px reprojection error. On redkitchen it lowers the gap-1 error from 6.1 to
-    5.6 mm, most in motion-blurred frames where keypoints are poorly localised."""
+    5.6 mm, most in motion-blurred frames where keypoints are poorly localised. Measured on the
+    whole 600-frame sample, test range included, and on noise-free synthetic/office (957050c);
+    the weight itself was set a priori, not swept."""
     refine: bool = True
     """Refine the PnP-RANSAC pose with the robust Newton solve of
     :func:`teacher.odometry.refine_two_way` (two-way and 3-D terms as set above). False
     keeps the pose of ``cv2.solvePnPRansac`` + ``cv2.solvePnPRefineLM`` on the RANSAC
     inliers (forward reprojection, least squares), as ORB-SLAM's tracking does; the
     covariance is then evaluated at that pose from the forward reprojection residuals of
-    the inliers alone (same formula, no Newton step, no backward or 3-D term)."""
+    the inliers alone (same formula, no Newton step, no backward or 3-D term). True keeps the
+    teacher as written (fa44eca); False is for the ``paper`` preset (38c9baf), whose one
+    comparison (bench/README.md, "Teacher-noise sweep", whole redkitchen sample) also drops the
+    dense step and drove no choice."""
     refine_rounds: int = 1
-    """Rounds of (select inliers with the current pose, refine)."""
+    """Rounds of (select inliers with the current pose, refine). Not measured: set by hand when
+    written (fa44eca)."""
     refine_iters: int = 6
     """Most damped Newton iterations per refinement round (it usually stops after 3-4, see
-    :func:`teacher.odometry.refine_two_way`)."""
+    :func:`teacher.odometry.refine_two_way`). Set by hand when written (fa44eca, for the earlier
+    solver); 4 was tried on redkitchen 350:450 (validation) and not adopted (bench/README.md,
+    "Teacher CPU per frame, second pass")."""
     dense_iters: int = 3
     """Iterations of the dense point-to-plane depth alignment that refines each good edge
-    (see :func:`teacher.odometry.dense_refine`); 0 disables it."""
+    (see :func:`teacher.odometry.dense_refine`); 0 disables it. 4 by hand when written
+    (b8ac45d); 3 since 5e42ad4, on the whole redkitchen sample, test range included (a fourth
+    changed nothing); 2 was tried on redkitchen 350:450 and synthetic/lab 0:100 (validation) and
+    not adopted (bench/README.md, "Teacher CPU per frame, second pass")."""
     dense_stop_m: float = 5e-4
     """Dense step: stop iterating once an update moves the pose by less than this (m) ...
     The updates shrink about 5x per iteration (redkitchen medians 3.3, 0.45, 0.11 mm), so
     what a stop leaves is ~0.1 mm, a quarter of it after the blend: 12 % fewer iterations
-    than with 0.02 mm / 0.001 deg, same label errors at every gap."""
+    than with 0.02 mm / 0.001 deg, same label errors at every gap. A speed setting, measured on
+    the whole redkitchen sample, test range included (8e2340d)."""
     dense_stop_deg: float = 0.02
-    """... and rotates it by less than this (degrees)."""
+    """... and rotates it by less than this (degrees). Chosen with ``dense_stop_m`` (8e2340d): a
+    speed setting measured on the whole redkitchen sample, test range included."""
     dense_blend: float = 0.25
     """Dense step with ``dense_fusion = "blend"``: the edge's pose moves this fraction of the
     way from the sparse to the dense estimate (along the geodesic,
@@ -150,7 +187,8 @@ class TeacherConfig:
     """Hybrid dense step on the edges of every gap; False: on gap-1 edges only (the longer
     ones keep the point-to-plane step). For speed: on synthetic/office 0:60 (gaps 1-5) every
     gap gained with it (gap-2..5 labels 2.38-2.52 against 2.73-2.86 mm) but the run took
-    ~10 % longer than with gap 1 alone, which the >= 10x Open3D speed target does not leave."""
+    ~10 % longer than with gap 1 alone, which the >= 10x Open3D speed target does not leave. A
+    speed choice on the training scene (12b33f0)."""
     photo_huber: float = 0.1
     """Hybrid dense step: Huber threshold of the intensity residual (grey in [0, 1] before
     ``photo_normalise`` and ``photo_weight``; Open3D's default, not tuned)."""
@@ -203,13 +241,16 @@ class TeacherConfig:
     """Fallback 2, hybrid RGB-D odometry of an edge longer than one frame (started from the
     chained gap-1 motion, already close): no coarse levels, at most this many full-resolution
     iterations. stress-lowfreq (20 frames) gap-2..5 labels 1.78 / 2.20 / 2.50 / 2.32 mm with
-    3, 1.76 / 2.18 / 2.50 / 2.35 with 5."""
+    3, 1.76 / 2.18 / 2.50 / 2.35 with 5. 5 by hand when written (12b33f0); 3 since c57b866, on
+    stress-lowfreq (the team's stress scene): same labels, less time."""
     fallback_finish_iters: int = 3
     """Fallback 2, hybrid RGB-D odometry: after the coarse levels, at most this many
     iterations of :func:`teacher.odometry.hybrid_align` against frame i at full resolution.
     Without the hybrid maps (``dense_method`` point-to-plane) the fallback is Open3D's
     multi-scale odometry at 1/2, 1/4, 1/8 resolution and no finish: at 1/2 resolution its
-    error on stress-lowfreq was 3.2 against 1.4 mm at full resolution."""
+    error on stress-lowfreq was 3.2 against 1.4 mm at full resolution. Not measured: set by hand
+    when written (d8a3094); a longer finish (10, with longer levels and tight stops) was tried
+    on the stress walks and not adopted (bench/README.md, issue 13, third session)."""
     dense_cov_scale: float = 5.0
     """Dense step, ``information`` fusion: the point-to-plane covariance is multiplied by this
     (its pixels' errors are correlated, so taken as independent it is too small). Chosen on
@@ -223,7 +264,9 @@ class TeacherConfig:
     """Hybrid dense step, ``information`` fusion: its covariance is formed from every
     ``2 * dense_cov_stride``-th of the step's points in both axes, and on a stale pair the
     point-to-plane prior it starts from from every ``dense_cov_stride``-th (scaled back to
-    all of them). The point-to-plane stage's own covariance: ``p2p_cov_stride``."""
+    all of them). The point-to-plane stage's own covariance: ``p2p_cov_stride``. Not measured:
+    set by hand when written (12b33f0); the point-to-plane stage's stride was moved to 4 on
+    validation data (``p2p_cov_stride``), the hybrid stage's was not compared."""
     p2p_cov_stride: int = 4
     """Point-to-plane dense step, ``information`` fusion: its covariance
     (:func:`teacher.odometry.point_to_plane_covariance`) is formed from every
@@ -240,27 +283,39 @@ class TeacherConfig:
     than the depth, and the ground truth (7-Scenes' KinectFusion; the synthetic depth
     camera) follows the depth. The redkitchen sample has 33 such frames in 600. TUM RGB-D
     sequences are read with a one-to-one colour-depth association, so no file repeats
-    there; a dataset whose ground truth follows the colour camera should turn this off."""
+    there; a dataset whose ground truth follows the colour camera should turn this off. Adopted
+    on the whole redkitchen sample, test range included (b851887: gap-1 4.81 -> 4.22 mm;
+    "synthetic presets likewise", which ones is not recorded)."""
     dense_scale: int = 4
     """Dense step: the points moved are every ``dense_scale``-th depth pixel in both axes
     (160x120 of a 640x480 frame; an iteration costs ~0.7 ms instead of ~10 ms at full
-    resolution)."""
+    resolution). Set by hand when written (b8ac45d); 6 failed the known-answer test on
+    noise-free synthetic/office frames (training scene), so 4 stayed."""
     dense_target_scale: int = 2
     """Dense step: the surface they are aligned to is sampled every ``dense_target_scale``-th
-    pixel (coarser biases the alignment of noise-free frames by ~1.5 mm)."""
+    pixel (coarser biases the alignment of noise-free frames by ~1.5 mm). Set by hand when
+    written (b8ac45d), not swept."""
     dense_normal_kernel: int = 7
-    """Dense step: size of the Gaussian kernel that smooths the depth before normals."""
+    """Dense step: size of the Gaussian kernel that smooths the depth before normals. Set by
+    hand when written (b8ac45d): a bilateral filter with the sigmas of Open3D's point-to-plane
+    odometry (5 m, 10 px, so Gaussian where depth exists) and a 7 px kernel against its 5; 5 was
+    tried on redkitchen 350:450 (validation) and was worse (bench/README.md, "Teacher CPU per
+    frame, second pass")."""
     dense_trunc_m: float = 0.07
-    """Dense step: pixel pairs farther apart than this (m) are not used (Open3D's default)."""
+    """Dense step: pixel pairs farther apart than this (m) are not used (Open3D's default). Not
+    tuned: ``OdometryLossParams.depth_outlier_trunc`` (b8ac45d)."""
     dense_huber_m: float = 0.05
-    """Dense step: Huber threshold on the point-to-plane distance, m (Open3D's default)."""
+    """Dense step: Huber threshold on the point-to-plane distance, m (Open3D's default). Not
+    tuned: ``OdometryLossParams.depth_huber_delta`` (b8ac45d)."""
     dense_min_fitness: float = 0.2
     """Dense step: fewer paired pixels than this fraction of the subsampled image rejects
-    its result (the sparse estimate stays)."""
+    its result (the sparse estimate stays). Not measured: set by hand when written (b8ac45d)."""
     dense_max_shift_m: float = 0.03
-    """Dense step: a result farther than this from the sparse estimate (m) is rejected."""
+    """Dense step: a result farther than this from the sparse estimate (m) is rejected. Not
+    measured: set by hand when written (b8ac45d)."""
     dense_max_shift_deg: float = 1.5
-    """Dense step: a result rotated more than this from the sparse estimate is rejected."""
+    """Dense step: a result rotated more than this from the sparse estimate is rejected. Not
+    measured: set by hand when written (b8ac45d)."""
     colour_camera: str = "auto"
     """How colour pixels map onto the depth camera's (:class:`teacher.odometry.ColourCamera`):
     ``registered`` (colour registered to depth, e.g. TUM RGB-D), ``kinect-v1`` (7-Scenes'
@@ -276,7 +331,8 @@ class TeacherConfig:
     test (which discards repetitive and low-contrast texture, where best and second-best
     descriptors are close), cross-checked both ways - guided within ``fallback_radius_scale``
     times ``search_radius_px`` when a motion prediction exists, then brute force over all
-    keypoints - and estimate from those (``path`` ``wide`` / ``crosscheck``)."""
+    keypoints - and estimate from those (``path`` ``wide`` / ``crosscheck``). On by design,
+    issue 13's fallback chain (b8a2c06); no run with it off is recorded."""
     fallback_radius_scale: float = 3.0
     """Fallback 1: the guided search radius is this many times ``search_radius_px`` (set a
     priori, not tuned: a 36 px radius covers a constant-velocity guess off by a sudden turn of
@@ -286,7 +342,8 @@ class TeacherConfig:
     estimate passes: the dense point-to-plane depth alignment alone, started from the motion prediction (the constant-velocity guess at gap 1, the
     chained gap-1 motion at longer gaps), ``path`` ``dense``; its covariance comes from the
     point-to-plane residuals. Only when it fails too is the edge failed (a failed gap-1 edge
-    is bridged by a longer edge, else by constant velocity, and flagged in the report)."""
+    is bridged by a longer edge, else by constant velocity, and flagged in the report). On by
+    design, issue 13's fallback chain (b8a2c06); no run with it off is recorded."""
     fallback_rgbd: bool = True
     """Fallback 2, first step: hybrid RGB-D odometry (photometric + depth, coarse to fine; see
     ``fallback_levels``, ``fallback_finish_iters``, ``fallback_chained_iters``) from the
@@ -341,14 +398,17 @@ class TeacherConfig:
     1.66 / 1.94; these with 20: 2.58 / 1.52 / 1.47; the same with stops 1000x tighter 2.26 /
     1.79 / 1.54; (8, 20), (4, 10), (2, 10), finish 10, tight stops: 2.51 / 1.68 / 1.62."""
     depth_finish_iters: int = 20
-    """``depth_beside_colour_repeat``: most full-resolution iterations after ``depth_levels``."""
+    """``depth_beside_colour_repeat``: most full-resolution iterations after ``depth_levels``.
+    Chosen with ``depth_levels`` on office (training), lab (validation) and stress-textureless
+    (a33e490; see there)."""
     fallback_dense_iters: int = 20
     """Fallback 2: most iterations of the dense alignment (it starts farther from the answer
     than the refinement of a sparse estimate does; set a priori, not tuned)."""
     fallback_max_sigma_m: float = 0.01
     """Fallback 2: the dense result is rejected (``degenerate``) when its covariance leaves
     a translation direction with a standard deviation above this (m): depth that does not
-    pin the motion down, e.g. one plane."""
+    pin the motion down, e.g. one plane. A sanity bound set a priori when written (b8a2c06), not
+    tuned."""
     fallback_max_sigma_deg: float = 0.5
     """Fallback 2: ... or a rotation direction above this (degrees). Both are sanity bounds
     set a priori (a gap-1 label that uncertain teaches nothing), not tuned."""
@@ -361,32 +421,44 @@ class TeacherConfig:
     20th pair) and a noisy plane at 2 m (0.0005)."""
     dense_min_sigma_m: float = 0.0003
     """Floor of the point-to-plane residual standard deviation in the dense fallback's
-    covariance (1 mm depth steps: 1/sqrt(12) mm)."""
+    covariance (1 mm depth steps: 1/sqrt(12) mm). Derived from that quantisation when written
+    (b8a2c06), not tuned."""
     min_matches: int = 30
-    """Fewer matches with valid depth than this: edge failed (``few_matches``)."""
+    """Fewer matches with valid depth than this: edge failed (``few_matches``). Not measured:
+    set by hand when written (fa44eca)."""
     min_inliers: int = 25
-    """Fewer refined inliers than this: edge failed (``few_inliers``)."""
+    """Fewer refined inliers than this: edge failed (``few_inliers``). Not measured: set by hand
+    when written (fa44eca)."""
     min_inlier_ratio: float = 0.25
-    """Inlier ratio below this: edge failed (``low_inlier_ratio``)."""
+    """Inlier ratio below this: edge failed (``low_inlier_ratio``). Not measured: set by hand
+    when written (fa44eca)."""
     max_rmse_px: float = 1.5
-    """Reprojection RMSE of the inliers above this: edge failed (``high_rmse``)."""
+    """Reprojection RMSE of the inliers above this: edge failed (``high_rmse``). Not measured:
+    set by hand when written (fa44eca)."""
     min_spread: float = 0.04
     """Inliers must cover at least this fraction of the image in both axes (std of u and
-    v over width/height), else the geometry is ``degenerate``."""
+    v over width/height), else the geometry is ``degenerate``. Not measured: 0.08 when written
+    (fa44eca), halved in c7da6eb with no recorded reason."""
     max_speed: float = 1.5
-    """Translations faster than this (m/s) are ``implausible_motion``: over the time from the
+    """Translations faster than this (m/s) are ``implausible_motion`` (a sanity bound set by
+    hand when written, fa44eca, not measured): over the time from the
     earliest moment frame i's images show (a repeated image shows its first frame's moment)
     to frame j's timestamp (:func:`teacher.odometry.estimate_edge`). Before (to ``STAGE_VERSIONS``
     teacher 4) over the timestamps alone, which on synthetic/stress-fast refused the edges out
     of a repeated frame in a fast turn (two periods of the depth, 30-62 mm, in one period of
     the clock: 6 failed gap-1 edges whose rgbd result was 5-8 mm off)."""
     max_angular_speed_deg: float = 180.0
-    """Rotations faster than this (deg/s) are ``implausible_motion``."""
+    """Rotations faster than this (deg/s) are ``implausible_motion``. A sanity bound set by hand
+    when written (fa44eca), not measured."""
     workers: int = 2
     """Worker processes; each handles chunks of consecutive frames (with a helper thread
-    that decodes and extracts features ahead). 1: everything in the calling process."""
+    that decodes and extracts features ahead). 1: everything in the calling process. A machine
+    setting: the project's 2-core VM; it shapes the edges only through the chunk bounds."""
     chunk_frames: int = 150
-    """Frames per chunk; sequences shorter than two chunks run in the calling process."""
+    """Frames per chunk; sequences shorter than two chunks run in the calling process. A speed
+    setting: kept at 150 against 40 by fps on synthetic/office and the whole redkitchen sample,
+    labels not compared (bench/README.md, "Teacher"; d618e3c); it shapes the edges through the
+    chunk bounds."""
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -14,11 +14,11 @@ from typing import Optional
 
 import cv2
 import numpy as np
-import open3d as o3d
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from data import geometry as geo
+from data.open3d_import import o3d
 from data.sequence import Intrinsics
 from teacher.config import TeacherConfig
 

@@ -7,6 +7,7 @@ and covariance.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from pathlib import Path
 
@@ -73,16 +74,25 @@ def test_tum_writer_is_atomic(tmp_path: Path, monkeypatch) -> None:
         write_tum(f, bad)
     assert f.read_text() == "old content\n" and _no_temp_files(tmp_path)
 
-    calls = {"n": 0}
-    real = geo.T_to_tum
+    # a crash after some rows are out (the third write of the row loop)
+    real = formats.atomic_write
 
-    def failing(T):
-        calls["n"] += 1
-        if calls["n"] == 3:
-            raise RuntimeError("simulated crash in the middle of writing")
-        return real(T)
+    class Failing:
+        def __init__(self, fh):
+            self.fh, self.n = fh, 0
 
-    monkeypatch.setattr(geo, "T_to_tum", failing)
+        def write(self, text):
+            self.n += 1
+            if self.n == 3:
+                raise RuntimeError("simulated crash in the middle of writing")
+            return self.fh.write(text)
+
+    @contextlib.contextmanager
+    def failing(path, mode="w"):
+        with real(path, mode) as fh:
+            yield Failing(fh)
+
+    monkeypatch.setattr(formats, "atomic_write", failing)
     with pytest.raises(RuntimeError, match="simulated crash"):
         write_tum(f, _traj(rng))
     assert f.read_text() == "old content\n"
@@ -216,11 +226,18 @@ def test_g2o_writer_rejects_bad_edges(tmp_path: Path) -> None:
         (Edge(0, 1, np.eye(4), np.eye(3)), "finite 6x6"),
         (Edge(0, 1, np.diag([2.0, 1, 1, 1]), good), "rigid"),
         (Edge(0, 1, np.full((4, 4), np.nan), good), "rigid"),
+        (Edge(0, 1, np.eye(3), good), "rigid"),
     ]
     for edge, match in cases:
         with pytest.raises(FormatError, match=match):
             write_g2o(f, [Edge(5, 6, np.eye(4), good), edge])
         assert f.read_text() == "old\n" and _no_temp_files(tmp_path)
+    # the edges are checked in batches; the first bad one in the file's order is named
+    several = [Edge(5, 6, np.eye(4), good), Edge(6, 7, np.diag([2.0, 1, 1, 1]), -good), Edge(7, 8, np.eye(4), -good)]
+    with pytest.raises(FormatError, match="edge 6->7: covariance is not positive definite"):
+        write_g2o(f, several)
+    with pytest.raises(FormatError, match="edge 6->7: relative pose"):
+        write_g2o(f, [several[0], Edge(6, 7, np.diag([2.0, 1, 1, 1]), good), several[2]])
 
 
 _POSE = "0 0 0 0 0 0 1"

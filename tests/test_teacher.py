@@ -12,6 +12,7 @@ import cv2
 import gtsam
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_limits
 
 from data import geometry as geo
 from data.formats import read_edges_csv, read_g2o, read_tum
@@ -1088,28 +1089,32 @@ def test_gap1_edges_beside_a_colour_repeat_use_the_depth_alone(office_clean):
 
     seq = office_clean
     gt = seq.groundtruth()
-    for on in (True, False):
-        cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid", gaps=2, depth_beside_colour_repeat=on)
-        feats = {2: _features(seq, 2, cfg), 3: _features(seq, 3, cfg),
-                 4: _features(seq, 4, cfg, rgb=seq.rgb(3)),  # colour repeated, depth new
-                 5: _features(seq, 5, cfg, rgb=seq.rgb(3), depth=seq.depth(4)),  # frame 4 again, whole
-                 6: _features(seq, 6, cfg)}
-        w = EdgeWindow(seq.intrinsics, cfg)
-        edges = {(e.i, e.j): e for k, f in feats.items() for e in w.add(k, k / 30, f)}
-        assert [feats[k].colour_behind for k in range(2, 7)] == [False, False, True, True, False]
-        truth = {(3, 4): geo.relative_pose(gt[3], gt[4]), (4, 5): np.eye(4), (5, 6): geo.relative_pose(gt[4], gt[6])}
-        for ij, T in truth.items():
-            e = edges[ij]
-            assert e.ok and (e.info["path"] == "depth") == (on and ij != (4, 5)), (on, ij, e.info)
-            if on:
-                dt, dr = relative_pose_error(T, e.T_i_j)
-                # noise-free frames, but the depth alone pins the pose less well than colour
-                # and depth (measured 2.4 mm / 0.08 deg); (5, 6) spans two frames' motion
-                # from the prediction (4.5 mm / 0.17 deg); (4, 5) is the identity
-                bound = (7e-3, 0.3) if ij == (5, 6) else (4e-3, 0.15)
-                assert dt < bound[0] and dr < bound[1], (ij, dt, dr)
-                assert np.all(np.linalg.eigvalsh(e.cov) > 0)
-        assert edges[(2, 4)].ok and edges[(2, 4)].info["source"] == "tracks", edges[(2, 4)].info
+    # one OpenMP thread: the depth alignment's Open3D reductions sum in an order that
+    # depends on the thread count, and on this pair that moves the (3, 4) edge by ~2 mm
+    # (2.4 mm / 0.08 deg with 2 threads, 3.8 / 0.15 with 3, 4.2 / 0.17 with 1)
+    with threadpool_limits(1, user_api="openmp"):
+        for on in (True, False):
+            cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid", gaps=2, depth_beside_colour_repeat=on)
+            feats = {2: _features(seq, 2, cfg), 3: _features(seq, 3, cfg),
+                     4: _features(seq, 4, cfg, rgb=seq.rgb(3)),  # colour repeated, depth new
+                     5: _features(seq, 5, cfg, rgb=seq.rgb(3), depth=seq.depth(4)),  # frame 4 again, whole
+                     6: _features(seq, 6, cfg)}
+            w = EdgeWindow(seq.intrinsics, cfg)
+            edges = {(e.i, e.j): e for k, f in feats.items() for e in w.add(k, k / 30, f)}
+            assert [feats[k].colour_behind for k in range(2, 7)] == [False, False, True, True, False]
+            truth = {(3, 4): geo.relative_pose(gt[3], gt[4]), (4, 5): np.eye(4), (5, 6): geo.relative_pose(gt[4], gt[6])}
+            for ij, T in truth.items():
+                e = edges[ij]
+                assert e.ok and (e.info["path"] == "depth") == (on and ij != (4, 5)), (on, ij, e.info)
+                if on:
+                    dt, dr = relative_pose_error(T, e.T_i_j)
+                    # noise-free frames, but the depth alone pins the pose less well than colour
+                    # and depth (measured 4.2 mm / 0.17 deg, one thread); (5, 6) spans two
+                    # frames' motion from the prediction; (4, 5) is the identity
+                    bound = (7e-3, 0.3) if ij == (5, 6) else (5e-3, 0.2)
+                    assert dt < bound[0] and dr < bound[1], (ij, dt, dr)
+                    assert np.all(np.linalg.eigvalsh(e.cov) > 0)
+            assert edges[(2, 4)].ok and edges[(2, 4)].info["source"] == "tracks", edges[(2, 4)].info
 
 
 def _render_frames_of(name: str, frames: range, out):

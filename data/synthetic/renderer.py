@@ -12,9 +12,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from numpy.typing import NDArray
 
+from data.open3d_import import o3d
 from data.synthetic.layout import Scene
 from data.synthetic.textures import TextureAtlas
 

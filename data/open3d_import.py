@@ -1,0 +1,78 @@
+"""Open3D, imported without the two subpackages this project never uses until they are used.
+
+``import open3d`` (0.19) always imports ``open3d.ml`` (its datasets import scikit-learn and
+pandas) and ``open3d.visualization`` (its Plotly/Dash viewer). On the 2-core VM that is
+about 1 s of the ~2 s the import takes when idle, 3-4 s when the cores are busy, in every
+process that uses the teacher or the renderer (each ``teacher generate`` starts two).
+The teacher and the renderer need only ``open3d.core``, ``geometry``, ``camera``,
+``pipelines`` and ``t``, which are the compiled module.
+
+:data:`o3d` is the ``open3d`` package imported with ``open3d.ml`` and
+``open3d.visualization`` first registered as stand-ins (:class:`_Deferred`): the
+package's own ``import open3d.ml`` finds the stand-in, and the stand-in imports the real
+subpackage on the first access of an attribute it does not have (``open3d.ml.datasets``,
+``import open3d.visualization.gui``, ...), so code that uses them sees no difference.
+Where this cannot be arranged (Open3D already imported, its files not found), it is the
+plain import.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.machinery
+import importlib.util
+import sys
+import types
+
+_DEFERRED = ("ml", "visualization")
+
+
+class _Deferred(types.ModuleType):
+    """Stands in for ``open3d.<name>`` until one of its attributes is asked for."""
+
+    def __getattr__(self, attr: str):
+        name = self.__name__
+        if sys.modules.get(name) is self:
+            del sys.modules[name]
+            real = importlib.import_module(name)  # runs the subpackage, binds it on open3d
+        else:
+            real = sys.modules[name]
+        return getattr(real, attr)
+
+
+def _defer_subpackages() -> list[str]:
+    """Register the stand-ins; returns their names (none when Open3D is imported already
+    or its files are not where a path finder looks)."""
+    if "open3d" in sys.modules:
+        return []
+    spec = importlib.util.find_spec("open3d")  # the top-level spec: runs nothing
+    if spec is None or not spec.submodule_search_locations:
+        return []
+    names = []
+    for sub in _DEFERRED:
+        full = f"open3d.{sub}"
+        if full in sys.modules or importlib.machinery.PathFinder.find_spec(
+                full, list(spec.submodule_search_locations)) is None:
+            continue
+        sys.modules[full] = _Deferred(full)
+        names.append(full)
+    return names
+
+
+def _import():
+    names = _defer_subpackages()
+    try:
+        import open3d
+    except BaseException:
+        for full in names:  # leave no stand-ins behind
+            if isinstance(sys.modules.get(full), _Deferred):
+                del sys.modules[full]
+        raise
+    for full in names:  # `import open3d.ml` found the stand-in and bound no attribute
+        sub = full.split(".", 1)[1]
+        if full in sys.modules and not hasattr(open3d, sub):
+            setattr(open3d, sub, sys.modules[full])
+    return open3d
+
+
+o3d = _import()
