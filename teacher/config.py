@@ -440,16 +440,20 @@ class TeacherConfig:
     v over width/height), else the geometry is ``degenerate``. Not measured: 0.08 when written
     (fa44eca), halved in c7da6eb with no recorded reason."""
     max_speed: float = 1.5
-    """Translations faster than this (m/s) are ``implausible_motion`` (a sanity bound set by
-    hand when written, fa44eca, not measured): over the time from the
+    """Translations faster than this (m/s) are ``implausible_motion``. A sanity bound set by
+    hand when written (fa44eca), not measured. The time it applies to
+    (:func:`teacher.odometry.estimate_edge`): the timestamps' difference for the keypoint
+    estimates; for the dense alignments (paths ``depth``, ``rgbd``, ``dense``) the time from the
     earliest moment frame i's images show (a repeated image shows its first frame's moment)
-    to frame j's timestamp (:func:`teacher.odometry.estimate_edge`). Before (to ``STAGE_VERSIONS``
-    teacher 4) over the timestamps alone, which on synthetic/stress-fast refused the edges out
-    of a repeated frame in a fast turn (two periods of the depth, 30-62 mm, in one period of
-    the clock: 6 failed gap-1 edges whose rgbd result was 5-8 mm off)."""
+    to frame j's timestamp. Before ``STAGE_VERSIONS`` teacher 5 the timestamps' for all, which
+    on synthetic/stress-fast refused the rgbd results 5-8 mm off of the edges out of a
+    repeated frame in a fast turn (two periods of the depth, 30-62 mm, in one of the clock:
+    6 failed gap-1 edges). The keypoints keep it: out of repeated frames on
+    synthetic/stress-repetitive, two guided estimates, aliases of the texture 91-94 mm off,
+    passed the longer bound."""
     max_angular_speed_deg: float = 180.0
-    """Rotations faster than this (deg/s) are ``implausible_motion``. A sanity bound set by hand
-    when written (fa44eca), not measured."""
+    """Rotations faster than this (deg/s) are ``implausible_motion`` (over the time ``max_speed``
+    says). A sanity bound set by hand when written (fa44eca), not measured."""
     workers: int = 2
     """Worker processes; each handles chunks of consecutive frames (with a helper thread
     that decodes and extracts features ahead). 1: everything in the calling process. A machine
