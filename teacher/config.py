@@ -17,7 +17,9 @@ class TeacherConfig:
     """ORB features per frame (cv2.ORB nfeatures). Chosen on the whole redkitchen sample, test
     range included: 1000 by hand when written (fa44eca), 2000 in 3f131cf (gap-1 6.6 -> 6.1 mm,
     mostly in test frames 460-470), 1000 again since b8ac45d, where the dense step made up for
-    it at less cost. ORB-SLAM2's RGB-D setting is also 1000; OpenCV's default is 500."""
+    it at less cost. ORB-SLAM2's RGB-D setting is also 1000; OpenCV's default is 500. Compared
+    again with 1500 and 2000 on validation data only (redkitchen 350:450, synthetic/lab 0:150):
+    kept (bench/README.md, "The teacher's parameters chosen with the test range in view")."""
     fast_threshold: int = 12
     """FAST threshold of the ORB detector; lower finds corners in weak texture. Not measured:
     set by hand when written (fa44eca); OpenCV and ORB-SLAM2 start at 20."""
@@ -39,7 +41,9 @@ class TeacherConfig:
     started at the matched keypoint (ORB keypoints are integer pixels of pyramid levels). Off
     since b8ac45d, chosen on the whole redkitchen sample, test range included: the dense step
     superseded it at less cost (on in c7da6eb, where it halved the error on noise-free
-    synthetic/office frames, the training scene)."""
+    synthetic/office frames, the training scene). Compared again with it on, on validation data only
+    (redkitchen 350:450, synthetic/lab 0:150): kept (bench/README.md, "The teacher's parameters
+    chosen with the test range in view")."""
     lk_window: int = 11
     """Window (pixels) of the Lucas-Kanade sub-pixel refinement. Not measured: set by hand when
     written (3f131cf); unused while ``subpixel`` is off."""
@@ -88,7 +92,9 @@ class TeacherConfig:
     1 m like a 1 px reprojection error. On redkitchen it lowers the gap-1 error from 6.1 to
     5.6 mm, most in motion-blurred frames where keypoints are poorly localised. Measured on the
     whole 600-frame sample, test range included, and on noise-free synthetic/office (957050c);
-    the weight itself was set a priori, not swept."""
+    the weight itself was set a priori, not swept. Compared again with 300 and 3000 on
+    validation data only (redkitchen 350:450, synthetic/lab 0:150): kept (bench/README.md, "The
+    teacher's parameters chosen with the test range in view")."""
     refine: bool = True
     """Refine the PnP-RANSAC pose with the robust Newton solve of
     :func:`teacher.odometry.refine_two_way` (two-way and 3-D terms as set above). False
@@ -112,13 +118,18 @@ class TeacherConfig:
     (see :func:`teacher.odometry.dense_refine`); 0 disables it. 4 by hand when written
     (b8ac45d); 3 since 5e42ad4, on the whole redkitchen sample, test range included (a fourth
     changed nothing); 2 was tried on redkitchen 350:450 and synthetic/lab 0:100 (validation) and
-    not adopted (bench/README.md, "Teacher CPU per frame, second pass")."""
+    not adopted (bench/README.md, "Teacher CPU per frame, second pass"). Compared again with 2
+    and 4 on validation data only (redkitchen 350:450, synthetic/lab 0:150): kept
+    (bench/README.md, "The teacher's parameters chosen with the test range in view")."""
     dense_stop_m: float = 5e-4
     """Dense step: stop iterating once an update moves the pose by less than this (m) ...
     The updates shrink about 5x per iteration (redkitchen medians 3.3, 0.45, 0.11 mm), so
     what a stop leaves is ~0.1 mm, a quarter of it after the blend: 12 % fewer iterations
     than with 0.02 mm / 0.001 deg, same label errors at every gap. A speed setting, measured on
-    the whole redkitchen sample, test range included (8e2340d)."""
+    the whole redkitchen sample, test range included (8e2340d). Compared again with 0.2 mm /
+    0.008 deg and 1 mm / 0.04 deg on validation data only (redkitchen 350:450, synthetic/lab
+    0:150): kept (bench/README.md, "The teacher's parameters chosen with the test range in
+    view")."""
     dense_stop_deg: float = 0.02
     """... and rotates it by less than this (degrees). Chosen with ``dense_stop_m`` (8e2340d): a
     speed setting measured on the whole redkitchen sample, test range included."""
@@ -285,7 +296,9 @@ class TeacherConfig:
     sequences are read with a one-to-one colour-depth association, so no file repeats
     there; a dataset whose ground truth follows the colour camera should turn this off. Adopted
     on the whole redkitchen sample, test range included (b851887: gap-1 4.81 -> 4.22 mm;
-    "synthetic presets likewise", which ones is not recorded)."""
+    "synthetic presets likewise", which ones is not recorded). Compared again with it off, on
+    validation data only (redkitchen 350:450, synthetic/lab 0:150): kept (bench/README.md, "The
+    teacher's parameters chosen with the test range in view")."""
     dense_scale: int = 4
     """Dense step: the points moved are every ``dense_scale``-th depth pixel in both axes
     (160x120 of a 640x480 frame; an iteration costs ~0.7 ms instead of ~10 ms at full
