@@ -372,18 +372,21 @@ class TeacherConfig:
     the 40-frame stress walks, office 0:60 or lab 0:100 changed (``gaps=1`` runs). Real recordings:
     never (no maps)."""
     fallback_span_start: bool = True
-    """Fallback 2, first step, gap-1 edges: the rgbd alignment also starts from the constant
-    velocity over the time between the two frames' depth images
-    (:meth:`teacher.window.EdgeWindow.motion_between`: the last motion between two different
-    depth images, scaled to the span; twice it after a whole or a depth repeat, the identity
-    into one) when that differs from the motion prediction, and of the results that pass its
-    checks the one with the larger fitness (pixels paired) is taken. Why: after a repeated
-    frame the prediction is the repeat's identity while the edge spans two periods of the
-    depth; on synthetic/stress-fast (the team's stress scene, fast turns) the alignment from
-    the identity fell into a wrong minimum on 2 such edges (248-249 116 mm off at fitness
-    0.603, 259-260 146 mm at 0.620) and from the two-period start found 5.7 and 6.2 mm (0.703,
-    0.675). Set by that diagnosis, no parameter tuned (bench/README.md, issue 13, sixth
-    session); the plausibility bound spans from the repeat's moment too (``estimate_edge``)."""
+    """Fallback 2, first step, gap-1 edges (also the rgbd replacement of ``dense_disagrees``):
+    the rgbd alignment also starts from the constant velocity over the time between the two
+    frames' depth images (:meth:`teacher.window.EdgeWindow.motion_between`: the last motion
+    between two different depth images, scaled along its twist to the span; twice it after a
+    whole or a depth repeat, the identity onto one) when that differs from the motion
+    prediction; of the results that pass its checks the one with the larger fitness (pixels
+    paired) is kept (``info["start"]`` ``span``). Why: after a repeated frame the prediction is
+    the repeat's identity while the edge spans two periods of the depth. On
+    synthetic/stress-fast (the team's stress scene, fast turns) the alignment from the
+    identity fell into a wrong minimum on two such edges (248-249 116 mm off at fitness 0.603,
+    259-260 146 mm at 0.620); from the two-period start it found 5.7 and 6.2 mm (0.704, 0.675).
+    With the dense paths' plausibility bound over that span (``max_speed``) stress-fast's 6
+    failed gap-1 edges go (gap-1 16.75 -> 5.39 mm, Open3D 13.29). A switch set from that
+    diagnosis, nothing tuned; on the validation data (synthetic/lab, redkitchen 350:450 and
+    0:450) every label stays bit-identical (bench/README.md, issue 13, sixth session)."""
     depth_beside_colour_repeat: bool = True
     """A gap-1 edge with a frame whose colour image shows an earlier moment than its depth (a
     repeated colour image with new depth, or a whole repeat of such a frame; the sensor
