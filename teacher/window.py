@@ -25,6 +25,14 @@ depth; a frame whose colour repeats while its depth is new keeps only the depth 
 and is marked ``colour_behind``, so its gap-1 edges are aligned by the depth alone
 (``cfg.depth_beside_colour_repeat``); a whole repeat of a frame takes that frame's maps and
 mark.
+
+Each frame's colour and depth show a moment: the frame's timestamp, or for an image that
+repeats the previous frame's, the moment it showed there (:meth:`EdgeWindow._moments_of`). The
+dense alignments' plausibility bound spans from the earliest moment of an edge's first frame
+to the timestamp of its last (the keypoint estimates keep the timestamps'), and the gap-1 rgbd
+fallback also starts from the constant velocity between the two depth moments
+(:meth:`EdgeWindow.motion_between`; ``cfg.fallback_span_start``): out of a repeated frame the
+edge spans two periods of the depth while the prediction is the repeat's identity.
 """
 
 from __future__ import annotations
@@ -66,7 +74,7 @@ class EdgeWindow:
     mark of the frame before the first one, as a window that had seen the sequence from its
     start would hold them (see the module's docstring; called only when the first frame
     repeats that frame's depth). ``prev_moments``: with ``prev_keys``, returns the moments
-    (colour, depth; seconds) that the frame before the first one shows (:meth:`moments`; called
+    (colour, depth; seconds) that the frame before the first one shows (:meth:`_moments_of`; called
     only when the first frame repeats an image of that frame).
     """
 
