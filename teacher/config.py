@@ -395,6 +395,22 @@ class TeacherConfig:
     it made 12 such gap-1 edges, among them one 34 mm off: gap-1 3.15 -> 2.24 mm; no gap-1 edge of
     the 40-frame stress walks, office 0:60 or lab 0:100 changed (``gaps=1`` runs). Real recordings:
     never (no maps)."""
+    fallback_span_start: bool = True
+    """Fallback 2, first step, gap-1 edges (also the rgbd replacement of ``dense_disagrees``):
+    the rgbd alignment also starts from the constant velocity over the time between the two
+    frames' depth images (:meth:`teacher.window.EdgeWindow.motion_between`: the last motion
+    between two different depth images, scaled along its twist to the span; twice it after a
+    whole or a depth repeat, the identity onto one) when that differs from the motion
+    prediction; of the results that pass its checks the one with the larger fitness (pixels
+    paired) is kept (``info["start"]`` ``span``). Why: after a repeated frame the prediction is
+    the repeat's identity while the edge spans two periods of the depth. On
+    synthetic/stress-fast (the team's stress scene, fast turns) the alignment from the
+    identity fell into a wrong minimum on two such edges (248-249 116 mm off at fitness 0.603,
+    259-260 146 mm at 0.620); from the two-period start it found 5.7 and 6.2 mm (0.704, 0.675).
+    With the dense paths' plausibility bound over that span (``max_speed``) stress-fast's 6
+    failed gap-1 edges go (gap-1 16.75 -> 5.39 mm, Open3D 13.29). A switch set from that
+    diagnosis, nothing tuned; on the validation data (synthetic/lab, redkitchen 350:450 and
+    0:450) every label stays bit-identical (bench/README.md, issue 13, sixth session)."""
     depth_beside_colour_repeat: bool = True
     """A gap-1 edge with a frame whose colour image shows an earlier moment than its depth (a
     repeated colour image with new depth, or a whole repeat of such a frame; the sensor
@@ -465,10 +481,19 @@ class TeacherConfig:
     (fa44eca), halved in c7da6eb with no recorded reason."""
     max_speed: float = 1.5
     """Translations faster than this (m/s) are ``implausible_motion``. A sanity bound set by
-    hand when written (fa44eca), not measured."""
+    hand when written (fa44eca), not measured. The time it applies to
+    (:func:`teacher.odometry.estimate_edge`): the timestamps' difference for the keypoint
+    estimates; for the dense alignments (paths ``depth``, ``rgbd``, ``dense``) the time from the
+    earliest moment frame i's images show (a repeated image shows its first frame's moment)
+    to frame j's timestamp. Before ``STAGE_VERSIONS`` teacher 5 the timestamps' for all, which
+    on synthetic/stress-fast refused the rgbd results 5-8 mm off of the edges out of a
+    repeated frame in a fast turn (two periods of the depth, 30-62 mm, in one of the clock:
+    6 failed gap-1 edges). The keypoints keep it: out of repeated frames on
+    synthetic/stress-repetitive, two guided estimates, aliases of the texture 91-94 mm off,
+    passed the longer bound."""
     max_angular_speed_deg: float = 180.0
-    """Rotations faster than this (deg/s) are ``implausible_motion``. A sanity bound set by hand
-    when written (fa44eca), not measured."""
+    """Rotations faster than this (deg/s) are ``implausible_motion`` (over the time ``max_speed``
+    says). A sanity bound set by hand when written (fa44eca), not measured."""
     workers: int = 2
     """Worker processes; each handles chunks of consecutive frames (with a helper thread
     that decodes and extracts features ahead). 1: everything in the calling process. A machine

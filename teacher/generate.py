@@ -182,7 +182,8 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     # fingerprints of the frame before the chunk, to tell whether frame k0 repeats it
     prev_keys = image_keys(seq.rgb(k0 - 1), seq.depth(k0 - 1)) if k0 > 0 else None
     window = EdgeWindow(intr, cfg, prev_keys, until=k1 - k0,
-                        prev_photo=lambda: _photo_before(seq, k0, cfg, orb, colour))
+                        prev_photo=lambda: _photo_before(seq, k0, cfg, orb, colour),
+                        prev_moments=lambda: _moments_before(seq, k0))
     # OpenMP's thread count is per calling thread: limit this one and the helper
     with threadpool_limits(threads), ThreadPoolExecutor(1, initializer=threadpool_limits, initargs=(threads,)) as pool:
         ahead = 3
@@ -195,6 +196,24 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
             if on_frame is not None and k < k1:
                 on_frame(1)
     return edges
+
+
+def _moments_before(seq: Sequence, k: int) -> tuple[float, float]:
+    """The moments (colour, depth; seconds) frame ``k - 1``'s images show, as a window that
+    had seen the sequence from its start would hold them (:meth:`teacher.window.EdgeWindow._moments_of`):
+    the timestamp of the last frame up to ``k - 1`` whose colour (depth) image differs from
+    its predecessor's. For a chunk whose first frame repeats an image of the frame before it."""
+    times = seq.times()
+    keys = image_keys(seq.rgb(k - 1), seq.depth(k - 1))
+    found: list[Optional[float]] = [None, None]
+    j = k - 1
+    while j > 0 and None in found:
+        prev = image_keys(seq.rgb(j - 1), seq.depth(j - 1))
+        for c in (0, 1):
+            if found[c] is None and keys[c] != prev[c]:
+                found[c] = float(times[j])
+        j, keys = j - 1, prev
+    return tuple(float(times[0]) if m is None else m for m in found)
 
 
 def _photo_before(seq: Sequence, k: int, cfg: TeacherConfig, orb,

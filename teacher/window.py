@@ -25,6 +25,14 @@ depth; a frame whose colour repeats while its depth is new keeps only the depth 
 and is marked ``colour_behind``, so its gap-1 edges are aligned by the depth alone
 (``cfg.depth_beside_colour_repeat``); a whole repeat of a frame takes that frame's maps and
 mark.
+
+Each frame's colour and depth show a moment: the frame's timestamp, or for an image that
+repeats the previous frame's, the moment it showed there (:meth:`EdgeWindow._moments_of`). The
+dense alignments' plausibility bound spans from the earliest moment of an edge's first frame
+to the timestamp of its last (the keypoint estimates keep the timestamps'), and the gap-1 rgbd
+fallback also starts from the constant velocity between the two depth moments
+(:meth:`EdgeWindow.motion_between`; ``cfg.fallback_span_start``): out of a repeated frame the
+edge spans two periods of the depth while the prediction is the repeat's identity.
 """
 
 from __future__ import annotations
@@ -51,6 +59,7 @@ class _Entry:
     feats: FrameFeatures
     link: NDArray[np.int64]  # keypoint of this frame -> keypoint in the newest frame (-1: lost)
     T_k_cur: NDArray[np.float64]  # chained gap-1 motion from this frame to the newest
+    since: float  # the earliest moment its images show (s; before its timestamp when one repeats)
 
 
 class EdgeWindow:
@@ -64,12 +73,15 @@ class EdgeWindow:
     ``prev_photo``: with ``prev_keys``, returns the photometric maps and the ``colour_behind``
     mark of the frame before the first one, as a window that had seen the sequence from its
     start would hold them (see the module's docstring; called only when the first frame
-    repeats that frame's depth).
+    repeats that frame's depth). ``prev_moments``: with ``prev_keys``, returns the moments
+    (colour, depth; seconds) that the frame before the first one shows (:meth:`_moments_of`; called
+    only when the first frame repeats an image of that frame).
     """
 
     def __init__(self, intr: Intrinsics, cfg: TeacherConfig, prev_keys: Optional[tuple[bytes, bytes]] = None,
                  until: Optional[int] = None,
-                 prev_photo: Optional[Callable[[], tuple[Optional[PhotoMaps], bool]]] = None) -> None:
+                 prev_photo: Optional[Callable[[], tuple[Optional[PhotoMaps], bool]]] = None,
+                 prev_moments: Optional[Callable[[], tuple[float, float]]] = None) -> None:
         self.intr, self.cfg, self.until = intr, cfg, until
         self.prev_keys = prev_keys
         self._prev_photo = prev_photo or (lambda: (None, False))
@@ -79,6 +91,11 @@ class EdgeWindow:
         # the last good gap-1 motion over one frame period of the depth (see _prediction)
         self.v_moving: Optional[NDArray[np.float64]] = None
         self._depth_repeat = False  # the newest frame's depth repeats the one before it
+        self._prev_moments = prev_moments
+        self._moments: Optional[tuple[float, float]] = None  # (colour, depth) moments of the newest frame
+        # the last good gap-1 motion between two depth moments, and the time between them
+        self.v_span: Optional[NDArray[np.float64]] = None
+        self.span_prev = 0.0
         self.added = 0
         self._pending: Optional[tuple] = None  # the frame add_gap1 took, until add_longer
 
@@ -101,6 +118,7 @@ class EdgeWindow:
         cfg, intr = self.cfg, self.intr
         pos, self.added = self.added, self.added + 1
         prev_depth_repeat, self._depth_repeat = self._depth_repeat, False
+        moments = self._moments_of(timestamp, fk)
         if self.prev_keys is not None:
             self._depth_repeat = fk.keys[1] == self.prev_keys[1]
             fk.stale = stale_stream(self.prev_keys, fk.keys)
@@ -122,8 +140,11 @@ class EdgeWindow:
             prev = self.entries[-1]
             dt = timestamp - prev.timestamp
             cv = self.motion_over(dt)
+            span = moments[1] - self._moments[1]
             e = estimate_edge(prev.frame_id, frame_id, prev.feats, fk, intr, cfg, dt,
-                              T_pred=self._prediction(prev.feats, fk, prev_depth_repeat, cv))
+                              T_pred=self._prediction(prev.feats, fk, prev_depth_repeat, cv),
+                              T_alt=self.motion_between(span) if cfg.fallback_span_start else None,
+                              span=timestamp - prev.since)
             if self._starts_inside(prev.pos):
                 edges.append(e)
             step = e.T_i_j if e.ok else (cv if cv is not None else np.eye(4))
@@ -131,14 +152,47 @@ class EdgeWindow:
                 self.v_prev, self.dt_prev = e.T_i_j, dt
                 if not (self._depth_repeat or prev_depth_repeat):
                     self.v_moving = e.T_i_j
+                if span > 0:
+                    self.v_span, self.span_prev = e.T_i_j, span
             m = np.full(len(prev.feats.uv) + 1, -1, np.int64)  # last slot maps -1 -> -1
             if e.ok and e.inlier_pairs is not None:
                 m[e.inlier_pairs[:, 0]] = e.inlier_pairs[:, 1]
             for w in self.entries:
                 w.link = m[w.link]
                 w.T_k_cur = w.T_k_cur @ step
+        self._moments = moments
         self._pending = (pos, frame_id, timestamp, fk, e)
         return edges
+
+    def _moments_of(self, timestamp: float, fk: FrameFeatures) -> tuple[float, float]:
+        """The moments (colour, depth; seconds) the new frame's images show: its timestamp, or
+        for an image that repeats the previous frame's (a dropped frame of that stream) the
+        moment that image showed there. The depth's moment is the ground truth's (7-Scenes'
+        KinectFusion and the synthetic sensor both follow the depth camera)."""
+        if self.prev_keys is None:
+            return timestamp, timestamp
+        same = fk.keys[0] == self.prev_keys[0], fk.keys[1] == self.prev_keys[1]
+        if (same[0] or same[1]) and self._moments is None:
+            self._moments = self._prev_moments() if self._prev_moments is not None else None
+        if self._moments is None:
+            return timestamp, timestamp
+        return tuple(m if s else timestamp for m, s in zip(self._moments, same))
+
+    def motion_between(self, span: float) -> Optional[NDArray[np.float64]]:
+        """The constant-velocity motion between two depth moments ``span`` seconds apart: the
+        last good gap-1 motion between two different depth moments (``v_span``), scaled along
+        its twist to ``span`` as :meth:`motion_over` scales (timestamp jitter left alone); the
+        identity for a depth image that repeats the previous one (``span`` 0). Unlike
+        :meth:`motion_over` it skips the identity a repeated frame's edge measured: after a
+        whole or a depth repeat the edge out of it spans two periods of the depth, which the
+        identity (the constant velocity then) is farthest from. None before the first such
+        motion."""
+        if span <= 0:
+            return np.eye(4)
+        if self.v_span is None or self.span_prev <= 0:
+            return None
+        r = span / self.span_prev
+        return self.v_span if 2 / 3 < r < 1.5 else geo.se3_exp(r * geo.se3_log(self.v_span))
 
     def motion_over(self, dt: float) -> Optional[NDArray[np.float64]]:
         """The constant-velocity prediction over ``dt`` seconds: the last good gap-1 motion,
@@ -182,9 +236,11 @@ class EdgeWindow:
                 gap = pos - w.pos
                 edges.append(estimate_edge(w.frame_id, frame_id, w.feats, fk, intr, cfg, timestamp - w.timestamp,
                                            w.T_k_cur.copy(), tracks,
-                                           dense=cfg.dense_max_gap <= 0 or gap <= cfg.dense_max_gap))
+                                           dense=cfg.dense_max_gap <= 0 or gap <= cfg.dense_max_gap,
+                                           span=timestamp - w.since))
             e.inlier_pairs = None  # only needed for the tracks above
-        self.entries.append(_Entry(pos, int(frame_id), timestamp, fk, np.arange(len(fk.uv)), np.eye(4)))
+        self.entries.append(_Entry(pos, int(frame_id), timestamp, fk, np.arange(len(fk.uv)), np.eye(4),
+                                   min(self._moments)))
         while self.entries and pos - self.entries[0].pos >= cfg.gaps:
             self.entries.popleft()
         for x in edges:

@@ -1115,3 +1115,110 @@ def test_gap1_edges_beside_a_colour_repeat_use_the_depth_alone(office_clean):
                     assert dt < bound[0] and dr < bound[1], (ij, dt, dr)
                     assert np.all(np.linalg.eigvalsh(e.cov) > 0)
             assert edges[(2, 4)].ok and edges[(2, 4)].info["source"] == "tracks", edges[(2, 4)].info
+
+
+def _render_frames_of(name: str, frames: range, out):
+    """Frames ``frames`` of synthetic preset ``name``, rendered into ``out/seq-01`` as
+    :func:`data.synthetic.render_scene` renders the whole preset (same poses, noise and
+    repeated images; ids and timestamps as in the preset), with its ``config.json``; the
+    preset's sequence restricted to those frames, without rendering the rest."""
+    from data import synthetic as syn
+    from data.io import write_json
+    from data.sevenscenes import SevenScenesSequence
+    from data.synthetic.config import resolve_preset
+
+    cfg = resolve_preset(name)
+    scene, poses = syn.build(cfg)
+    fr = syn.FrameRenderer(cfg, scene, poses, nthreads=1)
+    plan = syn.repeat_plan(cfg.sensor, len(poses), cfg.seed)
+    seq_dir = out / "seq-01"
+    seq_dir.mkdir(parents=True)
+    (out / "camera-intrinsics.txt").write_text(syn.intrinsics_text(cfg))
+    write_json(out / "config.json", {"config": cfg.to_dict()})
+    first = frames[0]
+    while plan[first] != syn.NEW:  # a repeat copies an earlier frame's files: render from that one
+        first -= 1
+    for k in range(first, frames[-1] + 1):
+        if plan[k] != syn.REPEAT_FRAME:
+            rgb, jpeg, depth, _ = fr.frame_encoded(k)
+            syn._write_frame(seq_dir, k, rgb, jpeg, depth, poses[k])
+    sub = plan.copy()
+    sub[:first + 1] = syn.NEW
+    syn._apply_repeats(seq_dir, sub[:frames[-1] + 1], syn.colour_suffix(cfg.sensor))
+    for k in range(first, frames[0]):
+        for f in seq_dir.glob(f"frame-{k:06d}.*"):
+            f.unlink()
+    return SevenScenesSequence(seq_dir, name=f"synthetic-{name}"), plan
+
+
+def test_edge_out_of_a_repeat_spans_two_periods_of_a_fast_turn(tmp_path):
+    """stress-fast (the team's stress scene), frames 245-250: frame 248 repeats 247 whole (a
+    dropped frame), so the edge 248-249 spans two periods of the depth during a fast turn
+    while the prediction is the repeat's identity. From the identity the rgbd alignment
+    falls into a wrong minimum 116 mm off; the second start, the constant velocity between
+    the depth moments (twice the motion 246-247), finds the motion; and the plausibility
+    bound spans from frame 247's moment. Before: a failed gap-1 edge (``implausible_motion``
+    over one period), and with the bound alone, the wrong minimum accepted."""
+    from data.formats import Trajectory
+    from data.metrics import trajectory_report
+    from data.synthetic import REPEAT_FRAME
+
+    seq, plan = _render_frames_of("stress-fast", range(245, 251), tmp_path / "fast")
+    assert plan[248] == REPEAT_FRAME and [int(i) for i in seq.ids()] == list(range(245, 251))
+    gt = seq.groundtruth()
+    for start in (True, False):
+        cfg = dataclasses.replace(TeacherConfig(), gaps=1, workers=1, fallback_span_start=start)
+        run = run_sequence(seq, cfg, progress=False)
+        e = {(x.i, x.j): x for x in run.edges}
+        err = relative_pose_error(geo.relative_pose(gt[3], gt[4]), e[(248, 249)].T_i_j)[0] \
+            if e[(248, 249)].ok else float("inf")
+        if start:
+            assert all(x.ok for x in run.edges) and not run.bridges, [(x.i, x.status, x.info) for x in run.edges]
+            assert e[(248, 249)].info["path"] == "rgbd" and e[(248, 249)].info["start"] == "span"
+            assert err < 0.01, err  # measured 5.7 mm
+            rep = trajectory_report(Trajectory(seq.times(), seq.groundtruth()), Trajectory(seq.times(), run.poses))
+            assert rep["rpe_trans_rmse_m"] < 0.008, rep
+        else:
+            assert err > 0.05, err  # the identity's wrong minimum (116 mm)
+
+
+def test_plausibility_bound_and_second_start_follow_the_depth_moments(office_clean, monkeypatch):
+    """The window hands ``estimate_edge`` the time from the earliest moment frame i's images
+    show (a repeated image shows its first frame's moment) to frame j's timestamp (``span``,
+    the dense alignments' plausibility bound; the keypoints' stays the timestamps'), and as the
+    rgbd fallback's second start the constant velocity between the two depth moments: twice
+    the last motion out of a whole repeat, the identity onto a depth repeat. A chunk that
+    starts after repeats reads those moments back (:func:`teacher.generate._moments_before`)."""
+    from teacher import window as wmod
+    from teacher.generate import _moments_before
+
+    seq = office_clean
+    cfg = dataclasses.replace(TeacherConfig(), gaps=2)
+    got = {}
+    est = wmod.estimate_edge
+
+    def spy(i, j, fi, fj, intr, c, dt, T_pred=None, tracks=None, dense=True, T_alt=None, span=None):
+        got[(i, j)] = (span, T_alt, dt)
+        return est(i, j, fi, fj, intr, c, dt, T_pred, tracks, dense, T_alt, span)
+
+    monkeypatch.setattr(wmod, "estimate_edge", spy)
+    feats = {2: _features(seq, 2, cfg), 3: _features(seq, 3, cfg),
+             4: _features(seq, 4, cfg, rgb=seq.rgb(3), depth=seq.depth(3)),  # frame 3 again, whole
+             5: _features(seq, 5, cfg), 6: _features(seq, 6, cfg, depth=seq.depth(5))}  # depth repeated
+    w = wmod.EdgeWindow(seq.intrinsics, cfg)
+    edges = {(e.i, e.j): e for k, f in feats.items() for e in w.add(k, k / 30, f)}
+    assert np.isclose(got[(3, 4)][0], 1 / 30) and np.isclose(got[(4, 5)][0], 2 / 30)  # 4 shows 3's moment
+    assert np.isclose(got[(3, 5)][0], 2 / 30) and np.isclose(got[(5, 6)][0], 1 / 30)
+    assert all(np.isclose(v[2], (j - i) / 30) for (i, j), v in got.items())  # the keypoints' bound: timestamps
+    v23 = edges[(2, 3)].T_i_j
+    assert np.allclose(got[(3, 4)][1], np.eye(4)) and np.allclose(got[(4, 5)][1], v23 @ v23, atol=1e-9)
+    assert np.allclose(got[(5, 6)][1], np.eye(4))
+    assert got[(2, 3)][1] is None and w.motion_between(0.0) is not None
+
+    # read back at a chunk start: frame 5 repeats frame 4 whole, frame 6 repeats 5's colour
+    rep = _WholeRepeats(seq, [6], [5])
+    times = seq.times()
+    assert _moments_before(rep, 7) == (float(times[4]), float(times[6]))
+    assert _moments_before(rep, 6) == (float(times[4]), float(times[4]))
+    assert _moments_before(rep, 5) == (float(times[4]), float(times[4]))
+    assert _moments_before(rep, 1) == (float(times[0]), float(times[0]))
