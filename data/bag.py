@@ -291,7 +291,7 @@ class BagSequence(Sequence):
         self._cursor: Optional[_Cursor] = None
         ids = np.arange(len(times), dtype=np.int64)
         default_name = path.stem if path.suffix == ".bag" else path.resolve().name
-        super().__init__(name or default_name, intr, times, ids, gt)
+        super().__init__(name or default_name, intr, times, ids, gt, depth.stamps[m_depth])
 
     # -- opening ------------------------------------------------------------------
     def _resolve_topics(self, reader, want: BagTopics) -> BagTopics:

@@ -318,6 +318,17 @@ class TeacherConfig:
     frame's grey of the wrong moment 3.6, with the depth term alone 1.6 (bench/README.md,
     issue 13, fourth session). Only with photometric maps (``dense_method`` hybrid:
     synthetic scenes); real recordings keep the stale-stream rule (``dense_on_stale``)."""
+    depth_time_compensation: bool = True
+    """Bring each frame's depth to its colour image's moment where the two were taken at
+    different times (the sequence's depth timestamps, ``Sequence.depth_offsets()``: TUM
+    RGB-D, about 8 ms apart on fr1/xyz; none on 7-Scenes, so nothing changes there), by the
+    constant-velocity motion over the offset (:class:`teacher.window.EdgeWindow`): the
+    keypoints' depths are read where each point was at the depth's moment and moved to the
+    colour's, and the dense steps, which align depth to depth, start from and return to
+    the motion between the colour moments (:func:`teacher.odometry.estimate_edge`). Labels,
+    like the frames' timestamps and ground truth, then belong to the colour moments.
+    Validated on synthetic/lab (validation) rendered with TUM-like offsets
+    (bench/README.md, issue 13, sixth session), never chosen on TUM."""
     depth_levels: tuple[tuple[int, int], ...] = ((8, 30), (4, 30), (2, 20))
     """``depth_beside_colour_repeat``: (scale, most iterations) of each coarse level of the
     depth-alone alignment, coarse to fine, before ``depth_finish_iters`` at full resolution.

@@ -39,8 +39,8 @@ from numpy.typing import NDArray
 from data import geometry as geo
 from data.sequence import Intrinsics
 from teacher.config import TeacherConfig
-from teacher.odometry import (EdgeEstimate, FrameFeatures, PhotoMaps, beside_colour_repeat, estimate_edge,
-                              stale_stream)
+from teacher.odometry import (EdgeEstimate, FrameFeatures, PhotoMaps, beside_colour_repeat, depth_at_colour_moment,
+                              estimate_edge, stale_stream)
 
 
 @dataclass
@@ -85,17 +85,20 @@ class EdgeWindow:
     def _starts_inside(self, pos: int) -> bool:
         return self.until is None or pos < self.until
 
-    def add(self, frame_id: int, timestamp: float, fk: FrameFeatures) -> list[EdgeEstimate]:
+    def add(self, frame_id: int, timestamp: float, fk: FrameFeatures, depth_offset: float = 0.0) -> list[EdgeEstimate]:
         """The edges ending at the new frame (failed ones included: ``e.ok`` False), the
         gap-1 edge first, then the longer ones from the oldest frame on. Sets ``fk.stale``.
         (:meth:`add_gap1` then :meth:`add_longer`.)"""
-        return self.add_gap1(frame_id, timestamp, fk) + self.add_longer()
+        return self.add_gap1(frame_id, timestamp, fk, depth_offset) + self.add_longer()
 
-    def add_gap1(self, frame_id: int, timestamp: float, fk: FrameFeatures) -> list[EdgeEstimate]:
+    def add_gap1(self, frame_id: int, timestamp: float, fk: FrameFeatures,
+                 depth_offset: float = 0.0) -> list[EdgeEstimate]:
         """The first half of :meth:`add`: the gap-1 edge ending at the new frame (a list of
         it; empty for the first frame or one before ``until``'s range), and the feature
         tracks and chained motions extended to the new frame. :meth:`add_longer` must follow
-        before the next frame (``vo-online`` writes the frame's pose in between)."""
+        before the next frame (``vo-online`` writes the frame's pose in between).
+        ``timestamp`` is the frame's colour image's; ``depth_offset`` its depth image's time
+        minus that (s; see :meth:`_to_colour_moment`)."""
         if self._pending is not None:
             raise RuntimeError("EdgeWindow.add_longer() must follow add_gap1() before the next frame")
         cfg, intr = self.cfg, self.intr
@@ -113,6 +116,7 @@ class EdgeWindow:
                 elif same_colour:
                     fk.dense.photo, fk.colour_behind = fk.dense.photo.depth_only(), True
         self.prev_keys = fk.keys
+        self._to_colour_moment(fk, depth_offset)
         photo = fk.dense.photo if fk.dense is not None else None
         state = (photo, fk.colour_behind)
         self._prev_photo = lambda: state
@@ -150,6 +154,19 @@ class EdgeWindow:
             return self.v_prev
         r = dt / self.dt_prev
         return self.v_prev if 2 / 3 < r < 1.5 else geo.se3_exp(r * geo.se3_log(self.v_prev))
+
+    def _to_colour_moment(self, fk: FrameFeatures, depth_offset: float) -> None:
+        """A frame whose depth was taken ``depth_offset`` seconds after its colour (before,
+        when negative; ``cfg.depth_time_compensation``): ``fk.depth_in_colour``, the depth
+        moment's camera in the colour moment's, from the constant velocity (the last good
+        gap-1 motion over its time, ``exp(depth_offset / dt log(T))``), and the keypoints'
+        depths at the colour moment (:func:`teacher.odometry.depth_at_colour_moment`). Left
+        as it is (the same moment) without an offset or before the first good gap-1 edge."""
+        if (depth_offset == 0.0 or not self.cfg.depth_time_compensation or self.v_prev is None
+                or self.dt_prev <= 0):
+            return
+        fk.depth_in_colour = geo.se3_exp((depth_offset / self.dt_prev) * geo.se3_log(self.v_prev))
+        fk.z = depth_at_colour_moment(fk, self.intr.K, self.cfg)
 
     def _prediction(self, fi: FrameFeatures, fj: FrameFeatures, i_repeats_depth: bool,
                     cv: Optional[NDArray[np.float64]]) -> Optional[NDArray[np.float64]]:
