@@ -39,8 +39,8 @@ from numpy.typing import NDArray
 from data import geometry as geo
 from data.sequence import Intrinsics
 from teacher.config import TeacherConfig
-from teacher.odometry import (EdgeEstimate, FrameFeatures, PhotoMaps, beside_colour_repeat, depth_at_colour_moment,
-                              estimate_edge, stale_stream)
+from teacher.odometry import (EdgeEstimate, FrameFeatures, PhotoMaps, beside_colour_repeat, estimate_edge,
+                              stale_stream)
 
 
 @dataclass
@@ -157,16 +157,16 @@ class EdgeWindow:
 
     def _to_colour_moment(self, fk: FrameFeatures, depth_offset: float) -> None:
         """A frame whose depth was taken ``depth_offset`` seconds after its colour (before,
-        when negative; ``cfg.depth_time_compensation``): ``fk.depth_in_colour``, the depth
-        moment's camera in the colour moment's, from the constant velocity (the last good
-        gap-1 motion over its time, ``exp(depth_offset / dt log(T))``), and the keypoints'
-        depths at the colour moment (:func:`teacher.odometry.depth_at_colour_moment`). Left
-        as it is (the same moment) without an offset or before the first good gap-1 edge."""
-        if (depth_offset == 0.0 or not self.cfg.depth_time_compensation or self.v_prev is None
-                or self.dt_prev <= 0):
+        when negative), with ``cfg.depth_time_compensation``: ``fk.depth_offset``, so its
+        edges' dense steps align the depth maps between their moments and return to the
+        colour moments at the edge's own velocity (:func:`teacher.odometry.estimate_edge`),
+        and no photometric maps (they would pair the colour of one moment with the depth of
+        another: its dense steps take the depth alone). Nothing changes without an offset."""
+        if depth_offset == 0.0 or not self.cfg.depth_time_compensation:
             return
-        fk.depth_in_colour = geo.se3_exp((depth_offset / self.dt_prev) * geo.se3_log(self.v_prev))
-        fk.z = depth_at_colour_moment(fk, self.intr.K, self.cfg)
+        fk.depth_offset = float(depth_offset)
+        if fk.dense is not None:
+            fk.dense.photo = None
 
     def _prediction(self, fi: FrameFeatures, fj: FrameFeatures, i_repeats_depth: bool,
                     cv: Optional[NDArray[np.float64]]) -> Optional[NDArray[np.float64]]:

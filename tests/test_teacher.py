@@ -1114,33 +1114,32 @@ def test_gap1_edges_beside_a_colour_repeat_use_the_depth_alone(office_clean):
 
 # ---------------------------------------------------------------------------- colour-depth timing
 
-def test_keypoint_depth_is_brought_to_the_colour_moment():
-    """A tilted wall seen by a depth image taken at another moment than the colour image
-    (the camera moved 4-6 mm and 0.2 deg in between): read at the keypoints' own pixels the
-    depth is millimetres off the depth along their rays at the colour moment;
-    :func:`depth_at_colour_moment` recovers it (the wall is a plane: exactly, up to the
-    bilinear reading)."""
-    from teacher.odometry import FrameFeatures, depth_at, depth_at_colour_moment
+def test_motion_between_depth_moments_is_moved_to_the_colour_moments():
+    """At constant velocity xi, depth maps taken o_i and o_j seconds after their colour
+    images move by exp((dt + o_j - o_i) xi) while the colour moments move by exp(dt xi):
+    :func:`_to_colour_moments` recovers the latter from the former (its covariance scaled
+    by the ratio of the time spans), :func:`_depth_moments` goes the other way, and frames
+    without offsets are left alone."""
+    from teacher.odometry import FrameFeatures, _depth_moments, _to_colour_moments
 
-    K = np.array([[517.3, 0, 318.6], [0, 516.5, 255.3], [0, 0, 1.0]])
-    n_c, c_c = np.array([-0.25, 0.1, 1.0]), 1.5  # the wall n . X = c in the colour moment's camera
-    C = geo.se3_exp([0.004, -0.003, 0.005, 0.002, -0.003, 0.001])  # depth moment's camera in the colour one
-    n_d, c_d = C[:3, :3].T @ n_c, c_c - n_c @ C[:3, 3]  # the wall in the depth moment's camera
-    v, u = np.mgrid[0:480, 0:640].astype(np.float64)
-    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
-    depth = (c_d / (rays @ n_d)).astype(np.float32)
-    rng = np.random.default_rng(3)
-    uv = np.column_stack([rng.uniform(40, 600, 300), rng.uniform(40, 440, 300)]).astype(np.float32)
-    cfg = TeacherConfig()
-    f = FrameFeatures(uv, np.zeros((300, 32), np.uint8), depth_at(depth, uv, cfg), np.zeros((480, 640), np.uint8),
-                      depth, depth_in_colour=C)
-    r = np.column_stack([(uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1], np.ones(300)])
-    truth = c_c / (r @ n_c)
-    naive = np.abs(f.z - truth)
-    fixed = np.abs(depth_at_colour_moment(f, K, cfg) - truth)
-    assert np.median(naive) > 2e-3 and fixed.max() < 1e-4, (np.median(naive), fixed.max())
-    f.depth_in_colour = None
-    assert depth_at_colour_moment(f, K, cfg) is f.z  # the same moment: left as it is
+    def frame(offset):
+        return FrameFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32),
+                             np.zeros((4, 4), np.uint8), np.zeros((4, 4), np.float32), depth_offset=offset)
+
+    xi, dt = np.array([0.24, -0.05, 0.1, 0.05, 0.12, -0.08]), 1 / 30  # m/s, rad/s
+    fi, fj = frame(-0.0152), frame(-0.0031)
+    T_colour = geo.se3_exp(dt * xi)
+    T_depth = geo.se3_exp((dt + fj.depth_offset - fi.depth_offset) * xi)
+    res = EdgeEstimate(0, 1, "ok", T_i_j=T_depth.copy(), cov=np.eye(6))
+    _to_colour_moments(res, fi, fj, dt)
+    np.testing.assert_allclose(res.T_i_j, T_colour, atol=1e-9)
+    assert np.linalg.norm(T_depth[:3, 3] - T_colour[:3, 3]) > 2e-3  # what was left before: 2.9 mm
+    s = dt / (dt + fj.depth_offset - fi.depth_offset)
+    np.testing.assert_allclose(np.diag(res.cov)[3:], s * s, rtol=1e-3)  # rotations: only the scale
+    np.testing.assert_allclose(_depth_moments(T_colour, fi, fj, dt), T_depth, atol=1e-12)
+    same = EdgeEstimate(0, 1, "ok", T_i_j=T_depth.copy(), cov=np.eye(6))
+    _to_colour_moments(same, frame(0.0), frame(0.0), dt)
+    assert np.array_equal(same.T_i_j, T_depth) and np.array_equal(same.cov, np.eye(6))
 
 
 def test_adjoint_moves_a_right_perturbation():
