@@ -63,8 +63,10 @@ STAGE_VERSIONS: dict[str, int] = {
     # far-moved sparse edges (synthetic labels change; real-data labels are bit-identical); 4: the
     # constant-velocity prediction scaled over a dropped frame (labels change where timestamps skip
     # one), the point-to-plane stage's fusion covariance from every 4th point (p2p_cov_stride),
-    # gap-1 edges beside a colour repeat aligned by the depth alone (synthetic only, path ``depth``)
-    "teacher": 4,
+    # gap-1 edges beside a colour repeat aligned by the depth alone (synthetic only, path ``depth``);
+    # 5: colour-depth timing (depth_time_compensation: TUM RGB-D and bag labels change, 7-Scenes and
+    # synthetic presets bit-identical)
+    "teacher": 5,
     "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 1, "posegraph-calibrate": 1, "online": 1,
 }
 SYNTHETIC_PREFIX = "synthetic/"
