@@ -16,6 +16,7 @@ a constant (the ground truth's own clock offset).
 
     .venv/bin/python -m bench.depth_timing --scene lab [--dense-method point-to-plane]
     .venv/bin/python -m bench.depth_timing --tum ../shared/data/tum/images/rgbd_dataset_freiburg1_xyz
+    .venv/bin/python -m bench.depth_timing --tum ../shared/data/tum/images/rgbd_dataset_freiburg1_xyz --labels --frames 0:150
 """
 
 from __future__ import annotations
@@ -148,6 +149,28 @@ def tum(args) -> list[dict]:
     return rows
 
 
+def tum_labels(args) -> list[dict]:
+    """The teacher as ``bench.teacher`` runs it (default config, gaps 1-5), with and without the
+    compensation, on a TUM folder: gap-1 RPE and ATE of the chained trajectory against the
+    ground truth at the RGB times (the "before" beside ``bench.teacher``'s figures)."""
+    from data.tum import TumSequence
+
+    seq = TumSequence(args.tum)
+    if args.frames:
+        a, b = (int(v) for v in args.frames.split(":"))
+        seq = seq.select(a, b)
+    rows = []
+    for comp in (False, True):
+        run = run_sequence(seq, dataclasses.replace(TeacherConfig(), depth_time_compensation=comp), progress=False)
+        rows.append({"frames": len(seq), "depth_time_compensation": comp, **_report(seq, run.poses)})
+    print("| frames | depth_time_compensation | gap-1 mm | gap-1 deg | ATE mm |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {args.frames or 'all'} ({r['frames']}) | {r['depth_time_compensation']} | {r['gap1_mm']:.2f} | "
+              f"{r['gap1_deg']:.3f} | {r['ate_mm']:.1f} |")
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", default="lab", help="synthetic scene (a validation scene: lab)")
@@ -158,9 +181,11 @@ def main() -> None:
     ap.add_argument("--dense-method", default="auto", choices=["auto", "hybrid", "point-to-plane"],
                     help="the teacher's dense_method (auto: hybrid on synthetic scenes; real recordings: point-to-plane)")
     ap.add_argument("--tum", type=Path, default=None, help="diagnosis on a TUM RGB-D folder instead")
+    ap.add_argument("--labels", action="store_true",
+                    help="with --tum: the teacher's labels (gaps 1-5) with and without the compensation, RPE and ATE")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
-    rows = tum(args) if args.tum else synthetic(args)
+    rows = (tum_labels(args) if args.labels else tum(args)) if args.tum else synthetic(args)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2))
 

@@ -1150,27 +1150,29 @@ def test_adjoint_moves_a_right_perturbation():
 
 def test_colour_depth_offsets_compensated_on_a_synthetic_walk(tmp_path):
     """A walk whose depth images are taken 0-17 ms before their colour images (the sensor
-    model's ``depth_time_offset_s``, TUM-like; the poses are the colour moments'): the gap-1
-    labels with ``depth_time_compensation`` are closer to the ground truth than without it.
-    Without offsets the option changes no edge, bit for bit."""
+    model's ``depth_time_offset_s``, TUM-like; the poses are the colour moments'): with
+    ``depth_time_compensation`` the gap-1 labels of the point-to-plane teacher (real
+    recordings' dense step) are closer to the ground truth than without it. Without offsets
+    the option changes no edge, bit for bit."""
     from data.synthetic import synthetic_sequence
     from data.synthetic.config import PRESETS
 
     base = PRESETS["tiny"]
     sensor = dataclasses.replace(base.sensor, frame_repeat_prob=0.0, rgb_repeat_prob=0.0, depth_repeat_prob=0.0)
-    offset = dataclasses.replace(base, frames=16, sensor=dataclasses.replace(sensor, depth_time_offset_s=(-1 / 60, 0.0)))
+    offset = dataclasses.replace(base, frames=20, sensor=dataclasses.replace(sensor, depth_time_offset_s=(-1 / 60, 0.0)))
     seq = synthetic_sequence("tiny", cache_dir=tmp_path, config=offset)
     assert seq.depth_offsets().min() < -0.01
     gt = seq.groundtruth()
-    err = {}
+    rms = {}
     for on in (True, False):
-        run = run_sequence(seq, dataclasses.replace(TeacherConfig(), gaps=1, workers=1, depth_time_compensation=on),
-                           progress=False)
-        err[on] = np.array([relative_pose_error(geo.relative_pose(gt[k], gt[k + 1]),
-                                                geo.relative_pose(run.poses[k], run.poses[k + 1]))[0]
-                            for k in range(len(gt) - 1)])
-    rms = {on: float(np.sqrt(np.mean(e ** 2))) for on, e in err.items()}
-    assert rms[True] < 0.85 * rms[False], rms  # measured: MEASURED
+        run = run_sequence(seq, dataclasses.replace(TeacherConfig(), gaps=1, workers=1, depth_time_compensation=on,
+                                                    dense_method="point-to-plane"), progress=False)
+        err = np.array([relative_pose_error(geo.relative_pose(gt[k], gt[k + 1]),
+                                            geo.relative_pose(run.poses[k], run.poses[k + 1]))
+                        for k in range(len(gt) - 1)])
+        rms[on] = np.sqrt(np.mean(err ** 2, axis=0))
+    # measured: 5.72 against 7.13 mm, 0.130 against 0.155 deg (the same walk without offsets: 3.91 mm, 0.096 deg)
+    assert rms[True][0] < 0.9 * rms[False][0] and rms[True][1] < 0.95 * rms[False][1], rms
     same = synthetic_sequence("tiny", cache_dir=tmp_path, config=dataclasses.replace(base, frames=8))
     runs = [run_sequence(same, dataclasses.replace(TeacherConfig(), gaps=2, workers=1, depth_time_compensation=on),
                          progress=False) for on in (True, False)]
