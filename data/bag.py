@@ -291,7 +291,7 @@ class BagSequence(Sequence):
         self._cursor: Optional[_Cursor] = None
         ids = np.arange(len(times), dtype=np.int64)
         default_name = path.stem if path.suffix == ".bag" else path.resolve().name
-        super().__init__(name or default_name, intr, times, ids, gt)
+        super().__init__(name or default_name, intr, times, ids, gt, depth.stamps[m_depth])
 
     # -- opening ------------------------------------------------------------------
     def _resolve_topics(self, reader, want: BagTopics) -> BagTopics:
@@ -532,8 +532,9 @@ def write_bag(seq: Sequence, path: Path, *, ros2: bool = False, storage: str = "
               gt: bool = True, camera_ns: str = "/camera") -> Path:
     """Write ``seq`` as a ROS1 bag (``path`` ending in ``.bag``) or a ROS2 bag folder
     (``ros2``, ``storage`` sqlite3 or mcap): ``{ns}/rgb/image_raw`` (or ``.../compressed``,
-    JPEG quality 95), ``{ns}/depth/image_raw`` (``16UC1`` mm or ``32FC1`` m, stamped like
-    the colour image), ``{ns}/rgb/camera_info`` and, with ``gt`` and ground truth, a
+    JPEG quality 95), ``{ns}/depth/image_raw`` (``16UC1`` mm or ``32FC1`` m, stamped with the
+    frame's depth timestamp, ``seq.depth_times()``: the colour image's where the sequence has
+    none), ``{ns}/rgb/camera_info`` and, with ``gt`` and ground truth, a
     ``/groundtruth`` PoseStamped per frame. Frames are streamed one at a time."""
     from rosbags.typesys import Stores, get_typestore
 
@@ -559,9 +560,10 @@ def write_bag(seq: Sequence, path: Path, *, ros2: bool = False, storage: str = "
         c_depth = writer.add_connection(f"{camera_ns}/depth/image_raw", IMAGE, typestore=store)
         c_info = writer.add_connection(f"{camera_ns}/rgb/camera_info", CAMERA_INFO, typestore=store)
         c_gt = writer.add_connection("/groundtruth", POSE_STAMPED, typestore=store) if gt_poses is not None else None
+        depth_times = seq.depth_times()
         for k in range(len(seq)):
             t = float(seq.times()[k])
-            ns = int(round(t * 1e9))
+            ns = _nanoseconds(t)
             hdr = Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id="camera_rgb_optical_frame",
                          **({} if ros2 else {"seq": k}))
             rgb, depth = seq.rgb(k), seq.depth(k)
@@ -580,7 +582,10 @@ def write_bag(seq: Sequence, path: Path, *, ros2: bool = False, storage: str = "
                 raw = np.round(depth * DEPTH_SCALE_16U).astype("<u2")
             else:
                 raw = depth.astype("<f4")
-            dmsg = T[IMAGE](header=hdr, height=h, width=w, encoding=depth_encoding, is_bigendian=0,
+            dns = _nanoseconds(float(depth_times[k]))
+            dhdr = Header(stamp=Time(sec=dns // 10**9, nanosec=dns % 10**9), frame_id="camera_rgb_optical_frame",
+                          **({} if ros2 else {"seq": k}))
+            dmsg = T[IMAGE](header=dhdr, height=h, width=w, encoding=depth_encoding, is_bigendian=0,
                             step=w * raw.itemsize, data=raw.view(np.uint8).reshape(-1))
             writer.write(c_depth, ns, ser(dmsg, IMAGE))
             if k == 0:
@@ -594,6 +599,14 @@ def write_bag(seq: Sequence, path: Path, *, ros2: bool = False, storage: str = "
                 ghdr = Header(stamp=hdr.stamp, frame_id="world", **({} if ros2 else {"seq": k}))
                 writer.write(c_gt, ns, ser(T[POSE_STAMPED](header=ghdr, pose=pose), POSE_STAMPED))
     return path
+
+
+def _nanoseconds(t: float) -> int:
+    """Seconds -> integer nanoseconds, exactly enough that reading the stamp back
+    (``sec + 1e-9 nanosec``) gives ``t`` again: ``t * 1e9`` of a time since 1970 is only
+    good to ~128 ns in float64, the fraction of a second alone to far below 1 ns."""
+    sec = int(np.floor(t))
+    return sec * 10**9 + int(round((t - sec) * 1e9))
 
 
 def _camera_info(T, hdr, intr: Intrinsics, ros2: bool):

@@ -224,6 +224,19 @@ def se3_log(T: ArrayLike) -> NDArray[np.float64]:
     return np.concatenate([v, w], axis=1).reshape(T.shape[:-2] + (6,))
 
 
+def adjoint(T: ArrayLike) -> NDArray[np.float64]:
+    """6x6 adjoint of ``T`` in project order (v, w): ``T exp(d) inv(T) = exp(adjoint(T) d)``,
+    ``[[R, hat(t) R], [0, R]]``. Moves a right perturbation across a transform: for
+    ``A = B @ C``, ``A exp(d) = B exp(adjoint(C) d) C`` (a covariance ``S`` becomes
+    ``adjoint(C) S adjoint(C)^T``)."""
+    T = np.asarray(T, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3] = Ad[3:, 3:] = R
+    Ad[:3, 3:] = hat(t) @ R
+    return Ad
+
+
 def rotation_angle_deg(T: ArrayLike) -> float:
     """Rotation angle of a transform's rotation block, degrees."""
     R = np.asarray(T, dtype=np.float64)[:3, :3]

@@ -66,7 +66,8 @@ STAGE_VERSIONS: dict[str, int] = {
     # gap-1 edges beside a colour repeat aligned by the depth alone (synthetic only, path ``depth``);
     # 5: huber_px 4 and refine_inlier_px 3 (re-selected on validation data; every label changes),
     # the plausibility bound from the moment a repeated image shows, the gap-1 rgbd fallback's
-    # second start (fallback_span_start)
+    # second start (fallback_span_start), colour-depth timing (depth_time_compensation: TUM
+    # RGB-D and bag labels)
     "teacher": 5,
     "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 1, "posegraph-calibrate": 1, "online": 1,
 }

@@ -1,7 +1,8 @@
 """One sequence interface for every dataset (7-Scenes, TUM RGB-D, synthetic).
 
-A :class:`Sequence` knows its name, intrinsics, timestamps and (optionally) ground-truth
-``T_world_cam`` poses, and reads frames lazily: ``seq.rgb(k)`` and ``seq.depth(k)`` decode
+A :class:`Sequence` knows its name, intrinsics, timestamps (a frame's timestamp is its
+colour image's; its depth image's, where that differs, is ``depth_times()``) and
+(optionally) ground-truth ``T_world_cam`` poses, and reads frames lazily: ``seq.rgb(k)`` and ``seq.depth(k)`` decode
 one image each, and a bad file raises :class:`~data.errors.DataError` naming it.
 
 Frame *positions* ``k`` run over ``0..len(seq)-1``; ``seq.frame_ids[k]`` is the frame's
@@ -54,6 +55,9 @@ class Frame:
 
     ``rgb`` is (H, W, 3) uint8 in RGB order; ``depth`` is (H, W) float32 metres with 0 for
     invalid pixels; ``T_world_cam`` is the ground-truth pose (4x4) or ``None``.
+    ``timestamp`` is the colour image's; ``depth_timestamp`` the depth image's when the
+    source records one (TUM RGB-D: the two streams are not taken at the same moment), else
+    ``None`` (the same moment).
     """
 
     frame_id: int
@@ -61,6 +65,12 @@ class Frame:
     rgb: NDArray[np.uint8]
     depth: NDArray[np.float32]
     T_world_cam: Optional[NDArray[np.float64]]
+    depth_timestamp: Optional[float] = None
+
+    @property
+    def depth_offset(self) -> float:
+        """Depth minus colour timestamp, seconds (0 when the source records none)."""
+        return 0.0 if self.depth_timestamp is None else float(self.depth_timestamp - self.timestamp)
 
 
 def _decode(path: Path, what: str, flags: int, intr: Optional[Intrinsics]) -> NDArray:
@@ -111,12 +121,20 @@ class Sequence(abc.ABC):
     intrinsics: Intrinsics
 
     def __init__(self, name: str, intrinsics: Intrinsics, timestamps: NDArray[np.float64],
-                 frame_ids: NDArray[np.int64], gt: Optional[NDArray[np.float64]]) -> None:
+                 frame_ids: NDArray[np.int64], gt: Optional[NDArray[np.float64]],
+                 depth_timestamps: Optional[NDArray[np.float64]] = None) -> None:
+        """``timestamps``: each frame's colour image's; ``depth_timestamps``: its depth
+        image's (None: the same moments)."""
         if len(timestamps) == 0:
             raise DataError(f"sequence {name} has no frames")
         self.name = name
         self.intrinsics = intrinsics
         self.timestamps = np.asarray(timestamps, dtype=np.float64)
+        self.depth_timestamps = None if depth_timestamps is None else np.asarray(depth_timestamps, dtype=np.float64)
+        if self.depth_timestamps is not None and (self.depth_timestamps.shape != self.timestamps.shape
+                                                  or not np.all(np.isfinite(self.depth_timestamps))):
+            raise DataError(f"sequence {name}: {len(self.depth_timestamps)} depth timestamps for "
+                            f"{len(self.timestamps)} frames, or not all finite")
         self.frame_ids = np.asarray(frame_ids, dtype=np.int64)
         self._gt = gt
         self._positions = np.arange(len(self.timestamps))
@@ -149,8 +167,22 @@ class Sequence(abc.ABC):
         return self.frame_ids[self._positions]
 
     def times(self) -> NDArray[np.float64]:
-        """Timestamps in seconds of this view, (N,)."""
+        """Timestamps in seconds of this view (the colour images'), (N,)."""
         return self.timestamps[self._positions]
+
+    def depth_times(self) -> NDArray[np.float64]:
+        """Timestamps in seconds of this view's depth images, (N,): :meth:`times` where the
+        source records none (7-Scenes; synthetic scenes rendered without a colour-depth
+        time offset)."""
+        src = self.timestamps if self.depth_timestamps is None else self.depth_timestamps
+        return src[self._positions]
+
+    def depth_offsets(self) -> NDArray[np.float64]:
+        """Depth minus colour timestamp of each frame of this view, seconds (N,); zeros
+        where the source records no depth timestamps (the same moments)."""
+        if self.depth_timestamps is None:
+            return np.zeros(len(self._positions))
+        return self.depth_timestamps[self._positions] - self.timestamps[self._positions]
 
     def groundtruth(self) -> Optional[NDArray[np.float64]]:
         """Ground-truth ``T_world_cam`` of this view, (N, 4, 4), or ``None``."""
@@ -161,6 +193,7 @@ class Sequence(abc.ABC):
         return Frame(
             frame_id=int(self.ids()[k]), timestamp=float(self.times()[k]), rgb=self.rgb(k),
             depth=self.depth(k), T_world_cam=None if gt is None else gt[k],
+            depth_timestamp=None if self.depth_timestamps is None else float(self.depth_times()[k]),
         )
 
     def select(self, start: Optional[int] = None, stop: Optional[int] = None, step: Optional[int] = None) -> "Sequence":

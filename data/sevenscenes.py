@@ -6,6 +6,9 @@ Layout: ``<scene>/seq-XX/frame-NNNNNN.color.png`` (or ``.color.jpg``),
 ``TestSplit.txt`` list ``sequence1``-style names (-> ``seq-01``). Intrinsics come from
 ``camera-intrinsics.txt`` (3x3 matrix, or ``fx fy cx cy [w h]``) in the sequence folder or the
 scene folder, else the dataset's 585/585/320/240 at 640x480. Frames are at 30 Hz.
+An optional ``seq-XX/depth-offsets.txt`` (``frame_id offset_s`` per frame, ``#`` comments;
+written by the synthetic renderer with a colour-depth time offset) gives each frame's depth
+image time minus its colour image time; without it both are ``frame_id / 30``.
 """
 
 from __future__ import annotations
@@ -85,6 +88,34 @@ def read_depth_file(path: Path, intr: Intrinsics) -> NDArray[np.float32]:
     return read_depth(path, DEPTH_SCALE, intr, invalid=(0, 65535))
 
 
+def read_depth_offsets(path: Path, ids: NDArray[np.int64]) -> Optional[NDArray[np.float64]]:
+    """Depth minus colour time (s) of the frames ``ids`` from ``depth-offsets.txt`` (rows
+    ``frame_id offset_s``; None when the file is absent). A :class:`DataError` naming the
+    file and line for a malformed row, a non-finite offset, one of a frame period or more,
+    or a frame the file does not list."""
+    if not path.is_file():
+        return None
+    table: dict[int, float] = {}
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        toks = s.split()
+        try:
+            if len(toks) != 2:
+                raise ValueError
+            fid, off = int(toks[0]), float(toks[1])
+        except ValueError:
+            raise DataError(f"{path}:{lineno}: a row needs 'frame_id offset_s', got {s!r}") from None
+        if not np.isfinite(off) or abs(off) >= 1.0 / FPS:
+            raise DataError(f"{path}:{lineno}: offset {toks[1]} s must be finite and under a frame period")
+        table[fid] = off
+    missing = [int(k) for k in ids if int(k) not in table]
+    if missing:
+        raise DataError(f"{path} lists no offset for frame {missing[0]} ({len(missing)} frames missing)")
+    return np.array([table[int(k)] for k in ids], dtype=np.float64)
+
+
 def folder_intrinsics(seq_dir: Path) -> Intrinsics:
     """``camera-intrinsics.txt`` of the sequence folder or its parent, else the 7-Scenes default."""
     for cand in (Path(seq_dir) / "camera-intrinsics.txt", Path(seq_dir).parent / "camera-intrinsics.txt"):
@@ -113,7 +144,9 @@ class SevenScenesSequence(Sequence):
         if (seq_dir / f"frame-{ids[0]:06d}.pose.txt").is_file():
             gt = np.stack([read_pose_file(seq_dir / f"frame-{k:06d}.pose.txt") for k in ids])
         ids_arr = np.asarray(ids, dtype=np.int64)
-        super().__init__(name or f"{seq_dir.parent.name}-{seq_dir.name}", intr, ids_arr / FPS, ids_arr, gt)
+        offsets = read_depth_offsets(seq_dir / "depth-offsets.txt", ids_arr)
+        super().__init__(name or f"{seq_dir.parent.name}-{seq_dir.name}", intr, ids_arr / FPS, ids_arr, gt,
+                         None if offsets is None else ids_arr / FPS + offsets)
 
     def _read_rgb(self, pos: int) -> NDArray[np.uint8]:
         fid = int(self.frame_ids[pos])

@@ -273,12 +273,13 @@ class FollowTum(FollowFolder):
         self.intrinsics = tum.intrinsics_for(self.folder)
         self.last_t = -np.inf
         self._pairs_key: Optional[tuple] = None
-        self._pairs_cache: list[tuple[float, str, str]] = []
+        self._pairs_cache: list[tuple[float, str, str, float]] = []
         self._gt_key: Optional[tuple] = None
         self._gt: Optional[tuple] = None
 
-    def _pairs(self, final: bool) -> list[tuple[float, str, str]]:
-        """(RGB timestamp, RGB file, depth file) of the settled pairings, in time order."""
+    def _pairs(self, final: bool) -> list[tuple[float, str, str, float]]:
+        """(RGB timestamp, RGB file, depth file, depth timestamp) of the settled pairings, in
+        time order."""
         from data import tum
 
         lists = [self.folder / "rgb.txt", self.folder / "depth.txt"]
@@ -290,7 +291,8 @@ class FollowTum(FollowFolder):
         if len(t_rgb) and len(t_dep):
             ia, ib = tum.associate(t_rgb, t_dep)
             horizon = np.inf if final else min(t_rgb[-1], t_dep[-1]) - 2 * tum.MAX_ASSOC_DT
-            pairs = [(float(t_rgb[a]), rgb[a], dep[b]) for a, b in zip(ia.tolist(), ib.tolist()) if t_rgb[a] <= horizon]
+            pairs = [(float(t_rgb[a]), rgb[a], dep[b], float(t_dep[b])) for a, b in zip(ia.tolist(), ib.tolist())
+                     if t_rgb[a] <= horizon]
         self._pairs_key, self._pairs_cache = key, pairs
         return pairs
 
@@ -316,13 +318,13 @@ class FollowTum(FollowFolder):
         from data import tum
         from data.sequence import read_rgb
 
-        t, rgb_file, depth_file = item
+        t, rgb_file, depth_file, t_depth = item
         rgb = read_rgb(self.folder / rgb_file, self.intrinsics)
         depth = tum.read_depth_file(self.folder / depth_file, self.intrinsics)
         self._stamp(self.folder / rgb_file, self.folder / depth_file)
         pose = self._groundtruth(t)
         self.last_t = t
-        return Frame(taken, t, rgb, depth, pose)
+        return Frame(taken, t, rgb, depth, pose, depth_timestamp=t_depth)
 
     def present_ids(self) -> NDArray[np.int64]:
         return np.arange(len(self._pairs(final=True)), dtype=np.int64)
@@ -409,7 +411,7 @@ class OnlineTeacher:
         empty for the first frame); :meth:`add_longer` follows before the next frame."""
         self.ids.append(int(frame.frame_id))
         self.times.append(float(frame.timestamp))
-        return self.window.add_gap1(self.ids[-1], self.times[-1], fk)
+        return self.window.add_gap1(self.ids[-1], self.times[-1], fk, frame.depth_offset)
 
     def add_longer(self) -> list:
         """The second half of :meth:`add`: the longer edges ending at the newest frame."""

@@ -428,6 +428,26 @@ class TeacherConfig:
     frame's grey of the wrong moment 3.6, with the depth term alone 1.6 (bench/README.md,
     issue 13, fourth session). Only with photometric maps (``dense_method`` hybrid:
     synthetic scenes); real recordings keep the stale-stream rule (``dense_on_stale``)."""
+    depth_time_compensation: bool = True
+    """Where a frame's depth image was taken at another moment than its colour image (the
+    sequence's depth timestamps, ``Sequence.depth_offsets()``: TUM RGB-D, on fr1/xyz 3.6-15.9
+    ms earlier; none on 7-Scenes and the synthetic presets, where nothing changes), the dense
+    steps, which align depth to depth, start from the motion between the depth moments and
+    return to the motion between the colour moments, at the constant velocity of the edge's
+    own motion (:func:`teacher.odometry.estimate_edge`), and the frame's photometric maps
+    are dropped (its dense steps take the depth alone). Labels then belong to the colour
+    moments, like the frames' timestamps and ground truth. Chosen on synthetic/lab
+    (validation) rendered with TUM-like offsets, ``depth_time_offset_s`` (-0.0167, 0), repeats
+    off (bench/README.md, issue 13, sixth session), never on TUM. Frames 0:150, ``gaps=1``
+    (gap-1 mm / deg, ATE mm): point-to-plane dense step, the same moment 1.87 / 0.088 / 7.3;
+    with the offsets, off 3.12 / 0.113 / 10.1, on 2.23 / 0.093 / 8.4; on, and the keypoints'
+    depths also moved to the colour moment (by the last gap-1 motion's velocity, or by the
+    edge's PnP estimate) 2.17 / 0.096 / 10.6 and 2.14 / 0.094 / 11.2; on, keeping the
+    photometric maps (hybrid dense step, colour of one moment and depth of another) 2.34 /
+    0.119 / 7.3 (the same moment with them: 1.70 / 0.077 / 4.6). Whole scene (300 frames,
+    ``bench.depth_timing``): the same moment 1.76 / 0.072 / 9.1; offsets, off 2.89 / 0.094 /
+    11.4, on 2.33 / 0.088 / 12.1 (where the hybrid step no longer helps: its colour would
+    need moving to the depth's moment)."""
     depth_levels: tuple[tuple[int, int], ...] = ((8, 30), (4, 30), (2, 20))
     """``depth_beside_colour_repeat``: (scale, most iterations) of each coarse level of the
     depth-alone alignment, coarse to fine, before ``depth_finish_iters`` at full resolution.

@@ -169,7 +169,7 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     motion). ``threads`` limits the OpenMP / BLAS threads of both threads (None: no limit).
     """
     n = len(seq)
-    ids, times = seq.ids(), seq.times()
+    ids, times, offsets = seq.ids(), seq.times(), seq.depth_offsets()
     intr = seq.intrinsics
     k_end = min(n, k1 + cfg.gaps)
     edges: list[EdgeEstimate] = []
@@ -192,7 +192,7 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
             fk = feat_futs.pop(k).result()
             if k + ahead < k_end:
                 feat_futs[k + ahead] = pool.submit(_extract, k + ahead)
-            edges += window.add(int(ids[k]), float(times[k]), fk)
+            edges += window.add(int(ids[k]), float(times[k]), fk, float(offsets[k]))
             if on_frame is not None and k < k1:
                 on_frame(1)
     return edges

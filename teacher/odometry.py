@@ -37,7 +37,11 @@ class FrameFeatures:
     repeats the previous frame's image (see :func:`stale_stream`); ``colour_behind`` by
     :class:`teacher.window.EdgeWindow` when the colour image shows an earlier moment than
     the depth (a repeated colour image, or a whole repeat of such a frame), with photometric
-    maps only.
+    maps only. ``depth_offset`` (s), set by the window for a frame whose depth was taken at
+    another moment than its colour (``cfg.depth_time_compensation``), is the depth's time
+    minus the colour's: the dense steps of its edges align the depth maps between their
+    moments and move the result to the colour moments (:func:`estimate_edge`). 0: the same
+    moment.
     """
 
     uv: NDArray[np.float32]
@@ -49,6 +53,7 @@ class FrameFeatures:
     keys: tuple[bytes, bytes] = (b"", b"")
     stale: bool = False
     colour_behind: bool = False
+    depth_offset: float = 0.0
     _tree: Optional[cKDTree] = None
 
     @property
@@ -625,6 +630,54 @@ def _project(X: NDArray, K: NDArray) -> NDArray[np.float64]:
     return np.stack([K[0, 0] * X[:, 0] / z + K[0, 2], K[1, 1] * X[:, 1] / z + K[1, 2]], axis=1)
 
 
+def _moved(fi: FrameFeatures, fj: FrameFeatures, dt: float) -> bool:
+    """Whether the edge's depth maps were taken at other moments than its colour images."""
+    return (fi.depth_offset != 0.0 or fj.depth_offset != 0.0) and dt > 0
+
+
+def _depth_moments(T: NDArray, fi: FrameFeatures, fj: FrameFeatures, dt: float) -> NDArray:
+    """``T_i_j`` between the frames' colour moments, ``dt`` seconds apart -> between their
+    depth moments (``depth_offset`` later each): ``C_i^-1 T C_j``, ``C = exp(o xi)`` for
+    the constant velocity ``xi = log(T) / dt`` of the motion itself (unchanged without
+    offsets)."""
+    if not _moved(fi, fj, dt):
+        return T
+    xi = geo.se3_log(T) / dt
+    return geo.se3_exp(-fi.depth_offset * xi) @ T @ geo.se3_exp(fj.depth_offset * xi)
+
+
+def _to_colour_moments(res: "EdgeEstimate", fi: FrameFeatures, fj: FrameFeatures, dt: float) -> "EdgeEstimate":
+    """An estimate between the frames' depth moments (a dense alignment) -> between their
+    colour moments, ``dt`` seconds apart, in place: ``T = C_i T_d C_j^-1``, ``C = exp(o xi)``
+    at the constant velocity of the result itself, ``xi = log(T_d) / (dt + o_j - o_i)`` (the
+    depth moments' time apart; ``dt`` where that is under a quarter of it). The velocity is
+    the edge's own: neither an earlier motion's lag nor its noise enters. The covariance is
+    moved with ``C_j`` and scaled by the ratio of the two time spans (first order)."""
+    if not _moved(fi, fj, dt) or res.T_i_j is None:
+        return res
+    span = dt + fj.depth_offset - fi.depth_offset
+    span = span if span > dt / 4 else dt
+    xi = geo.se3_log(res.T_i_j) / span
+    C_j = geo.se3_exp(fj.depth_offset * xi)
+    res.T_i_j = geo.orthonormalize(geo.se3_exp(fi.depth_offset * xi) @ res.T_i_j @ geo.inv_T(C_j))
+    if res.cov is not None:
+        Ad = geo.adjoint(C_j)
+        res.cov = (dt / span) ** 2 * (Ad @ res.cov @ Ad.T)
+    return res
+
+
+def _cov_to_depth_moments(cov: Optional[NDArray], T: NDArray, fi: FrameFeatures, fj: FrameFeatures,
+                          dt: float) -> Optional[NDArray]:
+    """The covariance of ``T`` (between colour moments) as one of :func:`_depth_moments`'s
+    result (the inverse of :func:`_to_colour_moments`'s, first order)."""
+    if cov is None or not _moved(fi, fj, dt):
+        return cov
+    span = dt + fj.depth_offset - fi.depth_offset
+    span = span if span > dt / 4 else dt
+    Ad = geo.adjoint(geo.se3_exp(-fj.depth_offset * geo.se3_log(T) / dt))
+    return (span / dt) ** 2 * (Ad @ cov @ Ad.T)
+
+
 def _residuals(T: NDArray, P_i: NDArray, uv_j: NDArray, Q_j: NDArray, uv_i: NDArray, K: NDArray,
                with_jac: bool, P_b: Optional[NDArray] = None, w3: float = 0.0) -> tuple[NDArray, Optional[NDArray]]:
     """Two-way reprojection residuals of ``T = T_i_j`` and their Jacobians w.r.t. a right
@@ -797,6 +850,15 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
     gap-1 edge (``cfg.fallback_span_start``) when it differs from ``T_pred``; of the two
     results that pass its checks, the one that pairs more pixels (fitness) is taken
     (:func:`_rgbd_starts`).
+
+    ``T_pred``, ``T_alt`` and the result are motions between the frames' colour moments. Where
+    a frame's depth was taken at another moment (``depth_offset``, see :class:`FrameFeatures`),
+    the dense steps and fallbacks, which align depth maps, start from the motion between the
+    depth moments and their results are moved back, both at the constant velocity of the
+    edge's own motion (:func:`_depth_moments`, :func:`_to_colour_moments`). The keypoints
+    keep the depth read at their pixels: moving them to the colour moment too (by the last
+    gap-1 motion's velocity, or by the PnP estimate's) made synthetic/lab's gap-1 labels
+    at most 4 % better and its trajectory worse (``depth_time_compensation``).
     """
     span = dt if span is None else span
     attempts = []
@@ -829,7 +891,9 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
         # a gap-1 edge beside a frame whose colour shows an earlier moment than its depth:
         # neither its keypoints nor its grey belong to its depth; the depth term alone (a
         # repeated depth map is left to the keypoints: the same image, the identity)
-        depth = rgbd_edge(i, j, fi, fj, intr, cfg, span, np.eye(4) if T_pred is None else T_pred, depth_only=True)
+        depth = rgbd_edge(i, j, fi, fj, intr, cfg, span, _depth_moments(np.eye(4) if T_pred is None else T_pred, fi, fj, dt),
+                          depth_only=True)
+        _to_colour_moments(depth, fi, fj, dt)
         if depth.ok:
             depth.info["path"], depth.info["sparse_status"] = "depth", best.status
             depth.info["dense"]["stale_stream"] = fi.stale or fj.stale
@@ -837,31 +901,39 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
             return depth
         best.info["depth_step"] = depth.status
     if not best.ok and cfg.fallback_dense and fi.dense is not None and fj.dense is not None:
-        T0 = np.eye(4) if T_pred is None else T_pred
+        T0 = _depth_moments(np.eye(4) if T_pred is None else T_pred, fi, fj, dt)
         if cfg.fallback_rgbd:
-            rgbd = _rgbd_starts(i, j, fi, fj, intr, cfg, span, T0, None if tracks is not None else T_alt,
-                                chained=tracks is not None and T_pred is not None)
+            alt = None if tracks is not None or T_alt is None else _depth_moments(T_alt, fi, fj, dt)
+            rgbd = _to_colour_moments(_rgbd_starts(i, j, fi, fj, intr, cfg, span, T0, alt,
+                                                   chained=tracks is not None and T_pred is not None), fi, fj, dt)
             rgbd.info["sparse_status"] = best.status
             if rgbd.ok:
                 return rgbd
             best.info["rgbd_fallback"] = rgbd.status
-        depth_only = dense_edge(i, j, fi.dense, fj.dense, cfg, span, T0)
+        depth_only = _to_colour_moments(dense_edge(i, j, fi.dense, fj.dense, cfg, span, T0), fi, fj, dt)
         depth_only.info["sparse_status"] = best.status
         if depth_only.ok:
             return depth_only
         best.info["dense_fallback"] = depth_only.status
     if dense and best.ok and fi.dense is not None and fj.dense is not None:
         stale = fi.stale or fj.stale
+        moved = _moved(fi, fj, dt)
+        if moved:  # the dense step aligns the depth maps: between their moments
+            best.cov = _cov_to_depth_moments(best.cov, best.T_i_j, fi, fj, dt)
+            best.T_i_j = _depth_moments(best.T_i_j, fi, fj, dt)
         dense_refine(best, fi.dense, fj.dense, cfg, blend=1.0 if stale and cfg.dense_on_stale else None,
                      hybrid=tracks is None or cfg.hybrid_all_gaps)
+        if moved:
+            _to_colour_moments(best, fi, fj, dt)
         if "dense" in best.info:
             best.info["dense"]["stale_stream"] = stale
         if (cfg.fallback_rgbd and T_pred is not None and _dense_disagrees(best.info.get("dense", {}), cfg)
                 and fi.dense.photo is not None and fj.dense.photo is not None):
             # the depth, started at the keypoints' estimate, moved too far from it: the
             # keypoints may agree on a wrong motion; the rgbd fallback from the prediction
-            rgbd = _rgbd_starts(i, j, fi, fj, intr, cfg, span, T_pred, None if tracks is not None else T_alt,
-                                chained=tracks is not None)
+            alt = None if tracks is not None or T_alt is None else _depth_moments(T_alt, fi, fj, dt)
+            rgbd = _to_colour_moments(_rgbd_starts(i, j, fi, fj, intr, cfg, span, _depth_moments(T_pred, fi, fj, dt), alt,
+                                                   chained=tracks is not None), fi, fj, dt)
             if rgbd.ok:
                 rgbd.info["sparse_status"] = "dense_disagrees"
                 return rgbd

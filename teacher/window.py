@@ -102,17 +102,20 @@ class EdgeWindow:
     def _starts_inside(self, pos: int) -> bool:
         return self.until is None or pos < self.until
 
-    def add(self, frame_id: int, timestamp: float, fk: FrameFeatures) -> list[EdgeEstimate]:
+    def add(self, frame_id: int, timestamp: float, fk: FrameFeatures, depth_offset: float = 0.0) -> list[EdgeEstimate]:
         """The edges ending at the new frame (failed ones included: ``e.ok`` False), the
         gap-1 edge first, then the longer ones from the oldest frame on. Sets ``fk.stale``.
         (:meth:`add_gap1` then :meth:`add_longer`.)"""
-        return self.add_gap1(frame_id, timestamp, fk) + self.add_longer()
+        return self.add_gap1(frame_id, timestamp, fk, depth_offset) + self.add_longer()
 
-    def add_gap1(self, frame_id: int, timestamp: float, fk: FrameFeatures) -> list[EdgeEstimate]:
+    def add_gap1(self, frame_id: int, timestamp: float, fk: FrameFeatures,
+                 depth_offset: float = 0.0) -> list[EdgeEstimate]:
         """The first half of :meth:`add`: the gap-1 edge ending at the new frame (a list of
         it; empty for the first frame or one before ``until``'s range), and the feature
         tracks and chained motions extended to the new frame. :meth:`add_longer` must follow
-        before the next frame (``vo-online`` writes the frame's pose in between)."""
+        before the next frame (``vo-online`` writes the frame's pose in between).
+        ``timestamp`` is the frame's colour image's; ``depth_offset`` its depth image's time
+        minus that (s; see :meth:`_to_colour_moment`)."""
         if self._pending is not None:
             raise RuntimeError("EdgeWindow.add_longer() must follow add_gap1() before the next frame")
         cfg, intr = self.cfg, self.intr
@@ -131,6 +134,7 @@ class EdgeWindow:
                 elif same_colour:
                     fk.dense.photo, fk.colour_behind = fk.dense.photo.depth_only(), True
         self.prev_keys = fk.keys
+        self._to_colour_moment(fk, depth_offset)
         photo = fk.dense.photo if fk.dense is not None else None
         state = (photo, fk.colour_behind)
         self._prev_photo = lambda: state
@@ -204,6 +208,19 @@ class EdgeWindow:
             return self.v_prev
         r = dt / self.dt_prev
         return self.v_prev if 2 / 3 < r < 1.5 else geo.se3_exp(r * geo.se3_log(self.v_prev))
+
+    def _to_colour_moment(self, fk: FrameFeatures, depth_offset: float) -> None:
+        """A frame whose depth was taken ``depth_offset`` seconds after its colour (before,
+        when negative), with ``cfg.depth_time_compensation``: ``fk.depth_offset``, so its
+        edges' dense steps align the depth maps between their moments and return to the
+        colour moments at the edge's own velocity (:func:`teacher.odometry.estimate_edge`),
+        and no photometric maps (they would pair the colour of one moment with the depth of
+        another: its dense steps take the depth alone). Nothing changes without an offset."""
+        if depth_offset == 0.0 or not self.cfg.depth_time_compensation:
+            return
+        fk.depth_offset = float(depth_offset)
+        if fk.dense is not None:
+            fk.dense.photo = None
 
     def _prediction(self, fi: FrameFeatures, fj: FrameFeatures, i_repeats_depth: bool,
                     cv: Optional[NDArray[np.float64]]) -> Optional[NDArray[np.float64]]:

@@ -44,6 +44,7 @@ def test_bag_reads_like_the_folder(bags, tum_seq, kind):
     assert isinstance(seq, bag.BagSequence)
     assert len(seq) == len(tum_seq)
     np.testing.assert_allclose(seq.times(), tum_seq.times(), atol=1e-9)
+    np.testing.assert_array_equal(seq.depth_times(), tum_seq.depth_times())  # the depth messages' own stamps, exactly
     assert seq.intrinsics == tum_seq.intrinsics
     np.testing.assert_allclose(seq.groundtruth(), tum_seq.groundtruth(), atol=1e-9)
     for k in (0, 1, 7, 3, 23):  # in order, then backwards (restarts the pass)

@@ -337,6 +337,10 @@ def test_tum_fr1_xyz_association(tum_fr1_xyz: Path) -> None:
     np.testing.assert_array_equal(seq.ids(), np.arange(792))
     np.testing.assert_array_equal(seq.times(), t_rgb[ia])
     assert seq.assoc_dt.max() < 0.02
+    np.testing.assert_array_equal(seq.depth_times(), t_depth[ib])
+    off = seq.depth_offsets()
+    np.testing.assert_allclose(off, t_depth[ib] - t_rgb[ia])
+    assert np.median(off) == pytest.approx(-0.00376, abs=1e-4)  # measured: depth ~4 ms before colour
     assert seq._depth_files[0].startswith("depth/") and seq._rgb_files[0] == "rgb/1305031102.175304.png"
 
 
@@ -402,6 +406,10 @@ def test_tum_lazy_reading(tmp_path: Path) -> None:
     np.testing.assert_allclose(gt[:, 0, 3], 0.1 * np.arange(4), atol=1e-6)
     fr = seq.select(1, 3).frame(1)
     assert fr.frame_id == 2 and fr.timestamp == pytest.approx(1000.2)
+    # the depth images' own timestamps (5 ms after the RGB ones here) are carried along
+    np.testing.assert_allclose(seq.depth_times(), 1000.005 + 0.1 * np.arange(4))
+    np.testing.assert_allclose(seq.select(1, 3).depth_offsets(), 0.005, atol=1e-6)
+    assert fr.depth_timestamp == pytest.approx(1000.205) and fr.depth_offset == pytest.approx(0.005, abs=1e-6)
     # images are read on demand: a missing image only fails when that frame is read
     missing = folder / seq._rgb_files[3]
     missing.unlink()
@@ -531,3 +539,26 @@ def test_frame_ranges_overlap():
     assert not frame_ranges_overlap("0:375", "450:600") and not frame_ranges_overlap(":100", "100:")
     assert frame_ranges_overlap("0:10:2", "5:6")  # steps ignored: the intervals share frames
     assert frame_ranges_overlap("-50:", "0:10")  # from the end: assumed to overlap
+
+
+def test_depth_timestamps_default_and_file(tmp_path: Path) -> None:
+    """7-Scenes has no depth timestamps (the colour's); a ``depth-offsets.txt`` beside the
+    frames gives them; a malformed or incomplete one is a DataError naming it."""
+    seq_dir = make_7scenes_seq(tmp_path / "s" / "seq-01", n=3)
+    seq = SevenScenesSequence(seq_dir)
+    assert seq.depth_timestamps is None and seq.frame(1).depth_timestamp is None
+    np.testing.assert_array_equal(seq.depth_times(), seq.times())
+    np.testing.assert_array_equal(seq.depth_offsets(), np.zeros(3))
+    (seq_dir / "depth-offsets.txt").write_text("# frame_id offset\n0 -0.004\n1 0.002\n2 -0.010\n")
+    seq = SevenScenesSequence(seq_dir)
+    np.testing.assert_allclose(seq.select(1, 3).depth_offsets(), [0.002, -0.010])
+    assert seq.frame(2).depth_offset == pytest.approx(-0.010)
+    (seq_dir / "depth-offsets.txt").write_text("0 -0.004\n1 0.002\n")
+    with pytest.raises(DataError, match="no offset for frame 2"):
+        SevenScenesSequence(seq_dir)
+    (seq_dir / "depth-offsets.txt").write_text("0 -0.004\n1 nan\n2 0\n")
+    with pytest.raises(DataError, match="depth-offsets.txt:2"):
+        SevenScenesSequence(seq_dir)
+    (seq_dir / "depth-offsets.txt").write_text("0 -0.004 x\n")
+    with pytest.raises(DataError, match="depth-offsets.txt:1"):
+        SevenScenesSequence(seq_dir)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import data.synthetic as syn
-from data.errors import DataError
+from data.errors import ConfigError, DataError
 from data.geometry import is_rigid
 from data.scenes import open_scene
 from data.synthetic.config import PRESETS, SensorConfig
@@ -370,3 +370,33 @@ def test_corpus_spec(tmp_path: Path, monkeypatch):
     opened = []
     monkeypatch.setattr(syn, "synthetic_sequence", lambda name, cache_dir=None: opened.append(name) or name)
     assert open_scene("synthetic/corpus-2x3", cache_dir=tmp_path) == ["room-0x3", "room-1x3"] == opened
+
+
+def test_depth_time_offsets_are_drawn_written_and_read_back(tmp_path: Path):
+    """``depth_time_offset_s``: per-frame offsets uniform in the range, deterministic for the
+    seed, written as ``depth-offsets.txt`` and read back as the depth timestamps; the depth
+    image of a frame is rendered from the pose at its own moment (the frame's pose, and
+    timestamp, are the colour's). Bad ranges and offsets with repeated frames are refused."""
+    base = PRESETS["tiny"]
+    sensor = dataclasses.replace(base.sensor, frame_repeat_prob=0.0, rgb_repeat_prob=0.0, depth_repeat_prob=0.0,
+                                 depth_time_offset_s=(-0.0167, -0.002))
+    cfg = dataclasses.replace(base, frames=4, sensor=sensor)
+    assert cfg.digest() != dataclasses.replace(cfg, sensor=dataclasses.replace(sensor, depth_time_offset_s=(0.0, 0.0))).digest()
+    assert base.digest() == "6864bae2"  # the new field leaves the cache folders of the scenes without it
+    off = syn.depth_time_offsets(cfg, 200)
+    assert off.min() >= -0.0167 and off.max() <= -0.002 and np.ptp(off) > 0.01
+    np.testing.assert_array_equal(off, syn.depth_time_offsets(cfg, 200))
+    assert not syn.depth_time_offsets(base, 5).any()
+    fr = syn.FrameRenderer(cfg, *syn.build(cfg))
+    _, depth, exact = fr.frame(2)
+    shifted = fr.renderer.render(fr.row_poses(2, float(fr.depth_offsets[2]))).crop(*fr.pad)
+    np.testing.assert_array_equal(exact.depth, shifted.depth)
+    assert not np.array_equal(exact.depth, fr.renderer.render(fr.row_poses(2)).crop(*fr.pad).depth)
+    seq = syn.synthetic_sequence("tiny", cache_dir=tmp_path, config=cfg)
+    np.testing.assert_allclose(seq.depth_offsets(), syn.depth_time_offsets(cfg, 4), atol=1e-9)
+    np.testing.assert_allclose(seq.times(), np.arange(4) / 30)
+    with pytest.raises(ConfigError, match="repeated frames"):
+        syn.depth_time_offsets(dataclasses.replace(base, sensor=dataclasses.replace(
+            base.sensor, depth_time_offset_s=(-0.01, 0.0))), 4)
+    with pytest.raises(ConfigError, match="within one frame"):
+        syn.depth_time_offsets(dataclasses.replace(cfg, sensor=dataclasses.replace(sensor, depth_time_offset_s=(0.01, -0.01))), 4)

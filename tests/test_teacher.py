@@ -1222,3 +1222,70 @@ def test_plausibility_bound_and_second_start_follow_the_depth_moments(office_cle
     assert _moments_before(rep, 6) == (float(times[4]), float(times[4]))
     assert _moments_before(rep, 5) == (float(times[4]), float(times[4]))
     assert _moments_before(rep, 1) == (float(times[0]), float(times[0]))
+
+
+def test_motion_between_depth_moments_is_moved_to_the_colour_moments():
+    """At constant velocity xi, depth maps taken o_i and o_j seconds after their colour
+    images move by exp((dt + o_j - o_i) xi) while the colour moments move by exp(dt xi):
+    :func:`_to_colour_moments` recovers the latter from the former (its covariance scaled
+    by the ratio of the time spans), :func:`_depth_moments` goes the other way, and frames
+    without offsets are left alone."""
+    from teacher.odometry import FrameFeatures, _depth_moments, _to_colour_moments
+
+    def frame(offset):
+        return FrameFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32),
+                             np.zeros((4, 4), np.uint8), np.zeros((4, 4), np.float32), depth_offset=offset)
+
+    xi, dt = np.array([0.24, -0.05, 0.1, 0.05, 0.12, -0.08]), 1 / 30  # m/s, rad/s
+    fi, fj = frame(-0.0152), frame(-0.0031)
+    T_colour = geo.se3_exp(dt * xi)
+    T_depth = geo.se3_exp((dt + fj.depth_offset - fi.depth_offset) * xi)
+    res = EdgeEstimate(0, 1, "ok", T_i_j=T_depth.copy(), cov=np.eye(6))
+    _to_colour_moments(res, fi, fj, dt)
+    np.testing.assert_allclose(res.T_i_j, T_colour, atol=1e-9)
+    assert np.linalg.norm(T_depth[:3, 3] - T_colour[:3, 3]) > 2e-3  # what was left before: 2.9 mm
+    s = dt / (dt + fj.depth_offset - fi.depth_offset)
+    np.testing.assert_allclose(np.diag(res.cov)[3:], s * s, rtol=1e-3)  # rotations: only the scale
+    np.testing.assert_allclose(_depth_moments(T_colour, fi, fj, dt), T_depth, atol=1e-12)
+    same = EdgeEstimate(0, 1, "ok", T_i_j=T_depth.copy(), cov=np.eye(6))
+    _to_colour_moments(same, frame(0.0), frame(0.0), dt)
+    assert np.array_equal(same.T_i_j, T_depth) and np.array_equal(same.cov, np.eye(6))
+
+
+def test_adjoint_moves_a_right_perturbation():
+    rng = np.random.default_rng(0)
+    T, d = geo.se3_exp(rng.normal(size=6)), 1e-3 * rng.normal(size=6)
+    np.testing.assert_allclose(T @ geo.se3_exp(d) @ geo.inv_T(T), geo.se3_exp(geo.adjoint(T) @ d), atol=1e-12)
+
+
+def test_colour_depth_offsets_compensated_on_a_synthetic_walk(tmp_path):
+    """A walk whose depth images are taken 0-17 ms before their colour images (the sensor
+    model's ``depth_time_offset_s``, TUM-like; the poses are the colour moments'): with
+    ``depth_time_compensation`` the gap-1 labels of the point-to-plane teacher (real
+    recordings' dense step) are closer to the ground truth than without it. Without offsets
+    the option changes no edge, bit for bit."""
+    from data.synthetic import synthetic_sequence
+    from data.synthetic.config import PRESETS
+
+    base = PRESETS["tiny"]
+    sensor = dataclasses.replace(base.sensor, frame_repeat_prob=0.0, rgb_repeat_prob=0.0, depth_repeat_prob=0.0)
+    offset = dataclasses.replace(base, frames=20, sensor=dataclasses.replace(sensor, depth_time_offset_s=(-1 / 60, 0.0)))
+    seq = synthetic_sequence("tiny", cache_dir=tmp_path, config=offset)
+    assert seq.depth_offsets().min() < -0.01
+    gt = seq.groundtruth()
+    rms = {}
+    for on in (True, False):
+        run = run_sequence(seq, dataclasses.replace(TeacherConfig(), gaps=1, workers=1, depth_time_compensation=on,
+                                                    dense_method="point-to-plane"), progress=False)
+        err = np.array([relative_pose_error(geo.relative_pose(gt[k], gt[k + 1]),
+                                            geo.relative_pose(run.poses[k], run.poses[k + 1]))
+                        for k in range(len(gt) - 1)])
+        rms[on] = np.sqrt(np.mean(err ** 2, axis=0))
+    # measured: 5.72 against 7.13 mm, 0.130 against 0.155 deg (the same walk without offsets: 3.91 mm, 0.096 deg)
+    assert rms[True][0] < 0.9 * rms[False][0] and rms[True][1] < 0.95 * rms[False][1], rms
+    same = synthetic_sequence("tiny", cache_dir=tmp_path, config=dataclasses.replace(base, frames=8))
+    runs = [run_sequence(same, dataclasses.replace(TeacherConfig(), gaps=2, workers=1, depth_time_compensation=on),
+                         progress=False) for on in (True, False)]
+    assert [(e.i, e.j, e.status) for e in runs[0].edges] == [(e.i, e.j, e.status) for e in runs[1].edges]
+    for a, b in zip(runs[0].edges, runs[1].edges):
+        assert np.array_equal(a.T_i_j, b.T_i_j) and np.array_equal(a.cov, b.cov)

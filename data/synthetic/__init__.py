@@ -135,6 +135,7 @@ class FrameRenderer:
         self.bank = NoiseBank(c.seed, c.width * c.height)
         self.depth_bias = depth_bias_field(c.sensor, (c.height, c.width), c.seed)
         self.gains = exposure_gains(c.sensor, np.arange(len(poses)) / c.fps, np.random.default_rng([c.seed, 2]))
+        self.depth_offsets = depth_time_offsets(c, len(poses))
         gv, gu = np.mgrid[c.height // 12: c.height: c.height // 6, c.width // 16: c.width: c.width // 8]
         self._grid = np.stack([gu.ravel(), gv.ravel()], 1)
         self.K = np.array([[c.fx, 0, c.cx], [0, c.fy, c.cy], [0, 0, 1.0]])
@@ -160,15 +161,18 @@ class FrameRenderer:
             proj.append(uv.T)
         return ((proj[1] - proj[0]) / max(b - a, 1)).mean(0)
 
-    def row_poses(self, k: int) -> NDArray[np.float64]:
+    def row_poses(self, k: int, offset_s: float = 0.0) -> NDArray[np.float64]:
         """Rolling shutter: pose of every rendered row (H + 2 py, 4, 4) of frame ``k`` (rows
         of the padding, see :attr:`pad`, included), from the camera's velocity (central
-        difference of the neighbouring poses); the middle row has the frame's pose."""
+        difference of the neighbouring poses); the middle row has the frame's pose, or the
+        pose ``offset_s`` seconds later (an image taken then: the depth of a frame with a
+        colour-depth time offset, ``depth_time_offset_s``)."""
         c, n = self.config, len(self.poses)
         a, b = max(k - 1, 0), min(k + 1, n - 1)
         xi = se3_log(relative_pose(self.poses[a], self.poses[b])) / max(b - a, 1)  # (v, w) per frame
         py = self.pad[1]
         s = ((np.arange(c.height + 2 * py) - py) / max(c.height - 1, 1) - 0.5) * c.sensor.rolling_shutter_s * c.fps
+        s = s + offset_s * c.fps
         Tk = self.poses[k]
         out = np.repeat(Tk[None], len(s), 0)
         # first order in the (tiny) per-row motion: R_k exp(w s), t_k + R_k v s
@@ -188,6 +192,8 @@ class FrameRenderer:
         rolling = c.sensor.rolling_shutter_s > 0 and not c.sensor.noise_free and len(self.poses) > 1
         padded = self.renderer.render(self.row_poses(k) if rolling else self.poses[k])
         exact = padded.crop(*self.pad)
+        if self.depth_offsets[k] != 0.0:  # the depth image is taken at another moment: rendered again
+            exact = self.renderer.render(self.row_poses(k, float(self.depth_offsets[k]))).crop(*self.pad)
         rng = np.random.default_rng([c.seed, 3, k])
         depth = depth_sensor(exact.depth, exact.cos_incidence, c.fx, c.sensor, rng, self.bank, self.depth_bias)
         flow = self.image_flow(k, exact) if (c.sensor.motion_blur_exposure > 0 and not c.sensor.noise_free) else np.zeros(2)
@@ -238,6 +244,31 @@ def intrinsics_text(config: SceneConfig) -> str:
 
 #: :func:`repeat_plan` codes: new frame, whole frame repeated, colour only, depth (and pose) only
 NEW, REPEAT_FRAME, REPEAT_RGB, REPEAT_DEPTH = 0, 1, 2, 3
+
+
+def depth_time_offsets(config: SceneConfig, n: int) -> NDArray[np.float64]:
+    """Depth minus colour time of each of ``n`` frames, seconds (n,): uniform in the sensor's
+    ``depth_time_offset_s`` range, deterministic for the seed; zeros when the range is (0, 0)
+    or the sensor is noise-free. A ConfigError for a reversed range, an offset of a frame
+    period or more, or offsets together with repeated frames (whose poses follow the depth)."""
+    s = config.sensor
+    lo, hi = (float(v) for v in s.depth_time_offset_s)
+    if s.noise_free or (lo == 0.0 and hi == 0.0):
+        return np.zeros(n)
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo <= hi and max(abs(lo), abs(hi)) < 1.0 / config.fps):
+        raise ConfigError(f"depth_time_offset_s {s.depth_time_offset_s} must be a range lo <= hi within one frame "
+                          f"period ({1.0 / config.fps:.4f} s)")
+    if s.frame_repeat_prob or s.rgb_repeat_prob or s.depth_repeat_prob:
+        raise ConfigError("depth_time_offset_s cannot be combined with repeated frames (frame_repeat_prob, "
+                          "rgb_repeat_prob, depth_repeat_prob must be 0): a repeated depth image's pose is the depth's")
+    return np.random.default_rng([config.seed, 7]).uniform(lo, hi, n)
+
+
+def write_depth_offsets(seq_dir: Path, offsets: NDArray[np.float64]) -> None:
+    """``depth-offsets.txt``: ``frame_id offset_s`` per frame (depth minus colour time), read
+    back by :class:`~data.sevenscenes.SevenScenesSequence` as the frames' depth timestamps."""
+    rows = "".join(f"{k} {v:.9f}\n" for k, v in enumerate(offsets))
+    write_text(seq_dir / "depth-offsets.txt", "# frame_id depth_minus_colour_time_s\n" + rows)
 
 
 def repeat_plan(sensor: SensorConfig, n: int, seed: int) -> NDArray[np.int8]:
@@ -317,6 +348,8 @@ def render_scene(config: SceneConfig, out_dir: Path, workers: Optional[int] = No
         log.info("rendering synthetic scene %s (%d frames, %d triangles) into %s",
                  out_dir.name, config.frames, len(scene.triangles), out_dir)
         plan = repeat_plan(config.sensor, len(poses), config.seed)
+        if fr.depth_offsets.any():
+            write_depth_offsets(seq_dir, fr.depth_offsets)
         _render_frames(fr, seq_dir, workers, desc=f"render {out_dir.name}", plan=plan)
         seconds = time.perf_counter() - t0
         write_json(tmp / "config.json", {

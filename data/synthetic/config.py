@@ -83,6 +83,14 @@ class SensorConfig:
     free-running 30 Hz sensors read out over most of the frame period); each row is
     seen from the pose at its own time, the ground truth is the pose at the middle row.
     0 = global shutter."""
+    depth_time_offset_s: tuple[float, float] = (0.0, 0.0)
+    """Colour-depth timing: each frame's depth image is taken this many seconds after its
+    colour image (before, when negative), drawn per frame uniformly from ``[lo, hi]``; the
+    frame's timestamp and pose are the colour image's, and the depth image's time is written
+    (``seq-01/depth-offsets.txt``). TUM RGB-D's free-running Kinect streams, as associated
+    (fr1/xyz, depth minus RGB timestamp: median -8.4 ms, 5-95 % -15.9 to -3.6 ms), are
+    roughly ``(-0.0167, 0.0)``. (0, 0) = the same moment (7-Scenes, whose ground truth follows
+    the depth). Not combined with repeated frames (their poses follow the depth)."""
     residual_distortion_k1: float = 0.015
     """Unmodelled radial distortion (division model ``x = x_d / (1 + k1 r_d^2)``, ~3 px at
     the corners) of the camera whose pinhole intrinsics are written. 0 = exact pinhole."""
@@ -191,6 +199,9 @@ class SceneConfig:
         for name, default in _LATE_FIELDS.items():
             if cfg.get(name) == default:
                 cfg.pop(name)
+        for name, default in _LATE_SENSOR_FIELDS.items():
+            if tuple(cfg["sensor"].get(name, ())) == default:
+                cfg["sensor"].pop(name, None)
         blob = json.dumps({"v": RENDER_VERSION, "cfg": cfg}, sort_keys=True)
         return hashlib.sha1(blob.encode()).hexdigest()[:8]
 
@@ -217,6 +228,8 @@ CLEAN_SUFFIX = "-clean"
 
 #: SceneConfig fields added after RENDER_VERSION 10, with their defaults (see SceneConfig.digest)
 _LATE_FIELDS = {"texture_style": "default"}
+#: SensorConfig fields added after RENDER_VERSION 10, with their defaults (as dataclasses.asdict writes them)
+_LATE_SENSOR_FIELDS = {"depth_time_offset_s": (0.0, 0.0)}
 
 
 #: first seed of the training corpus rooms (the named scenes use seeds below 100)
