@@ -646,6 +646,13 @@ def _depth_moments(T: NDArray, fi: FrameFeatures, fj: FrameFeatures, dt: float) 
     return geo.se3_exp(-fi.depth_offset * xi) @ T @ geo.se3_exp(fj.depth_offset * xi)
 
 
+def _depth_span(fi: FrameFeatures, fj: FrameFeatures, dt: float) -> float:
+    """Seconds between the edge's depth moments (its colour moments are ``dt`` apart);
+    ``dt`` where that is under a quarter of it."""
+    span = dt + fj.depth_offset - fi.depth_offset
+    return span if span > dt / 4 else dt
+
+
 def _to_colour_moments(res: "EdgeEstimate", fi: FrameFeatures, fj: FrameFeatures, dt: float) -> "EdgeEstimate":
     """An estimate between the frames' depth moments (a dense alignment) -> between their
     colour moments, ``dt`` seconds apart, in place: ``T = C_i T_d C_j^-1``, ``C = exp(o xi)``
@@ -655,8 +662,7 @@ def _to_colour_moments(res: "EdgeEstimate", fi: FrameFeatures, fj: FrameFeatures
     moved with ``C_j`` and scaled by the ratio of the two time spans (first order)."""
     if not _moved(fi, fj, dt) or res.T_i_j is None:
         return res
-    span = dt + fj.depth_offset - fi.depth_offset
-    span = span if span > dt / 4 else dt
+    span = _depth_span(fi, fj, dt)
     xi = geo.se3_log(res.T_i_j) / span
     C_j = geo.se3_exp(fj.depth_offset * xi)
     res.T_i_j = geo.orthonormalize(geo.se3_exp(fi.depth_offset * xi) @ res.T_i_j @ geo.inv_T(C_j))
@@ -672,8 +678,7 @@ def _cov_to_depth_moments(cov: Optional[NDArray], T: NDArray, fi: FrameFeatures,
     result (the inverse of :func:`_to_colour_moments`'s, first order)."""
     if cov is None or not _moved(fi, fj, dt):
         return cov
-    span = dt + fj.depth_offset - fi.depth_offset
-    span = span if span > dt / 4 else dt
+    span = _depth_span(fi, fj, dt)
     Ad = geo.adjoint(geo.se3_exp(-fj.depth_offset * geo.se3_log(T) / dt))
     return (span / dt) ** 2 * (Ad @ cov @ Ad.T)
 
@@ -885,15 +890,16 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
         if res.ok:
             break
     best.info["path"] = best.info["source"] if best.ok else "none"
+    # the dense alignments' starts, between the depth moments
+    T0 = _depth_moments(np.eye(4) if T_pred is None else T_pred, fi, fj, dt)
+    alt = None if tracks is not None or T_alt is None else _depth_moments(T_alt, fi, fj, dt)
     if (tracks is None and cfg.depth_beside_colour_repeat and beside_colour_repeat(fi, fj)
             and fi.dense is not None and fj.dense is not None
             and fi.dense.photo is not None and fj.dense.photo is not None):
         # a gap-1 edge beside a frame whose colour shows an earlier moment than its depth:
         # neither its keypoints nor its grey belong to its depth; the depth term alone (a
         # repeated depth map is left to the keypoints: the same image, the identity)
-        depth = rgbd_edge(i, j, fi, fj, intr, cfg, span, _depth_moments(np.eye(4) if T_pred is None else T_pred, fi, fj, dt),
-                          depth_only=True)
-        _to_colour_moments(depth, fi, fj, dt)
+        depth = _to_colour_moments(rgbd_edge(i, j, fi, fj, intr, cfg, span, T0, depth_only=True), fi, fj, dt)
         if depth.ok:
             depth.info["path"], depth.info["sparse_status"] = "depth", best.status
             depth.info["dense"]["stale_stream"] = fi.stale or fj.stale
@@ -901,9 +907,7 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
             return depth
         best.info["depth_step"] = depth.status
     if not best.ok and cfg.fallback_dense and fi.dense is not None and fj.dense is not None:
-        T0 = _depth_moments(np.eye(4) if T_pred is None else T_pred, fi, fj, dt)
         if cfg.fallback_rgbd:
-            alt = None if tracks is not None or T_alt is None else _depth_moments(T_alt, fi, fj, dt)
             rgbd = _to_colour_moments(_rgbd_starts(i, j, fi, fj, intr, cfg, span, T0, alt,
                                                    chained=tracks is not None and T_pred is not None), fi, fj, dt)
             rgbd.info["sparse_status"] = best.status
@@ -931,9 +935,8 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
                 and fi.dense.photo is not None and fj.dense.photo is not None):
             # the depth, started at the keypoints' estimate, moved too far from it: the
             # keypoints may agree on a wrong motion; the rgbd fallback from the prediction
-            alt = None if tracks is not None or T_alt is None else _depth_moments(T_alt, fi, fj, dt)
-            rgbd = _to_colour_moments(_rgbd_starts(i, j, fi, fj, intr, cfg, span, _depth_moments(T_pred, fi, fj, dt), alt,
-                                                   chained=tracks is not None), fi, fj, dt)
+            rgbd = _to_colour_moments(_rgbd_starts(i, j, fi, fj, intr, cfg, span, T0, alt, chained=tracks is not None),
+                                      fi, fj, dt)
             if rgbd.ok:
                 rgbd.info["sparse_status"] = "dense_disagrees"
                 return rgbd

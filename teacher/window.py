@@ -195,8 +195,7 @@ class EdgeWindow:
             return np.eye(4)
         if self.v_span is None or self.span_prev <= 0:
             return None
-        r = span / self.span_prev
-        return self.v_span if 2 / 3 < r < 1.5 else geo.se3_exp(r * geo.se3_log(self.v_span))
+        return _scaled(self.v_span, span / self.span_prev)
 
     def motion_over(self, dt: float) -> Optional[NDArray[np.float64]]:
         """The constant-velocity prediction over ``dt`` seconds: the last good gap-1 motion,
@@ -206,8 +205,7 @@ class EdgeWindow:
         camera's (TUM stamps frames on arrival). None before the first good gap-1 edge."""
         if self.v_prev is None or self.dt_prev <= 0 or dt <= 0:
             return self.v_prev
-        r = dt / self.dt_prev
-        return self.v_prev if 2 / 3 < r < 1.5 else geo.se3_exp(r * geo.se3_log(self.v_prev))
+        return _scaled(self.v_prev, dt / self.dt_prev)
 
     def _to_colour_moment(self, fk: FrameFeatures, depth_offset: float) -> None:
         """A frame whose depth was taken ``depth_offset`` seconds after its colour (before,
@@ -263,3 +261,10 @@ class EdgeWindow:
         for x in edges:
             x.inlier_pairs = None  # keeps results small
         return edges
+
+
+def _scaled(T: NDArray[np.float64], r: float) -> NDArray[np.float64]:
+    """A motion ``T`` scaled along its twist to ``r`` times its time (:meth:`EdgeWindow.motion_over`,
+    :meth:`EdgeWindow.motion_between`); ``T`` itself for ratios within 2/3-1.5, timestamp
+    jitter, which is the clock's and not the camera's."""
+    return T if 2 / 3 < r < 1.5 else geo.se3_exp(r * geo.se3_log(T))
