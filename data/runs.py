@@ -67,8 +67,10 @@ STAGE_VERSIONS: dict[str, int] = {
     # 5: huber_px 4 and refine_inlier_px 3 (re-selected on validation data; every label changes),
     # the plausibility bound from the moment a repeated image shows, the gap-1 rgbd fallback's
     # second start (fallback_span_start), colour-depth timing (depth_time_compensation: TUM
-    # RGB-D and bag labels)
-    "teacher": 5,
+    # RGB-D and bag labels); 6: the dense step stops at 2 mm / 0.08 deg updates (dense_stop_m,
+    # re-selected on validation data for speed) in the point-to-plane refinement; other dense
+    # alignments keep 0.5 mm / 0.02 deg (align_stop_m)
+    "teacher": 6,
     "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 1, "posegraph-calibrate": 1, "online": 1,
 }
 SYNTHETIC_PREFIX = "synthetic/"

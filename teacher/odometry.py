@@ -366,7 +366,7 @@ def hybrid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConf
     depth residuals, Huber-weighted Gauss-Newton; Park, Zhou & Koltun 2017) at one level:
     frame j's points of ``dj.points`` (every ``cfg.dense_scale``-th pixel) against frame i's
     full-resolution maps, from ``T_init`` (``T_i_j``), at most ``iters`` iterations,
-    stopping at ``cfg.dense_stop_m`` / ``cfg.dense_stop_deg`` updates. Returns (T_i_j,
+    stopping at ``cfg.align_stop_m`` / ``cfg.align_stop_deg`` updates. Returns (T_i_j,
     fitness, iterations, converged). Raises RuntimeError when no point pairs up.
     ``depth_only``: the depth term alone (:func:`_photo_pair`)."""
     pi, pj = _photo_pair(di, dj, depth_only)
@@ -376,9 +376,11 @@ def hybrid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConf
     return geo.orthonormalize(T.numpy()), fitness, n_it, converged
 
 
-def _small_step(delta: NDArray, cfg: TeacherConfig) -> bool:
-    """An iteration's update ``delta`` (4x4) is below ``cfg.dense_stop_m`` and ``cfg.dense_stop_deg``."""
-    return bool(np.linalg.norm(delta[:3, 3]) < cfg.dense_stop_m and geo.rotation_angle_deg(delta) < cfg.dense_stop_deg)
+def _small_step(delta: NDArray, stop_m: float, stop_deg: float) -> bool:
+    """An iteration's update ``delta`` (4x4) moves the pose by less than ``stop_m`` and
+    ``stop_deg``: ``cfg.dense_stop_m`` / ``_deg`` in the point-to-plane refinement of a keypoint
+    estimate, ``cfg.align_stop_m`` / ``_deg`` in every other dense alignment."""
+    return bool(np.linalg.norm(delta[:3, 3]) < stop_m and geo.rotation_angle_deg(delta) < stop_deg)
 
 
 def _hybrid_steps(src_depth: o3d.core.Tensor, src_intensity: o3d.core.Tensor, target: tuple, points: o3d.core.Tensor,
@@ -386,7 +388,8 @@ def _hybrid_steps(src_depth: o3d.core.Tensor, src_intensity: o3d.core.Tensor, ta
                   cfg: TeacherConfig) -> tuple[o3d.core.Tensor, float, int, bool]:
     """At most ``iters`` Gauss-Newton iterations of Open3D's hybrid kernel from ``T``
     (``target``: :func:`_kernel_maps` of the frame aligned to), stopping at a small update
-    (:func:`_small_step`). Returns (T, fitness, iterations, converged)."""
+    (:func:`_small_step` at ``cfg.align_stop_m`` / ``_deg``). Returns (T, fitness, iterations,
+    converged)."""
     fitness, converged, it = 0.0, False, 0
     for it in range(iters):
         step = o3d.t.pipelines.odometry.compute_odometry_result_hybrid(
@@ -394,7 +397,7 @@ def _hybrid_steps(src_depth: o3d.core.Tensor, src_intensity: o3d.core.Tensor, ta
             cfg.dense_huber_m, _photo_huber(cfg))
         T = step.transformation.matmul(T)
         fitness = float(step.fitness)
-        if _small_step(step.transformation.numpy(), cfg):
+        if _small_step(step.transformation.numpy(), cfg.align_stop_m, cfg.align_stop_deg):
             converged = True
             break
     return T, fitness, it + 1, converged
@@ -1031,7 +1034,7 @@ def _dense_stage(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
                 dj.points, di.vertex, di.normal, di.K, T, cfg.dense_trunc_m, cfg.dense_huber_m)
             T = step.transformation.matmul(T)
             fitness, rmse = float(step.fitness), float(step.inlier_rmse)
-            if _small_step(step.transformation.numpy(), cfg):
+            if _small_step(step.transformation.numpy(), cfg.dense_stop_m, cfg.dense_stop_deg):
                 break
     except RuntimeError:  # Open3D raises when no pixel pairs up
         out = {"accepted": False, "fitness": 0.0}
@@ -1096,7 +1099,7 @@ def dense_edge(i: int, j: int, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
                 dj.points, di.vertex, di.normal, di.K, T, cfg.dense_trunc_m, cfg.dense_huber_m)
             T = step.transformation.matmul(T)
             fitness = float(step.fitness)
-            if _small_step(step.transformation.numpy(), cfg):
+            if _small_step(step.transformation.numpy(), cfg.align_stop_m, cfg.align_stop_deg):
                 converged = True
                 break
     except RuntimeError as exc:  # no pixel pairs up, or a singular system (e.g. an exact plane)
