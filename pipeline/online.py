@@ -49,6 +49,7 @@ unless ``--overwrite``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import logging
 import queue
@@ -62,6 +63,7 @@ from typing import Iterator, Optional, Sequence, TextIO
 
 import numpy as np
 from numpy.typing import NDArray
+from threadpoolctl import threadpool_limits
 
 from data import geometry as geo
 from data.errors import ConfigError, DataError, VOError
@@ -479,6 +481,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     ends it early with every output written for the frames so far (``interrupted``)."""
     from data.formats import Edge
     from data.io import ensure_dir
+    from data.open3d_import import openmp_threads
     from teacher.config import DEFAULT as TEACHER_DEFAULT
 
     teacher_cfg = teacher_cfg or TEACHER_DEFAULT
@@ -515,6 +518,9 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
 
     def produce() -> None:
         try:
+            # OpenMP's thread count is per calling thread, and the labels depend on it
+            # (TeacherConfig.threads): this thread builds the dense maps, the main one aligns
+            threadpool_limits(teacher_cfg.threads, user_api="openmp")
             for k, frame in enumerate(source):
                 t_take, c_arr = time.perf_counter(), time.thread_time()
                 t_arr = source.arrival()  # the frame is here: latency counts from then
@@ -562,6 +568,8 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     fh = open(out / TRAJECTORY, "w")
     fh.write("# timestamp tx ty tz qx qy qz qw  (T_world_cam, metres; each frame's estimate when it arrived)\n")
     n = 0
+    omp = contextlib.ExitStack()
+    omp.enter_context(openmp_threads(teacher_cfg.threads))  # as batch runs (teacher.generate)
     producer.start()
     try:
         while True:
@@ -616,6 +624,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
         if bar is not None:
             bar.close()
         producer.join(timeout=5.0)
+        omp.close()
     seconds = time.perf_counter() - t_start
     if n == 0:
         (out / TRAJECTORY).unlink(missing_ok=True)  # nothing to keep

@@ -532,6 +532,17 @@ class TeacherConfig:
     """Worker processes; each handles chunks of consecutive frames (with a helper thread
     that decodes and extracts features ahead). 1: everything in the calling process. A machine
     setting: the project's 2-core VM; it shapes the edges only through the chunk bounds."""
+    threads: int = 1
+    """OpenMP (and BLAS) threads of each thread of the teacher. Open3D's kernels sum their
+    reductions in an order that depends on the thread count, so the labels do too: on
+    redkitchen 350:450 by up to 0.07 mm, on one synthetic colour-repeat edge by 2.4-4.2 mm
+    (tests/test_teacher.py). With 1 the labels do not depend on the machine's core count; the
+    cores are used by the worker processes (``workers``; two processes on two cores were
+    faster with one thread each than with two: redkitchen 48.0 against 45.6 fps, interleaved
+    runs). Part of the outputs' fingerprint.
+    Until the seventh session each process took ``cores // workers`` threads (all cores when
+    the sequence ran as one chunk), so the same command gave other labels on another
+    machine."""
     chunk_frames: int = 150
     """Frames per chunk; sequences shorter than two chunks run in the calling process. A speed
     setting: kept at 150 against 40 by fps on synthetic/office and the whole redkitchen sample,

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import sys
 import threading
 import time
@@ -41,6 +40,7 @@ from data.chain import chain_edges
 from data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
 from data.io import ensure_dir, git_revision, json_safe, write_json
 from data.metrics import relative_pose_error, trajectory_report
+from data.open3d_import import openmp_threads
 from data.runs import Fingerprint, claim, frames_id, output_folder, scene_id, stage_dir, write_fingerprint
 from data.scenes import open_scene
 from data.sequence import Sequence
@@ -104,10 +104,6 @@ def _run_chunks(seq: Sequence, cfg: TeacherConfig, bounds: list[tuple[int, int]]
     (synthetic/office, 300 frames: 1.8 s of 7.4). The chunk bounds depend only on the
     sequence length, so the edges do not depend on who computes which chunk.
     """
-    # Each process gets its share of the cores for OpenMP / BLAS (Open3D's kernels): with
-    # every process using every core they oversubscribe them (redkitchen, interleaved
-    # runs: 45.6 fps with 2 OpenMP threads per process, 48.0 with 1).
-    threads = max(1, (os.cpu_count() or 1) // cfg.workers)
     processes.start()
     todo = deque(bounds)
     lock = threading.Lock()
@@ -122,7 +118,7 @@ def _run_chunks(seq: Sequence, cfg: TeacherConfig, bounds: list[tuple[int, int]]
         try:
             children.submit(_started).result()
             while (ab := take(front=True)) is not None:
-                out += children.submit(_run_chunk, seq, cfg, *ab, None, threads).result()
+                out += children.submit(_run_chunk, seq, cfg, *ab, None).result()
                 on_frame(ab[1] - ab[0])
         except BaseException:
             todo.clear()  # the others stop after their current chunk
@@ -135,7 +131,7 @@ def _run_chunks(seq: Sequence, cfg: TeacherConfig, bounds: list[tuple[int, int]]
         fed = [feeders.submit(feed, children) for _ in range(cfg.workers - 1)]
         try:
             while (ab := take(front=False)) is not None:
-                edges += _run_chunk(seq, cfg, *ab, on_frame, threads)
+                edges += _run_chunk(seq, cfg, *ab, on_frame)
         except BaseException:
             todo.clear()
             raise
@@ -158,15 +154,14 @@ def _chunks(n: int, cfg: TeacherConfig) -> list[tuple[int, int]]:
 
 
 def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
-               on_frame: Optional[Callable[[int], object]] = None,
-               threads: Optional[int] = None) -> list[EdgeEstimate]:
+               on_frame: Optional[Callable[[int], object]] = None) -> list[EdgeEstimate]:
     """Edges (i, j) whose first frame position lies in [k0, k1), with j - i <= gaps.
 
     Frames k0 .. k1 + gaps - 1 are streamed once: one helper thread decodes and extracts
     features ahead; the main thread hands each frame to a :class:`teacher.window.EdgeWindow`
     (the gap-1 edge guided by constant velocity, its inliers extending the feature tracks,
     then the longer edges ending at that frame from the tracks, predicted by the chained
-    motion). ``threads`` limits the OpenMP / BLAS threads of both threads (None: no limit).
+    motion). Both threads run Open3D's kernels and BLAS with ``cfg.threads`` threads.
     """
     n = len(seq)
     ids, times, offsets = seq.ids(), seq.times(), seq.depth_offsets()
@@ -185,7 +180,8 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
                         prev_photo=lambda: _photo_before(seq, k0, cfg, orb, colour),
                         prev_moments=lambda: _moments_before(seq, k0))
     # OpenMP's thread count is per calling thread: limit this one and the helper
-    with threadpool_limits(threads), ThreadPoolExecutor(1, initializer=threadpool_limits, initargs=(threads,)) as pool:
+    with openmp_threads(cfg.threads), \
+            ThreadPoolExecutor(1, initializer=threadpool_limits, initargs=(cfg.threads,)) as pool:
         ahead = 3
         feat_futs: dict[int, Future] = {k: pool.submit(_extract, k) for k in range(k0, min(k_end, k0 + ahead))}
         for k in range(k0, k_end):

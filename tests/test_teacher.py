@@ -7,16 +7,17 @@ import dataclasses
 import json
 import os
 import shutil
+from pathlib import Path
 
 import cv2
 import gtsam
 import numpy as np
 import pytest
-from threadpoolctl import threadpool_limits
 
 from data import geometry as geo
 from data.formats import read_edges_csv, read_g2o, read_tum
 from data.metrics import relative_pose_error
+from data.open3d_import import openmp_threads
 from data.scenes import open_scene
 from teacher import cli
 from teacher.config import TeacherConfig
@@ -155,6 +156,42 @@ def test_worker_processes_give_the_same_edges(office_clean):
     assert len(one.edges) == 11 + 10
     for a, b in zip(one.edges, two.edges):
         assert relative_pose_error(a.T_i_j, b.T_i_j)[0] < 1.5e-3
+
+
+_LABELS_DIGEST = """
+import dataclasses, hashlib, sys
+from data.scenes import open_scene
+from teacher.config import TINY
+from teacher.generate import run_sequence
+cfg = dataclasses.replace(TINY, workers=1, threads=int(sys.argv[1]))
+h = hashlib.sha1()
+for e in run_sequence(open_scene("synthetic/tiny")[0], cfg, progress=False).edges:
+    if e.ok:
+        h.update(e.T_i_j.tobytes() + e.cov.tobytes())
+print(h.hexdigest())
+"""
+
+
+@pytest.mark.slow
+def test_labels_depend_on_the_configured_threads_not_the_environment():
+    """Open3D's reductions sum in an order that depends on the thread count, so labels do
+    too (``TeacherConfig.threads``; equal to the bit only at equal counts). A process without
+    ``OMP_NUM_THREADS``, whose Open3D would take every physical core, and one with 3 give the
+    same labels; ``threads=2`` gives other bits, so the comparison can fail."""
+    import subprocess
+    import sys
+
+    def digest(threads: int, omp_env: str | None) -> str:
+        env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+        if omp_env is not None:
+            env["OMP_NUM_THREADS"] = omp_env
+        out = subprocess.run([sys.executable, "-c", _LABELS_DIGEST, str(threads)], env=env, check=True,
+                             capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+        return out.stdout.strip().splitlines()[-1]
+
+    one = digest(1, None)
+    assert digest(1, "3") == one
+    assert digest(2, None) != one
 
 
 def _dense_step_in_child(threads: int) -> tuple[dict, float]:
@@ -1092,7 +1129,7 @@ def test_gap1_edges_beside_a_colour_repeat_use_the_depth_alone(office_clean):
     # one OpenMP thread: the depth alignment's Open3D reductions sum in an order that
     # depends on the thread count, and on this pair that moves the (3, 4) edge by ~2 mm
     # (2.4 mm / 0.08 deg with 2 threads, 3.8 / 0.15 with 3, 4.2 / 0.17 with 1)
-    with threadpool_limits(1, user_api="openmp"):
+    with openmp_threads(1):
         for on in (True, False):
             cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid", gaps=2, depth_beside_colour_repeat=on)
             feats = {2: _features(seq, 2, cfg), 3: _features(seq, 3, cfg),
