@@ -65,19 +65,26 @@ class TeacherConfig:
     for the Kinect's range when written (fa44eca), not measured."""
     depth_edge_rel: float = 0.02
     """A keypoint is on a depth discontinuity (rejected) if the depth range in its 5x5
-    neighbourhood exceeds ``max(depth_edge_abs, depth_edge_rel * z)``. Not measured: set by hand
-    when written (fa44eca)."""
+    neighbourhood exceeds ``max(depth_edge_abs, depth_edge_rel * z)``. Set by hand when written
+    (fa44eca). 0.01 and 0.04 were compared on validation data only (redkitchen 350:450,
+    synthetic/lab 0:150): within two standard errors; kept (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     depth_edge_abs: float = 0.02
-    """Absolute part of the depth-discontinuity test, metres. Not measured: set by hand when
-    written (fa44eca)."""
+    """Absolute part of the depth-discontinuity test, metres. Set by hand when written (fa44eca). 0.01
+    and 0.04 were compared on validation data only (redkitchen 350:450, synthetic/lab 0:150).
+    0.01 was better on redkitchen's gap-1 edges by 2.4 standard errors and left lab unchanged,
+    but it was level on a second range (redkitchen 200:350, outside the test range); kept
+    (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     ransac_reproj_px: float = 2.5
     """RANSAC inlier threshold on the reprojection error, pixels. Not measured: set by hand when
     written (fa44eca); OpenCV's default is 8 px. Compared with 1.5 and 4 on validation data only
     (redkitchen 350:450, synthetic/lab 0:150): kept (bench/README.md, "The teacher's parameters
     chosen with the test range in view")."""
     ransac_iters: int = 300
-    """Maximum RANSAC iterations of cv2.solvePnPRansac. Not measured: set by hand when written
-    (fa44eca); OpenCV's default is 100."""
+    """Maximum RANSAC iterations of cv2.solvePnPRansac. Set by hand when written
+    (fa44eca); OpenCV's default is 100. 100 and 1000 were compared on validation data only
+    (redkitchen 350:450, synthetic/lab 0:150). 1000 left every label unchanged (RANSAC stops on
+    its confidence first), and 100 moved a few of redkitchen's longer edges within noise; kept
+    (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     refine_inlier_px: float = 3.0
     """Correspondences within this reprojection error (pixels) of the RANSAC pose enter the
     refinement, and of the refined pose count as inliers (and extend the feature tracks). 2 by
@@ -103,8 +110,14 @@ class TeacherConfig:
     from that quantisation when written (c7da6eb), not tuned."""
     refine_max_points: int = 300
     """At most this many correspondences (evenly spaced) enter the refinement; more add
-    time but little accuracy, as their errors are correlated. Not measured: set by hand when
-    written (fa44eca); no run with more points is recorded."""
+    time but little accuracy, as their errors are correlated. Set by hand when written
+    (fa44eca). 600, 150 and 75 were compared on validation data only (bench/README.md,
+    "Hand-set values compared on validation data (seventh session)"). Fewer points made the
+    edges better: with 75, gap-1 4.70 -> 4.55 mm on redkitchen 350:450 and 3.16 -> 2.81 mm on
+    redkitchen 200:350 (outside the test range), beyond two standard errors. They also made the
+    one-second drift of the chained gap-1 edges worse: 75 on all four validation ranges, by
+    3-12 %, and 150 on three of them, by 2-5 %. So the errors that remain are more systematic, and a bias is what neither
+    the learner's constraints nor the graph can average out. Kept at 300."""
     two_way: bool = True
     """Refine on the reprojection error in both directions (frame-i points into j and
     frame-j points into i, using the depth of both frames); else forward only. Not measured: on
@@ -130,8 +143,9 @@ class TeacherConfig:
     comparison (bench/README.md, "Teacher-noise sweep", whole redkitchen sample) also drops the
     dense step and drove no choice."""
     refine_rounds: int = 1
-    """Rounds of (select inliers with the current pose, refine). Not measured: set by hand when
-    written (fa44eca)."""
+    """Rounds of (select inliers with the current pose, refine). Set by hand when written (fa44eca). 2
+    was compared on validation data only (redkitchen 350:450, synthetic/lab 0:150): within two
+    standard errors on both, slower; kept (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     refine_iters: int = 6
     """Most damped Newton iterations per refinement round (it usually stops after 3-4, see
     :func:`teacher.odometry.refine_two_way`). Set by hand when written (fa44eca, for the earlier
@@ -315,7 +329,9 @@ class TeacherConfig:
     point-to-plane prior it starts from from every ``dense_cov_stride``-th (scaled back to
     all of them). The point-to-plane stage's own covariance: ``p2p_cov_stride``. Not measured:
     set by hand when written (12b33f0); the point-to-plane stage's stride was moved to 4 on
-    validation data (``p2p_cov_stride``), the hybrid stage's was not compared."""
+    validation data (``p2p_cov_stride``), the hybrid stage's: 1 and 4 were compared
+    on validation data only (redkitchen 350:450, synthetic/lab 0:150), within two standard
+    errors (redkitchen unchanged: no hybrid stage on real data); kept (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     p2p_cov_stride: int = 4
     """Point-to-plane dense step, ``information`` fusion: its covariance
     (:func:`teacher.odometry.point_to_plane_covariance`) is formed from every
@@ -360,13 +376,19 @@ class TeacherConfig:
     tuned: ``OdometryLossParams.depth_huber_delta`` (b8ac45d)."""
     dense_min_fitness: float = 0.2
     """Dense step: fewer paired pixels than this fraction of the subsampled image rejects
-    its result (the sparse estimate stays). Not measured: set by hand when written (b8ac45d)."""
+    its result (the sparse estimate stays). Set by hand when written (b8ac45d).
+    0.1 and 0.4 leave every label on redkitchen 350:450 and synthetic/lab 0:150 unchanged, so
+    validation data cannot choose it; kept (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     dense_max_shift_m: float = 0.03
-    """Dense step: a result farther than this from the sparse estimate (m) is rejected. Not
-    measured: set by hand when written (b8ac45d)."""
+    """Dense step: a result farther than this from the sparse estimate (m) is rejected. Set by
+    hand when written (b8ac45d). 0.015 and 0.06 were compared on validation data only
+    (redkitchen 350:450, synthetic/lab 0:150). 0.015 was worse on redkitchen's longer edges,
+    beyond two standard errors; 0.06 was within noise. Kept (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     dense_max_shift_deg: float = 1.5
-    """Dense step: a result rotated more than this from the sparse estimate is rejected. Not
-    measured: set by hand when written (b8ac45d)."""
+    """Dense step: a result rotated more than this from the sparse estimate is rejected. Set by
+    hand when written (b8ac45d). 0.75 and 3 were compared on validation data only (redkitchen
+    350:450, synthetic/lab 0:150): redkitchen's labels are unchanged, lab's move within two
+    standard errors; kept (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     colour_camera: str = "auto"
     """How colour pixels map onto the depth camera's (:class:`teacher.odometry.ColourCamera`):
     ``registered`` (colour registered to depth, e.g. TUM RGB-D), ``kinect-v1`` (7-Scenes'
@@ -498,21 +520,26 @@ class TeacherConfig:
     covariance (1 mm depth steps: 1/sqrt(12) mm). Derived from that quantisation when written
     (b8a2c06), not tuned."""
     min_matches: int = 30
-    """Fewer matches with valid depth than this: edge failed (``few_matches``). Not measured:
-    set by hand when written (fa44eca)."""
+    """Fewer matches with valid depth than this: edge failed (``few_matches``). Set by hand when
+    written (fa44eca). 20 and 45 were compared on validation data only (redkitchen 350:450,
+    synthetic/lab 0:150). 45 was worse on lab's longer edges, beyond two standard errors; 20 was
+    within noise. Kept (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     min_inliers: int = 25
-    """Fewer refined inliers than this: edge failed (``few_inliers``). Not measured: set by hand
-    when written (fa44eca)."""
+    """Fewer refined inliers than this: edge failed (``few_inliers``). Set by hand when written
+    (fa44eca). 15 and 40 were compared on validation data only (redkitchen 350:450,
+    synthetic/lab 0:150): within two standard errors; kept (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     min_inlier_ratio: float = 0.25
-    """Inlier ratio below this: edge failed (``low_inlier_ratio``). Not measured: set by hand
-    when written (fa44eca)."""
+    """Inlier ratio below this: edge failed (``low_inlier_ratio``). Set by hand when written
+    (fa44eca). 0.15 and 0.4 leave every label on redkitchen 350:450 and synthetic/lab 0:150
+    unchanged, so validation data cannot choose it; kept (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     max_rmse_px: float = 1.5
     """Reprojection RMSE of the inliers above this: edge failed (``high_rmse``). Not measured:
     set by hand when written (fa44eca)."""
     min_spread: float = 0.04
     """Inliers must cover at least this fraction of the image in both axes (std of u and
-    v over width/height), else the geometry is ``degenerate``. Not measured: 0.08 when written
-    (fa44eca), halved in c7da6eb with no recorded reason."""
+    v over width/height), else the geometry is ``degenerate``. 0.08 when written (fa44eca), halved
+    in c7da6eb with no recorded reason. 0.02 and 0.08 leave every label on redkitchen 350:450
+    and synthetic/lab 0:150 unchanged, so validation data cannot choose it; kept (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     max_speed: float = 1.5
     """Translations faster than this (m/s) are ``implausible_motion``. A sanity bound set by
     hand when written (fa44eca), not measured. The time it applies to
