@@ -86,23 +86,33 @@ o3d = _import()
 
 
 @contextlib.contextmanager
-def openmp_threads(n: int) -> Iterator[None]:
-    """Within the block, Open3D's kernels, OpenMP and BLAS in the calling thread use ``n``
-    threads (another thread sets its own with ``threadpool_limits(n)``).
+def open3d_follows_openmp(n: int) -> Iterator[None]:
+    """Within the block, Open3D's kernels run on OpenMP's thread count of the thread that
+    calls them (``omp_set_num_threads``, what threadpoolctl sets).
 
-    Open3D ignores OpenMP's thread count (``omp_set_num_threads``, what threadpoolctl sets)
-    and takes every physical core unless ``OMP_NUM_THREADS`` is in the environment (it reads
-    the variable at each kernel call). So the block sets the variable to ``n`` where it is
-    absent. Without it, ``threadpool_limits(1)`` left the teacher's labels on redkitchen
-    equal to its 2-thread labels, and differing from those of a process started with
-    ``OMP_NUM_THREADS`` set.
+    Open3D ignores that count and takes every physical core unless ``OMP_NUM_THREADS`` is in
+    the environment (it reads the variable at each kernel call). So the block sets the
+    variable (to ``n``) where it is absent; a caller then limits its threads with
+    threadpoolctl. Without it, ``threadpool_limits(1)`` left the teacher's labels on
+    redkitchen equal to its 2-thread labels, and differing from those of a process started
+    with ``OMP_NUM_THREADS`` set. Set it before starting threads that call Open3D, and leave
+    it until they are done: the environment is not safe to change while another thread
+    reads it.
     """
     absent = "OMP_NUM_THREADS" not in os.environ
     if absent:
         os.environ["OMP_NUM_THREADS"] = str(n)
     try:
-        with threadpool_limits(n):
-            yield
+        yield
     finally:
         if absent:
             os.environ.pop("OMP_NUM_THREADS", None)
+
+
+@contextlib.contextmanager
+def openmp_threads(n: int) -> Iterator[None]:
+    """Within the block, Open3D's kernels, OpenMP and BLAS in the calling thread use ``n``
+    threads (:func:`open3d_follows_openmp` and ``threadpool_limits(n)``; another thread
+    sets its own with ``threadpool_limits(n)``)."""
+    with open3d_follows_openmp(n), threadpool_limits(n):
+        yield

@@ -63,7 +63,7 @@ from typing import Iterator, Optional, Sequence, TextIO
 
 import numpy as np
 from numpy.typing import NDArray
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController, threadpool_limits
 
 from data import geometry as geo
 from data.errors import ConfigError, DataError, VOError
@@ -481,7 +481,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     ends it early with every output written for the frames so far (``interrupted``)."""
     from data.formats import Edge
     from data.io import ensure_dir
-    from data.open3d_import import openmp_threads
+    from data.open3d_import import open3d_follows_openmp
     from teacher.config import DEFAULT as TEACHER_DEFAULT
 
     teacher_cfg = teacher_cfg or TEACHER_DEFAULT
@@ -568,8 +568,12 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
     fh = open(out / TRAJECTORY, "w")
     fh.write("# timestamp tx ty tz qx qy qz qw  (T_world_cam, metres; each frame's estimate when it arrived)\n")
     n = 0
-    omp = contextlib.ExitStack()
-    omp.enter_context(openmp_threads(teacher_cfg.threads))  # as batch runs (teacher.generate)
+    # the teacher's Open3D kernels on teacher_cfg.threads threads, as in batch runs
+    # (teacher.generate); only around the teacher's calls, so the learner's torch, which
+    # shares OpenMP, keeps its threads
+    omp_env = contextlib.ExitStack()
+    omp_env.enter_context(open3d_follows_openmp(teacher_cfg.threads))
+    omp = ThreadpoolController()
     producer.start()
     try:
         while True:
@@ -585,7 +589,8 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
                 raise item
             t_arr, frame, feats, inputs, t_prep, c_prep = item
             t_take, c_take = time.perf_counter(), time.thread_time()
-            edges = teacher.add_gap1(frame, feats) if cfg.pose_after_gap1 else teacher.add(frame, feats)
+            with omp.limit(limits=teacher_cfg.threads, user_api="openmp"):
+                edges = teacher.add_gap1(frame, feats) if cfg.pose_after_gap1 else teacher.add(frame, feats)
             t_edges += edges
             new = _teacher_edges(edges)
             if learner is not None:
@@ -605,7 +610,8 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
             cpu_to_pose.append(c_prep + time.thread_time() - c_take)
             if cfg.pose_after_gap1:  # the longer edges of this frame, after its pose
                 posed.release()
-                later = teacher.add_longer()
+                with omp.limit(limits=teacher_cfg.threads, user_api="openmp"):
+                    later = teacher.add_longer()
                 t_edges += later
                 graph.add_edges(_teacher_edges(later))
             work.append(t_prep + time.perf_counter() - t_take if cfg.pose_after_gap1 else to_pose[-1])
@@ -624,7 +630,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
         if bar is not None:
             bar.close()
         producer.join(timeout=5.0)
-        omp.close()
+        omp_env.close()
     seconds = time.perf_counter() - t_start
     if n == 0:
         (out / TRAJECTORY).unlink(missing_ok=True)  # nothing to keep
