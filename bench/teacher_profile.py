@@ -141,8 +141,8 @@ class Reasons:
         by_gap: dict[int, list] = collections.defaultdict(list)
         for res, attempts in self.edges:
             by_gap[pos[res.j] - pos[res.i]].append((res, attempts))
-        print("why: per gap, the paths that made the edges; for the edges no keypoint estimate of the "
-              "first attempt made, each attempt's status")
+        print("why: per gap, the paths that made the edges; for the edges the first keypoint attempt did "
+              "not make, each attempt's status -> the path that made the edge")
         for g in sorted(by_gap):
             rows = by_gap[g]
             paths = collections.Counter(r.info.get("path", "none") if r.ok else "failed" for r, _ in rows)
@@ -151,7 +151,8 @@ class Reasons:
             for r, att in rows:
                 if att and att[0].ok and r.info.get("path") == att[0].info.get("source"):
                     continue
-                reasons[" > ".join(f"{a.info.get('source', '?')}:{a.status}" for a in att)] += 1
+                path = r.info.get("path", "none") if r.ok else "failed"
+                reasons[" > ".join(f"{a.info.get('source', '?')}:{a.status}" for a in att) + f" -> {path}"] += 1
             for k, v in reasons.most_common():
                 print(f"      {v:4d}  {k}")
         refused = [(r, a) for r, att in self.edges for a in att if not a.ok and a.T_i_j is not None]
