@@ -503,11 +503,11 @@ class TeacherConfig:
     issue-13 session) the bound rose to 1.5 and the check sat on it: on TUM fr1/xyz it refused
     123 estimates of 100 frames' longer edges (RMSE 1.6-1.8 px with 183 inliers at a ratio of
     0.9 in the median; the same correspondences fit 0.9-1.0 px without the 3-D term) and sent
-    24 of them to the rgbd fallback. 2.25 = 0.75 g since the seventh session (issue-13 helper):
+    24 edges to the rgbd fallback. 2.25 = 0.75 g since the seventh session (issue-13 helper):
     the margin as written, with the gate it now has. Derived, then checked on validation data
     only: redkitchen 350:450 bit-identical; synthetic/lab 0:150 one edge of 735 moves 0.06 mm
-    (all edges +0.0002 +- 0.0002 mm^2); bench/README.md, "Why TUM frames cost more teacher
-    CPU". TUM drove no choice."""
+    (all edges +0.0002 +- 0.0002 mm^2; bench/README.md, "Why TUM frames cost more teacher
+    CPU"). TUM fr1/xyz showed the symptom and drove no choice."""
     min_spread: float = 0.04
     """Inliers must cover at least this fraction of the image in both axes (std of u and
     v over width/height), else the geometry is ``degenerate``. Not measured: 0.08 when written
