@@ -11,7 +11,13 @@ prints:
   ``dense_refine`` holds ``point_to_plane_covariance`` ...);
 * a SHA-1 of every edge's (i, j), pose and covariance bytes: equal digests mean labels
   equal to the bit;
-* the gap-1 RPE, ATE and se(3) L2 of the run's report.
+* the gap-1 RPE, ATE and se(3) L2 of the run's report;
+* with ``--why``: per gap, which path made each edge and, for every edge the keypoint
+  estimates did not make (a wider matching, a dense fallback, none), the failure check that
+  refused each keypoint attempt (``few_matches``, ``few_inliers``, ``low_inlier_ratio``,
+  ``high_rmse``, ``degenerate``, ``implausible_motion``) and the numbers it refused on; with
+  ground truth, the translation error of the refused estimate beside the label's that
+  replaced it (was the refusal right?).
 
 ``--save-edges FILE.npz`` keeps the edges with the ground truth; ``--compare A.npz B.npz``
 then compares two runs edge by edge against the ground truth: gap-1 and all edges, the
@@ -94,6 +100,76 @@ def instrument(timers: Timers, seq_cls: type) -> None:
         setattr(seq_cls, name, timers.wrap(getattr(seq_cls, name), f"read {name}"))
 
 
+class Reasons:
+    """Every keypoint attempt (:func:`teacher.odometry._estimate` call) of every edge, kept
+    with the edge's final result (``--why``)."""
+
+    def __init__(self) -> None:
+        self.edges: list[tuple[od.EdgeEstimate, list[od.EdgeEstimate]]] = []
+        self._cur: list[od.EdgeEstimate] | None = None
+
+    def wrap(self) -> None:
+        est, edge = od._estimate, od.estimate_edge
+
+        def _estimate(*a, **k):
+            res = est(*a, **k)
+            if self._cur is not None:
+                self._cur.append(res)
+            return res
+
+        def estimate_edge(*a, **k):
+            self._cur = []
+            try:
+                res = edge(*a, **k)
+                self.edges.append((res, self._cur))
+                return res
+            finally:
+                self._cur = None
+
+        od._estimate, od.estimate_edge = _estimate, estimate_edge
+        win.estimate_edge = od.estimate_edge
+
+    def report(self, ids, gt) -> None:
+        pos = {int(i): k for k, i in enumerate(ids)}
+
+        def err_mm(e: od.EdgeEstimate) -> float:
+            if gt is None or e.T_i_j is None:
+                return float("nan")
+            G = geo.relative_pose(gt[pos[e.i]], gt[pos[e.j]])
+            return 1000 * float(np.linalg.norm((geo.inv_T(G) @ e.T_i_j)[:3, 3]))
+
+        by_gap: dict[int, list] = collections.defaultdict(list)
+        for res, attempts in self.edges:
+            by_gap[pos[res.j] - pos[res.i]].append((res, attempts))
+        print("why: per gap, the paths that made the edges; for the edges the first keypoint attempt did "
+              "not make, each attempt's status -> the path that made the edge")
+        for g in sorted(by_gap):
+            rows = by_gap[g]
+            paths = collections.Counter(r.info.get("path", "none") if r.ok else "failed" for r, _ in rows)
+            print(f"  gap {g}: {len(rows)} edges; paths " + ", ".join(f"{k} {v}" for k, v in paths.most_common()))
+            reasons = collections.Counter()
+            for r, att in rows:
+                if att and att[0].ok and r.info.get("path") == att[0].info.get("source"):
+                    continue
+                path = r.info.get("path", "none") if r.ok else "failed"
+                reasons[" > ".join(f"{a.info.get('source', '?')}:{a.status}" for a in att) + f" -> {path}"] += 1
+            for k, v in reasons.most_common():
+                print(f"      {v:4d}  {k}")
+        refused = [(r, a) for r, att in self.edges for a in att if not a.ok and a.T_i_j is not None]
+        if not refused:
+            return
+        print("  refused keypoint estimates (a pose was computed, a check refused it): status, count, "
+              "inliers / ratio / rmse px median, their error and the final label's (mm, median / RMSE)")
+        for status in sorted({a.status for _, a in refused}):
+            sel = [(r, a) for r, a in refused if a.status == status]
+            ea = np.array([err_mm(a) for _, a in sel])
+            er = np.array([err_mm(r) if r.ok else np.nan for r, _ in sel])
+            q = lambda x: f"{np.nanmedian(x):.2f} / {np.sqrt(np.nanmean(x ** 2)):.2f}" if np.isfinite(x).any() else "-"
+            print(f"    {status:20s} {len(sel):4d}  {np.median([a.inliers for _, a in sel]):5.0f} / "
+                  f"{np.median([a.inlier_ratio for _, a in sel]):.2f} / {np.median([a.rmse_px for _, a in sel]):.2f}"
+                  f"  refused {q(ea)}  label {q(er)}")
+
+
 def edges_digest(edges) -> str:
     h = hashlib.sha1()
     for e in edges:
@@ -116,10 +192,13 @@ def parse_set(items: list[str]) -> dict:
     return out
 
 
-def profile(spec: str, frames: str, overrides: dict, save: str | None) -> None:
+def profile(spec: str, frames: str, overrides: dict, save: str | None, why: bool = False) -> None:
     seq = open_scene(spec, frames=frames)[0]
     timers = Timers()
     instrument(timers, type(seq))
+    reasons = Reasons() if why else None
+    if reasons:
+        reasons.wrap()
     cfg = dataclasses.replace(TeacherConfig(), workers=1, **overrides)
     c0, w0 = time.process_time(), time.perf_counter()
     run = gen.run_sequence(seq, cfg, progress=False)
@@ -140,6 +219,8 @@ def profile(spec: str, frames: str, overrides: dict, save: str | None) -> None:
     for k, v in sorted(timers.cpu.items(), key=lambda x: -x[1]):
         c = timers.calls[k]
         print(f"  {k:30s} {1000 * v / n:7.2f} ms/frame {c:6d} calls {1000 * v / max(c, 1):6.2f} ms/call")
+    if reasons:
+        reasons.report(seq.ids(), seq.groundtruth() if seq.has_groundtruth else None)
 
 
 def compare(a_path: str, b_path: str) -> None:
@@ -178,11 +259,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="TeacherConfig overrides")
     ap.add_argument("--save-edges", metavar="FILE.npz")
     ap.add_argument("--compare", nargs=2, metavar=("A.npz", "B.npz"))
+    ap.add_argument("--why", action="store_true", help="per gap, which failure check sent edges to the fallbacks")
     args = ap.parse_args(argv)
     if args.compare:
         compare(*args.compare)
     elif args.scene:
-        profile(args.scene, args.frames, parse_set(args.set), args.save_edges)
+        profile(args.scene, args.frames, parse_set(args.set), args.save_edges, args.why)
     else:
         ap.error("give a scene, or --compare A.npz B.npz")
 

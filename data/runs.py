@@ -69,7 +69,11 @@ STAGE_VERSIONS: dict[str, int] = {
     # second start (fallback_span_start), colour-depth timing (depth_time_compensation: TUM
     # RGB-D and bag labels); 6: the dense step stops at 2 mm / 0.08 deg updates (dense_stop_m,
     # re-selected on validation data for speed) in the point-to-plane refinement; other dense
-    # alignments keep 0.5 mm / 0.02 deg (align_stop_m)
+    # alignments keep 0.5 mm / 0.02 deg (align_stop_m); Open3D's kernels on
+    # TeacherConfig.threads OpenMP threads in every process; max_rmse_px 2.25 (0.75
+    # refine_inlier_px, the margin over the inlier gate it was written with; redkitchen labels
+    # bit-identical, one synthetic/lab edge moves 0.06 mm, TUM's longer edges leave the rgbd
+    # fallback)
     "teacher": 6,
     "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 1, "posegraph-calibrate": 1, "online": 1,
 }

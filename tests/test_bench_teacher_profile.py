@@ -35,3 +35,31 @@ def test_compare_reports_paired_squared_error_differences(tmp_path, capsys):
     assert "gap 1: 2 edges, trans RMSE 1.000 -> 1.581 mm, paired difference of squared errors +1.5000" in out
     assert "all edges: 3 edges" in out and "+1.0000" in out
     assert "max 1.0000 mm; 1 of 3 edges" in out
+
+
+def test_why_counts_each_attempts_failure_and_compares_the_refused_estimate(capsys):
+    """``--why``: per gap, the paths and the chain of attempt statuses of the edges the first
+    attempt did not make; a refused estimate's error beside the label that replaced it."""
+    from teacher.odometry import EdgeEstimate
+
+    gt = np.stack([geo.make_T(np.eye(3), [0.1 * k, 0, 0]) for k in range(3)])
+    off = lambda i, j, mm: geo.relative_pose(gt[i], gt[j]) @ geo.make_T(np.eye(3), [mm / 1000, 0, 0])
+
+    def est(i, j, status, source, T=None, path=None):
+        e = EdgeEstimate(i, j, status, T_i_j=T, inliers=100, inlier_ratio=0.9, rmse_px=1.7 if status != "ok" else 0.8)
+        e.info["source"] = source
+        if path:
+            e.info["path"] = path
+        return e
+
+    r = tp.Reasons()
+    first_ok = est(0, 1, "ok", "guided", off(0, 1, 1.0), "guided")
+    r.edges.append((first_ok, [first_ok]))
+    refused = est(0, 2, "high_rmse", "tracks", off(0, 2, 20.0))
+    final = est(0, 2, "ok", "guided", off(0, 2, 4.0), "rgbd")
+    r.edges.append((final, [refused, est(0, 2, "few_matches", "guided")]))
+    r.report(np.arange(3), gt)
+    out = capsys.readouterr().out
+    assert "gap 1: 1 edges; paths guided 1\n" in out
+    assert "gap 2: 1 edges; paths rgbd 1" in out and "1  tracks:high_rmse > guided:few_matches -> rgbd" in out
+    assert "high_rmse               1    100 / 0.90 / 1.70  refused 20.00 / 20.00  label 4.00 / 4.00" in out
