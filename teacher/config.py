@@ -56,13 +56,13 @@ class TeacherConfig:
     chosen with the test range in view")."""
     lk_window: int = 11
     """Window (pixels) of the Lucas-Kanade sub-pixel refinement. Not measured: set by hand when
-    written (3f131cf); unused while ``subpixel`` is off."""
+    written (3f131cf); unused while ``subpixel`` is off (7 leave every label on redkitchen 350:450 and synthetic/lab 0:150 unchanged, so validation data cannot choose it; bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     depth_min: float = 0.3
     """Keypoint depths below this (m) are ignored. Set by hand for the Kinect's range when
-    written (fa44eca), not measured."""
+    written (fa44eca). 0.2 and 0.5 leave every label on redkitchen 350:450 and synthetic/lab 0:150 unchanged, so validation data cannot choose it (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     depth_max: float = 4.5
     """Keypoint depths above this (m) are ignored (Kinect-v1 noise grows with z^2). Set by hand
-    for the Kinect's range when written (fa44eca), not measured."""
+    for the Kinect's range when written (fa44eca). 3.5 and 6 leave every label on redkitchen 350:450 and synthetic/lab 0:150 unchanged, so validation data cannot choose it (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     depth_edge_rel: float = 0.02
     """A keypoint is on a depth discontinuity (rejected) if the depth range in its 5x5
     neighbourhood exceeds ``max(depth_edge_abs, depth_edge_rel * z)``. Set by hand when written
@@ -313,7 +313,8 @@ class TeacherConfig:
     multi-scale odometry at 1/2, 1/4, 1/8 resolution and no finish: at 1/2 resolution its
     error on stress-lowfreq was 3.2 against 1.4 mm at full resolution. Not measured: set by hand
     when written (d8a3094); a longer finish (10, with longer levels and tight stops) was tried
-    on the stress walks and not adopted (bench/README.md, issue 13, third session)."""
+    on the stress walks and not adopted (bench/README.md, issue 13, third session). 2 and 5
+    leave every label on redkitchen 350:450 and synthetic/lab 0:150 unchanged, so validation data cannot choose it: no fallback runs there (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     dense_cov_scale: float = 5.0
     """Dense step, ``information`` fusion: the point-to-plane covariance is multiplied by this
     (its pixels' errors are correlated, so taken as independent it is too small). Chosen on
@@ -357,11 +358,18 @@ class TeacherConfig:
     """Dense step: the points moved are every ``dense_scale``-th depth pixel in both axes
     (160x120 of a 640x480 frame; an iteration costs ~0.7 ms instead of ~10 ms at full
     resolution). Set by hand when written (b8ac45d); 6 failed the known-answer test on
-    noise-free synthetic/office frames (training scene), so 4 stayed."""
+    noise-free synthetic/office frames (training scene), so 4 stayed. 3 and 5 were compared on
+    validation data only (redkitchen 350:450, synthetic/lab 0:150). 5 was worse on the longer
+    edges of both, beyond two standard errors. 3 was better beyond two standard errors:
+    redkitchen gap-1 4.70 -> 4.60 mm, and the longer edges of both ranges. But it costs 1.8x the
+    point-to-plane kernel's time per call (+11 ms of CPU per frame, about a tenth), with the
+    issue-13 speed targets unmet. Kept at 4 as a speed choice (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     dense_target_scale: int = 2
     """Dense step: the surface they are aligned to is sampled every ``dense_target_scale``-th
     pixel (coarser biases the alignment of noise-free frames by ~1.5 mm). Set by hand when
-    written (b8ac45d), not swept."""
+    written (b8ac45d). 3 was compared on validation data only (redkitchen 350:450,
+    synthetic/lab 0:150): lab's gap-1 edges were worse beyond two standard errors (+0.10 +- 0.03
+    mm^2) and its longer edges better; kept (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     dense_normal_kernel: int = 7
     """Dense step: size of the Gaussian kernel that smooths the depth before normals. Set by
     hand when written (b8ac45d): a bilateral filter with the sigmas of Open3D's point-to-plane
@@ -564,10 +572,13 @@ class TeacherConfig:
     repeated frame in a fast turn (two periods of the depth, 30-62 mm, in one of the clock:
     6 failed gap-1 edges). The keypoints keep it: out of repeated frames on
     synthetic/stress-repetitive, two guided estimates, aliases of the texture 91-94 mm off,
-    passed the longer bound."""
+    passed the longer bound. 0.75 and 3 were compared on
+    validation data only: redkitchen 350:450 unchanged, synthetic/lab 0:150 within noise with
+    0.75 and unchanged with 3; kept (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     max_angular_speed_deg: float = 180.0
     """Rotations faster than this (deg/s) are ``implausible_motion`` (over the time ``max_speed``
-    says). A sanity bound set by hand when written (fa44eca), not measured."""
+    says). A sanity bound set by hand when written (fa44eca). 90 and 360 leave every label on redkitchen 350:450 and synthetic/lab 0:150 unchanged, so validation data cannot choose it
+    (bench/README.md, "Hand-set values compared on validation data (seventh session)")."""
     workers: int = 2
     """Worker processes; each handles chunks of consecutive frames (with a helper thread
     that decodes and extracts features ahead). 1: everything in the calling process. A machine
