@@ -23,7 +23,8 @@ prints:
 then compares two runs edge by edge against the ground truth: gap-1 and all edges, the
 mean paired difference of squared translation errors with its standard error (the noise
 figure for a label-changing choice: the teacher is deterministic, two runs are equal),
-and how far each label moved.
+how far each label moved, and for each run the drift of its chained gap-1 edges over one second
+(the relative pose error over every pair of frames 30 apart) and the scale of its translations against the truth per gap.
 
     OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python -m bench.teacher_profile ../shared/data/7scenes/redkitchen --frames 350:450
     OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python -m bench.teacher_profile synthetic/lab --frames 0:100 --set p2p_cov_stride=2 --save-edges /tmp/a.npz
@@ -250,6 +251,42 @@ def compare(a_path: str, b_path: str) -> None:
     moved = np.array([1000 * np.linalg.norm((geo.inv_T(ea[k][0]) @ eb[k][0])[:3, 3]) for k in keys])
     print(f"labels moved: median {np.median(moved):.4f} mm, max {moved.max():.4f} mm; "
           f"{int((moved > 0).sum())} of {len(keys)} edges; edges in one run only: {len(set(ea) ^ set(eb))}")
+    for name, e in (("A", ea), ("B", eb)):
+        print(f"{name}: drift of the chained gap-1 edges over {DRIFT_FRAMES} frames {_drift(e, a['ids'], gt)}; "
+              f"translation scale against the truth per gap {_scales(e, gt, pos)}")
+
+
+#: frames of the drift figure: one second at 30 fps (redkitchen, TUM, the synthetic rooms)
+DRIFT_FRAMES = 30
+
+
+def _drift(edges: dict, ids, gt) -> str:
+    """Over every pair of frames :data:`DRIFT_FRAMES` apart (overlapping: on 100 frames evo's
+    RPE, which steps by the gap, would have three pairs), the RMSE of the relative pose error
+    of the trajectory chained from the gap-1 edges: the error that accumulates, which the
+    per-edge errors do not show."""
+    from data.chain import chain_steps
+    from data.metrics import relative_pose_error, relative_poses
+
+    keys = [(int(i), int(j)) for i, j in zip(ids[:-1], ids[1:])]
+    if any(k not in edges for k in keys) or len(ids) <= DRIFT_FRAMES:
+        return "- (a gap-1 edge is missing, or too few frames)"
+    est = relative_poses(chain_steps([edges[k][0] for k in keys]), DRIFT_FRAMES)
+    err = np.array([relative_pose_error(G, E) for G, E in zip(relative_poses(gt, DRIFT_FRAMES), est)])
+    trans, rot = np.sqrt(np.mean(err ** 2, axis=0))
+    return f"{1000 * trans:.1f} mm / {rot:.2f} deg"
+
+
+def _scales(edges: dict, gt, pos: dict) -> str:
+    """Per gap, the least-squares scale of the labels' translations against the truth's,
+    ``sum(t_est . t_gt) / sum(t_gt . t_gt)``: 1 without a systematic over- or under-scale."""
+    out = []
+    for g in sorted({v[2] for v in edges.values()}):
+        pairs = [(T[:3, 3], geo.relative_pose(gt[pos[i]], gt[pos[j]])[:3, 3]) for (i, j), (T, _, gap) in edges.items()
+                 if gap == g]
+        te, tg = (np.array(x) for x in zip(*pairs))
+        out.append(f"{g}: {float(np.sum(te * tg) / np.sum(tg * tg)):.4f}")
+    return ", ".join(out)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -35,6 +35,24 @@ def test_compare_reports_paired_squared_error_differences(tmp_path, capsys):
     assert "gap 1: 2 edges, trans RMSE 1.000 -> 1.581 mm, paired difference of squared errors +1.5000" in out
     assert "all edges: 3 edges" in out and "+1.0000" in out
     assert "max 1.0000 mm; 1 of 3 edges" in out
+    # A's labels are 1 % long at both gaps; three frames are too few for the drift
+    assert "A: drift of the chained gap-1 edges over 30 frames - (a gap-1 edge is missing, or too few frames); " \
+           "translation scale against the truth per gap 1: 1.0100, 2: 1.0100" in out
+
+
+def test_compare_reports_the_drift_of_the_chained_gap1_edges(tmp_path, capsys):
+    """41 frames 10 cm apart along x, every gap-1 label 1 mm too long: over 30 frames the
+    chain is 30 mm off, at every one of the 11 pairs; no rotation."""
+    n = 41
+    gt = np.stack([geo.make_T(np.eye(3), [0.1 * k, 0, 0]) for k in range(n)])
+    ij = np.array([(k, k + 1) for k in range(n - 1)])
+    T = np.stack([geo.make_T(np.eye(3), [0.101, 0, 0])] * (n - 1))
+    for name in ("a", "b"):
+        np.savez(tmp_path / f"{name}.npz", ij=ij, T=T, cov=np.tile(np.eye(6), (n - 1, 1, 1)), ids=np.arange(n), gt=gt)
+    tp.compare(str(tmp_path / "a.npz"), str(tmp_path / "b.npz"))
+    out = capsys.readouterr().out
+    assert "B: drift of the chained gap-1 edges over 30 frames 30.0 mm / 0.00 deg; " \
+           "translation scale against the truth per gap 1: 1.0100" in out
 
 
 def test_why_counts_each_attempts_failure_and_compares_the_refused_estimate(capsys):
