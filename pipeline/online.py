@@ -518,8 +518,9 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
 
     def produce() -> None:
         try:
-            # OpenMP's thread count is per calling thread, and the labels depend on it
-            # (TeacherConfig.threads): this thread builds the dense maps, the main one aligns
+            # OpenMP's thread count is per calling thread: this one builds the dense maps
+            # (per-pixel kernels, whose results do not depend on it) on the teacher's count,
+            # as the feature thread of a batch run does; the main one aligns (the labels do)
             threadpool_limits(teacher_cfg.threads, user_api="openmp")
             for k, frame in enumerate(source):
                 t_take, c_arr = time.perf_counter(), time.thread_time()
