@@ -24,11 +24,19 @@ then compares two runs edge by edge against the ground truth: gap-1 and all edge
 mean paired difference of squared translation errors with its standard error (the noise
 figure for a label-changing choice: the teacher is deterministic, two runs are equal),
 how far each label moved, and for each run the drift of its chained gap-1 edges over one second
-(the relative pose error over every pair of frames 30 apart) and the scale of its translations against the truth per gap.
+(the relative pose error over every pair of frames 30 apart), the scale of its translations against the truth per gap,
+and its median and largest translation error per gap.
 
     OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python -m bench.teacher_profile ../shared/data/7scenes/redkitchen --frames 350:450
     OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python -m bench.teacher_profile synthetic/lab --frames 0:100 --set p2p_cov_stride=2 --save-edges /tmp/a.npz
     .venv/bin/python -m bench.teacher_profile --compare /tmp/a.npz /tmp/b.npz
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.teacher_profile synthetic/lab --frames 0:150 \
+        --sensor frame_repeat_prob=0 rgb_repeat_prob=0 depth_repeat_prob=0 rolling_shutter_s=0 --save-edges /tmp/gs.npz
+
+``--sensor FIELD=VALUE ...`` renders a synthetic preset with parts of its sensor model
+changed (data/synthetic/config.py ``SensorConfig``): which part of the sensor costs the
+teacher what. Turn the repeated frames off in both runs of such a comparison: a repeated
+frame repeats its pose, so the ground truth differs with them.
 
 Choose parameters on validation ranges only (redkitchen 350:450, synthetic/lab; see
 bench/README.md, "Ranges").
@@ -193,8 +201,49 @@ def parse_set(items: list[str]) -> dict:
     return out
 
 
-def profile(spec: str, frames: str, overrides: dict, save: str | None, why: bool = False) -> None:
-    seq = open_scene(spec, frames=frames)[0]
+def parse_sensor(items: list[str]) -> dict:
+    """``key=value`` overrides of a synthetic scene's :class:`SensorConfig`, typed by the
+    field's default (a pair as ``lo,hi``)."""
+    from data.synthetic.config import SensorConfig
+
+    base, out = SensorConfig(), {}
+    for kv in items:
+        key, _, value = kv.partition("=")
+        if not hasattr(base, key):
+            raise SystemExit(f"error: SensorConfig has no field {key!r}")
+        kind = type(getattr(base, key))
+        if kind is bool:
+            out[key] = value.lower() in ("1", "true", "yes")
+        elif kind is tuple:
+            out[key] = tuple(float(v) for v in value.split(","))
+        else:
+            out[key] = kind(value)
+    return out
+
+
+def open_profiled(spec: str, frames: str, sensor: dict):
+    """The scene ``spec``, frames ``frames``; a synthetic preset rendered with the sensor
+    model's fields ``sensor`` replaced (cached like the preset, under its config's hash)."""
+    if not sensor:
+        return open_scene(spec, frames=frames)[0]
+    if not spec.startswith("synthetic/"):
+        raise SystemExit("error: --sensor takes a synthetic scene (synthetic/NAME)")
+    from data.synthetic import synthetic_sequence
+    from data.synthetic.config import resolve_preset
+
+    name = spec.split("/", 1)[1]
+    try:
+        cfg = resolve_preset(name)
+    except KeyError:
+        raise SystemExit(f"error: unknown synthetic scene {name!r}") from None
+    cfg = dataclasses.replace(cfg, sensor=dataclasses.replace(cfg.sensor, **sensor))
+    start, _, stop = frames.partition(":")
+    return synthetic_sequence(name, config=cfg).select(int(start) if start else None, int(stop) if stop else None)
+
+
+def profile(spec: str, frames: str, overrides: dict, save: str | None, why: bool = False,
+            sensor: dict | None = None) -> None:
+    seq = open_profiled(spec, frames, sensor or {})
     timers = Timers()
     instrument(timers, type(seq))
     reasons = Reasons() if why else None
@@ -210,7 +259,7 @@ def profile(spec: str, frames: str, overrides: dict, save: str | None, why: bool
                  T=np.array([e.T_i_j for e in ok]).reshape(-1, 4, 4), cov=np.array([e.cov for e in ok]).reshape(-1, 6, 6),
                  ids=seq.ids(), gt=seq.groundtruth() if seq.has_groundtruth else np.zeros((0, 4, 4)))
     n = len(seq)
-    print(f"{spec} {frames}{' ' + str(overrides) if overrides else ''}: {n} frames, CPU {1000 * cpu / n:.1f} ms/frame, "
+    print(f"{spec} {frames}{' sensor ' + str(sensor) if sensor else ''}{' ' + str(overrides) if overrides else ''}: {n} frames, CPU {1000 * cpu / n:.1f} ms/frame, "
           f"wall {1000 * wall / n:.1f} ms/frame, edges sha1 {edges_digest(run.edges)}")
     rep = gen.build_report(seq, run, cfg)
     if "rpe_trans_rmse_m" in rep:
@@ -253,7 +302,8 @@ def compare(a_path: str, b_path: str) -> None:
           f"{int((moved > 0).sum())} of {len(keys)} edges; edges in one run only: {len(set(ea) ^ set(eb))}")
     for name, e in (("A", ea), ("B", eb)):
         print(f"{name}: drift of the chained gap-1 edges over {DRIFT_FRAMES} frames {_drift(e, a['ids'], gt)}; "
-              f"translation scale against the truth per gap {_scales(e, gt, pos)}")
+              f"translation scale against the truth per gap {_scales(e, gt, pos)}; "
+              f"translation error per gap, median / max: {_errors(e)}")
 
 
 #: frames of the drift figure: one second at 30 fps (redkitchen, TUM, the synthetic rooms)
@@ -289,11 +339,23 @@ def _scales(edges: dict, gt, pos: dict) -> str:
     return ", ".join(out)
 
 
+def _errors(edges: dict) -> str:
+    """Per gap, the median and the largest translation error of the labels (mm): the RMSE
+    of a few hundred edges can be one wrong edge's."""
+    out = []
+    for g in sorted({v[2] for v in edges.values()}):
+        err = 1000 * np.array([e for _, e, gap in edges.values() if gap == g])
+        out.append(f"{g}: {np.median(err):.2f} / {err.max():.1f}")
+    return ", ".join(out) + " mm"
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scene", nargs="?", help="a scene as `teacher generate --scene` takes it")
     ap.add_argument("--frames", default="0:100")
     ap.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="TeacherConfig overrides")
+    ap.add_argument("--sensor", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="synthetic scenes: sensor model overrides (data/synthetic/config.py SensorConfig)")
     ap.add_argument("--save-edges", metavar="FILE.npz")
     ap.add_argument("--compare", nargs=2, metavar=("A.npz", "B.npz"))
     ap.add_argument("--why", action="store_true", help="per gap, which failure check sent edges to the fallbacks")
@@ -301,7 +363,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.compare:
         compare(*args.compare)
     elif args.scene:
-        profile(args.scene, args.frames, parse_set(args.set), args.save_edges, args.why)
+        profile(args.scene, args.frames, parse_set(args.set), args.save_edges, args.why, parse_sensor(args.sensor))
     else:
         ap.error("give a scene, or --compare A.npz B.npz")
 

@@ -17,6 +17,15 @@ def test_overrides_take_the_fields_type():
         tp.parse_set(["nope=1"])
 
 
+def test_sensor_overrides_take_the_fields_type():
+    assert tp.parse_sensor(["rolling_shutter_s=0", "noise_free=true", "depth_time_offset_s=-0.01,0"]) == \
+        {"rolling_shutter_s": 0.0, "noise_free": True, "depth_time_offset_s": (-0.01, 0.0)}
+    with pytest.raises(SystemExit, match="no field 'nope'"):
+        tp.parse_sensor(["nope=1"])
+    with pytest.raises(SystemExit, match="takes a synthetic scene"):
+        tp.open_profiled("../somewhere/redkitchen", "0:10", {"rolling_shutter_s": 0.0})
+
+
 def _save(path, moves_mm):
     """Three frames on a line 10 cm apart; edges (0,1), (1,2), (0,2), each label off the
     truth by ``moves_mm`` along x."""
@@ -37,7 +46,9 @@ def test_compare_reports_paired_squared_error_differences(tmp_path, capsys):
     assert "max 1.0000 mm; 1 of 3 edges" in out
     # A's labels are 1 % long at both gaps; three frames are too few for the drift
     assert "A: drift of the chained gap-1 edges over 30 frames - (a gap-1 edge is missing, or too few frames); " \
-           "translation scale against the truth per gap 1: 1.0100, 2: 1.0100" in out
+           "translation scale against the truth per gap 1: 1.0100, 2: 1.0100; " \
+           "translation error per gap, median / max: 1: 1.00 / 1.0, 2: 2.00 / 2.0 mm" in out
+    assert "B: " in out and "median / max: 1: 1.50 / 2.0, 2: 2.00 / 2.0 mm" in out
 
 
 def test_compare_reports_the_drift_of_the_chained_gap1_edges(tmp_path, capsys):
