@@ -174,11 +174,13 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     def _extract(k: int) -> FrameFeatures:
         return extract(seq.rgb(k), seq.depth(k), cfg, orb, intr.K, colour)  # one thread uses this ORB
 
-    # fingerprints of the frame before the chunk, to tell whether frame k0 repeats it
-    prev_keys = image_keys(seq.rgb(k0 - 1), seq.depth(k0 - 1)) if k0 > 0 else None
+    # fingerprints of the frame before the chunk, to tell whether frame k0 repeats it; the
+    # walks back over earlier frames (rare) share them
+    keys_of = _KeysOf(seq)
+    prev_keys = keys_of(k0 - 1) if k0 > 0 else None
     window = EdgeWindow(intr, cfg, prev_keys, until=k1 - k0,
-                        prev_photo=lambda: _photo_before(seq, k0, cfg, orb, colour),
-                        prev_moments=lambda: _moments_before(seq, k0))
+                        prev_photo=lambda: _photo_before(seq, k0, cfg, orb, colour, keys_of),
+                        prev_moments=lambda: _moments_before(seq, k0, keys_of))
     # OpenMP's thread count is per calling thread: limit this one and the helper
     with openmp_threads(cfg.threads), \
             ThreadPoolExecutor(1, initializer=threadpool_limits, initargs=(cfg.threads,)) as pool:
@@ -194,26 +196,40 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     return edges
 
 
-def _moments_before(seq: Sequence, k: int) -> tuple[float, float]:
+class _KeysOf:
+    """:func:`teacher.odometry.image_keys` of a sequence's frames by position, each frame
+    decoded once: the walks back over the frames before a chunk (:func:`_moments_before`,
+    :func:`_photo_before`) read the same frames."""
+
+    def __init__(self, seq: Sequence) -> None:
+        self.seq, self._keys = seq, {}
+
+    def __call__(self, k: int) -> tuple[bytes, bytes]:
+        if k not in self._keys:
+            self._keys[k] = image_keys(self.seq.rgb(k), self.seq.depth(k))
+        return self._keys[k]
+
+
+def _moments_before(seq: Sequence, k: int, keys_of: Optional[_KeysOf] = None) -> tuple[float, float]:
     """The moments (colour, depth; seconds) frame ``k - 1``'s images show, as a window that
     had seen the sequence from its start would hold them (:meth:`teacher.window.EdgeWindow._moments_of`):
     the timestamp of the last frame up to ``k - 1`` whose colour (depth) image differs from
     its predecessor's. For a chunk whose first frame repeats an image of the frame before it."""
+    keys_of = keys_of or _KeysOf(seq)
     times = seq.times()
-    keys = image_keys(seq.rgb(k - 1), seq.depth(k - 1))
     found: list[Optional[float]] = [None, None]
     j = k - 1
     while j > 0 and None in found:
-        prev = image_keys(seq.rgb(j - 1), seq.depth(j - 1))
+        cur, prev = keys_of(j), keys_of(j - 1)
         for c in (0, 1):
-            if found[c] is None and keys[c] != prev[c]:
+            if found[c] is None and cur[c] != prev[c]:
                 found[c] = float(times[j])
-        j, keys = j - 1, prev
+        j -= 1
     return tuple(float(times[0]) if m is None else m for m in found)
 
 
-def _photo_before(seq: Sequence, k: int, cfg: TeacherConfig, orb,
-                  colour: Optional[ColourCamera]) -> tuple[Optional[PhotoMaps], bool]:
+def _photo_before(seq: Sequence, k: int, cfg: TeacherConfig, orb, colour: Optional[ColourCamera],
+                  keys_of: Optional[_KeysOf] = None) -> tuple[Optional[PhotoMaps], bool]:
     """The photometric maps and ``colour_behind`` mark of frame ``k - 1`` as a window that
     had seen the sequence from its start would hold them (:mod:`teacher.window`): back over
     the frames that repeat the previous frame's depth to the last one that does not, whose
@@ -221,9 +237,10 @@ def _photo_before(seq: Sequence, k: int, cfg: TeacherConfig, orb,
     share; marked when that frame's colour repeats and every frame after it repeated its
     colour too. For a chunk whose first frame repeats the depth of the frame before it
     (rare: the frames are read again)."""
+    keys_of = keys_of or _KeysOf(seq)
     j, behind, grey = k - 1, True, True
     while j > 0:
-        cur, prev = image_keys(seq.rgb(j), seq.depth(j)), image_keys(seq.rgb(j - 1), seq.depth(j - 1))
+        cur, prev = keys_of(j), keys_of(j - 1)
         behind = behind and cur[0] == prev[0]
         if cur[1] != prev[1]:  # new depth: this frame's own maps, only their depth when its colour repeats
             grey = cur[0] != prev[0]
