@@ -196,7 +196,11 @@ def parse_set(items: list[str]) -> dict:
         key, _, value = kv.partition("=")
         if not hasattr(base, key):
             raise SystemExit(f"error: TeacherConfig has no field {key!r}")
-        kind = type(getattr(base, key))
+        default = getattr(base, key)
+        if default is None:  # an optional number (None: auto)
+            out[key] = None if value.lower() in ("none", "auto") else float(value)
+            continue
+        kind = type(default)
         out[key] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
     return out
 

@@ -474,6 +474,17 @@ def _colour_camera(source: FrameSource, teacher_cfg):
     return colour_camera_for(None, teacher_cfg) if teacher_cfg.colour_camera != "auto" else None
 
 
+def _rolling_shutter(source: FrameSource, teacher_cfg) -> float:
+    """The teacher's rolling shutter readout for ``source``, chosen as ``teacher generate`` does."""
+    from teacher.generate import rolling_shutter_for, rolling_shutter_of_folder
+
+    if isinstance(source, SequenceSource):
+        return rolling_shutter_for(source.seq, teacher_cfg)
+    if isinstance(source, FollowSevenScenes) and teacher_cfg.rolling_shutter_s is None:
+        return rolling_shutter_of_folder(source.folder)
+    return rolling_shutter_for(None, teacher_cfg)
+
+
 def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[Path] = None,
         predict_cfg=None, graph_cfg=None, cfg: OnlineConfig = OnlineConfig(), device: str = "cpu",
         max_frames: Optional[int] = None, progress: bool = True) -> OnlineResult:
@@ -492,7 +503,9 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[P
 
         learner = OnlineLearner(checkpoint, predict_cfg, device)
     graph = OnlineGraph(graph_cfg)
-    teacher = OnlineTeacher(source.intrinsics, teacher_cfg, _colour_camera(source, teacher_cfg))
+    teacher = OnlineTeacher(source.intrinsics,
+                            dataclasses.replace(teacher_cfg, rolling_shutter_s=_rolling_shutter(source, teacher_cfg)),
+                            _colour_camera(source, teacher_cfg))
     t_edges: list = []
     l_edges: list[Edge] = []
     gts: list[Optional[NDArray]] = []

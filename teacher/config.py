@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
+from typing import Optional
 
 
 @dataclass(frozen=True)
@@ -472,6 +473,25 @@ class TeacherConfig:
     frame's grey of the wrong moment 3.6, with the depth term alone 1.6 (bench/README.md,
     issue 13, fourth session). Only with photometric maps (``dense_method`` hybrid:
     synthetic scenes); real recordings keep the stale-stream rule (``dense_on_stale``)."""
+    rolling_shutter_s: Optional[float] = None
+    """Readout time of the sensor's rows, top to bottom, in seconds (colour and depth alike);
+    0: a global shutter, no correction. None (auto): a synthetic scene's own sensor model's
+    ``rolling_shutter_s`` (27 ms; 0 for a noise-free render), any other recording
+    :data:`teacher.odometry.KINECT_V1_READOUT_S` (27 ms: 7-Scenes and TUM RGB-D are Kinect v1
+    recordings; set 0 for a global-shutter camera) (:func:`teacher.generate.rolling_shutter_for`).
+    An edge spanning two frames or more moves each frame's keypoints (those with depth) and
+    dense-step points to the moment of the frame's middle row, to first order,
+    ``X + s_r (w x X + v)``, at that frame's own velocity from its gap-1 labels: the edge out
+    of the older frame, the edge into the newer one (:func:`teacher.odometry.rolling_shutter_views`).
+    Frames with a repeated image, or without a good gap-1 edge there, are left as they are.
+    Gap-1 edges are left as they are too: with one velocity for both frames, a point seen
+    at about the same row in both frames moves the same in both, so nothing changes to first
+    order. The same correction at the edge's own velocity for both frames moved nothing on
+    synthetic/lab. Chosen on validation data (bench/README.md, "Rolling shutter"):
+    - synthetic/lab 0:150, repeats off, 27 ms: all-edge RMSE 3.18 -> 1.76 mm, paired
+      -7.0 +- 0.5 mm^2; gap-2..5 medians 2.03-3.14 -> 1.22-1.41 mm.
+    - redkitchen 350:450: 15 / 27 / 33 ms all better, by 1.6-1.8 SE (8.32 -> 7.92-7.98 mm). It
+      cannot tell the readouts apart; 27 ms is the synthetic sensor model's Kinect v1 value."""
     depth_time_compensation: bool = True
     """Where a frame's depth image was taken at another moment than its colour image (the
     sequence's depth timestamps, ``Sequence.depth_offsets()``: TUM RGB-D, on fr1/xyz 3.6-15.9
@@ -612,8 +632,8 @@ TINY = TeacherConfig(gaps=2, n_features=800)
 #: least-squares pose refinement on the inliers), without what ``default`` adds on top:
 #: no robust two-way Newton refinement (``refine`` False, so no backward reprojection and
 #: no 3-D depth term either) and no dense point-to-plane depth alignment
-#: (``dense_iters`` 0, so no stale-stream handling). Everything else (features, matching,
+#: (``dense_iters`` 0, so no stale-stream handling), and no rolling shutter correction. Everything else (features, matching,
 #: feature tracks for gaps 2..K, failure tests, gaps 1..K) is ``default``'s. Its labels are
 #: noisier: on the redkitchen sample see bench/README.md, "Teacher-noise sweep".
-PAPER = replace(DEFAULT, refine=False, dense_iters=0)
+PAPER = replace(DEFAULT, refine=False, dense_iters=0, rolling_shutter_s=0.0)
 PRESETS = {"default": DEFAULT, "tiny": TINY, "paper": PAPER}

@@ -26,6 +26,7 @@ import threading
 import time
 from collections import Counter, deque
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional
@@ -46,7 +47,7 @@ from data.scenes import open_scene
 from data.sequence import Sequence
 from teacher import processes
 from teacher.config import TeacherConfig
-from teacher.odometry import (KINECT_V1_COLOUR, ColourCamera, EdgeEstimate, FrameFeatures, PhotoMaps, extract,
+from teacher.odometry import (KINECT_V1_COLOUR, KINECT_V1_READOUT_S, ColourCamera, EdgeEstimate, FrameFeatures, PhotoMaps, extract,
                               image_keys, make_orb)
 from teacher.window import EdgeWindow
 
@@ -170,6 +171,7 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     edges: list[EdgeEstimate] = []
     orb = make_orb(cfg)
     colour = colour_camera_for(seq, cfg)  # it also picks the dense step's method (dense_method_for)
+    cfg = dataclasses.replace(cfg, rolling_shutter_s=rolling_shutter_for(seq, cfg))
 
     def _extract(k: int) -> FrameFeatures:
         return extract(seq.rgb(k), seq.depth(k), cfg, orb, intr.K, colour)  # one thread uses this ORB
@@ -275,6 +277,35 @@ def colour_camera_for(seq: Sequence, cfg: TeacherConfig) -> Optional[ColourCamer
     if not isinstance(seq, SevenScenesSequence):
         return None
     return colour_camera_of_folder(Path(seq.root))
+
+
+def rolling_shutter_for(seq: Optional[Sequence], cfg: TeacherConfig) -> float:
+    """``cfg.rolling_shutter_s`` for ``seq``, auto (None) resolved: a synthetic scene's (a
+    7-Scenes-layout folder whose parent holds the renderer's ``config.json``) own sensor
+    model's readout, 0 when noise-free; any other recording Kinect v1's (:data:`KINECT_V1_READOUT_S`)."""
+    from data.errors import ConfigError
+
+    if cfg.rolling_shutter_s is not None:
+        if not (np.isfinite(cfg.rolling_shutter_s) and 0.0 <= cfg.rolling_shutter_s < 1.0):
+            raise ConfigError(f"rolling_shutter_s must be in [0, 1) s, got {cfg.rolling_shutter_s!r}")
+        return float(cfg.rolling_shutter_s)
+    from data.sevenscenes import SevenScenesSequence
+
+    if isinstance(seq, SevenScenesSequence):
+        return rolling_shutter_of_folder(Path(seq.root))
+    return KINECT_V1_READOUT_S
+
+
+def rolling_shutter_of_folder(seq_dir: Path) -> float:
+    """Auto's readout for a 7-Scenes-layout sequence folder (see :func:`rolling_shutter_for`)."""
+    rendered = Path(seq_dir).parent / "config.json"
+    if rendered.is_file():
+        try:
+            sensor = json.loads(rendered.read_text())["config"]["sensor"]
+            return 0.0 if sensor["noise_free"] else float(sensor["rolling_shutter_s"])
+        except (ValueError, KeyError, TypeError):
+            pass  # not a synthetic scene's config: a real 7-Scenes folder
+    return KINECT_V1_READOUT_S
 
 
 def dense_method_for(seq: Sequence, cfg: TeacherConfig) -> str:

@@ -41,7 +41,10 @@ class FrameFeatures:
     another moment than its colour (``cfg.depth_time_compensation``), is the depth's time
     minus the colour's: the dense steps of its edges align the depth maps between their
     moments and move the result to the colour moments (:func:`estimate_edge`). 0: the same
-    moment.
+    moment. ``velocity_in`` / ``velocity_out`` (6,) ``(v, w)`` per second, set by the window:
+    the camera's velocity from the frame's gap-1 edge in and out of it, for the rolling
+    shutter correction (``cfg.rolling_shutter_s``, :func:`rolling_shutter_views`); None when
+    unknown.
     """
 
     uv: NDArray[np.float32]
@@ -54,7 +57,10 @@ class FrameFeatures:
     stale: bool = False
     colour_behind: bool = False
     depth_offset: float = 0.0
+    velocity_in: Optional[NDArray[np.float64]] = None
+    velocity_out: Optional[NDArray[np.float64]] = None
     _tree: Optional[cKDTree] = None
+    _rolling: dict = field(default_factory=dict, repr=False)
 
     @property
     def desc64(self) -> NDArray[np.uint64]:
@@ -124,6 +130,10 @@ class ColourCamera:
 #: synthetic sensor model (data/synthetic/config.py: ``rgb_focal_scale``, ``rgb_shift_px``,
 #: ``rgb_baseline_m``)
 KINECT_V1_COLOUR = ColourCamera(0.91, (-3.5, -1.0), 0.016)
+#: Kinect v1's row readout, top to bottom (s): its free-running 30 Hz sensors read out over
+#: most of the frame period; the synthetic sensor model's ``rolling_shutter_s``
+#: (``TeacherConfig.rolling_shutter_s``'s auto value for real recordings)
+KINECT_V1_READOUT_S = 0.027
 
 
 def make_orb(cfg: TeacherConfig) -> cv2.ORB:
@@ -833,6 +843,58 @@ def _huber(r: NDArray, k: float) -> tuple[float, NDArray, NDArray]:
     return cost, np.where(quad, 1.0, k / np.maximum(a, 1e-12)), quad
 
 
+def _to_middle_row(X: NDArray, rows: NDArray, height: int, xi: NDArray, readout_s: float) -> NDArray:
+    """Points ``X`` (..., 3) seen by the image rows ``rows`` (...,) of a rolling-shutter frame,
+    moved to the frame's middle-row moment, to first order: ``X + s (w x X + v)``, ``s`` the
+    row's time after the middle row's, ``xi = (v, w)`` the camera's body velocity (per s)."""
+    s = ((rows / (height - 1) - 0.5) * readout_s).astype(X.dtype)
+    v, w = xi[:3].astype(X.dtype), xi[3:].astype(X.dtype)
+    return X + s[..., None] * (np.cross(w, X) + v)
+
+
+def rolling_shutter_views(fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
+                          cfg: TeacherConfig) -> Optional[tuple]:
+    """For an edge (i, j) with ``cfg.rolling_shutter_s``: frame i's keypoints (pixels, depths)
+    and dense maps moved to its middle row's moment at ``fi.velocity_out``, frame j's at
+    ``fj.velocity_in`` (:func:`_to_middle_row`; each frame's are built once per role and
+    kept). Returns ``((uv_i, z_i), (uv_j, z_j), dense_i, dense_j)``; None without the
+    correction (off, or a velocity unknown). Keypoints without depth keep their pixel; the
+    dense maps keep their normals and lose their photometric maps (the hybrid stage is not
+    corrected)."""
+    if not cfg.rolling_shutter_s or fi.velocity_out is None or fj.velocity_in is None:
+        return None  # off, auto not resolved (teacher.generate.rolling_shutter_for), or a velocity unknown
+    (kp_i, dense_i), (kp_j, dense_j) = _rolling_view(fi, "out", intr, cfg), _rolling_view(fj, "in", intr, cfg)
+    return kp_i, kp_j, dense_i, dense_j
+
+
+def _rolling_view(f: FrameFeatures, role: str, intr: Intrinsics, cfg: TeacherConfig) -> tuple:
+    """``((uv, z), dense)`` of :func:`rolling_shutter_views` for frame ``f`` as an edge's
+    older (``out``) or newer (``in``) frame."""
+    if role not in f._rolling:
+        xi = f.velocity_out if role == "out" else f.velocity_in
+        K, h = intr.K, intr.height
+        uv, z = f.uv.astype(np.float64), f.z.astype(np.float64)
+        ok = z > 0
+        X = _to_middle_row(_backproject(uv[ok], z[ok], K), uv[ok, 1], h, xi, cfg.rolling_shutter_s)
+        uv, z = uv.copy(), z.copy()
+        uv[ok], z[ok] = _project(X, K), X[:, 2]
+        dense = None
+        if f.dense is not None:
+            d = f.dense
+            if role == "out" and d.vertex is not None:
+                vert = d.vertex.numpy()
+                rows = np.arange(vert.shape[0]) * cfg.dense_target_scale
+                vert = _to_middle_row(vert, rows[:, None].repeat(vert.shape[1], 1), h, xi, cfg.rolling_shutter_s)
+                dense = DenseMaps(d.points, o3d.core.Tensor(np.ascontiguousarray(vert)), d.normal, d.K)
+            elif role == "in":
+                pts = d.points.numpy()
+                rows = np.arange(pts.shape[0]) * cfg.dense_scale
+                pts = _to_middle_row(pts, rows[:, None].repeat(pts.shape[1], 1), h, xi, cfg.rolling_shutter_s)
+                dense = DenseMaps(o3d.core.Tensor(np.ascontiguousarray(pts)), d.vertex, d.normal, d.K)
+        f._rolling[role] = ((uv, z), dense)
+    return f._rolling[role]
+
+
 def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
                   cfg: TeacherConfig, dt: float, T_pred: Optional[NDArray] = None,
                   tracks: Optional[NDArray[np.int64]] = None, dense: bool = True,
@@ -869,6 +931,7 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
     at most 4 % better and its trajectory worse (``depth_time_compensation``).
     """
     span = dt if span is None else span
+    rolling = rolling_shutter_views(fi, fj, intr, cfg) if not cfg.subpixel else None
     attempts = []
     if tracks is not None and len(tracks) >= cfg.min_matches:
         attempts.append(("tracks", tracks, None))
@@ -886,7 +949,7 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
                 pairs = match_wide(fi, fj, cfg, pred, intr.K)
             else:
                 pairs = match(fi, fj, cfg, pred, intr.K)
-        res = _estimate(i, j, fi, fj, intr, cfg, dt, pairs)
+        res = _estimate(i, j, fi, fj, intr, cfg, dt, pairs, rolling)
         res.info["source"] = source
         if best is None or res.inliers > best.inliers or res.ok:
             best = res
@@ -928,7 +991,9 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
         if moved:  # the dense step aligns the depth maps: between their moments
             best.cov = _cov_to_depth_moments(best.cov, best.T_i_j, fi, fj, dt)
             best.T_i_j = _depth_moments(best.T_i_j, fi, fj, dt)
-        dense_refine(best, fi.dense, fj.dense, cfg, blend=1.0 if stale and cfg.dense_on_stale else None,
+        di, dj = (rolling[2], rolling[3]) if rolling is not None and rolling[2] is not None \
+            and rolling[3] is not None else (fi.dense, fj.dense)
+        dense_refine(best, di, dj, cfg, blend=1.0 if stale and cfg.dense_on_stale else None,
                      hybrid=tracks is None or cfg.hybrid_all_gaps)
         if moved:
             _to_colour_moments(best, fi, fj, dt)
@@ -1339,16 +1404,21 @@ def hybrid_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg: Teacher
 
 
 def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
-              cfg: TeacherConfig, dt: float, pairs: NDArray[np.int64]) -> EdgeEstimate:
+              cfg: TeacherConfig, dt: float, pairs: NDArray[np.int64],
+              rolling: Optional[tuple] = None) -> EdgeEstimate:
+    """The keypoint estimate of ``T_i_j`` from the matches ``pairs`` (PnP-RANSAC, then the
+    two-way refinement); ``rolling``: :func:`rolling_shutter_views`, whose keypoints it then
+    takes (``cfg.subpixel`` off)."""
     K = intr.K
     n_match = len(pairs)
     if n_match < cfg.min_matches:
         return EdgeEstimate(i, j, "few_matches", matches=n_match)
-    uv_i = np.take(fi.uv, pairs[:, 0], axis=0).astype(np.float64)
-    uv_j = np.take(fj.uv, pairs[:, 1], axis=0).astype(np.float64)
+    (uv_fi, z_fi), (uv_fj, z_fj) = (rolling[0], rolling[1]) if rolling is not None else ((fi.uv, fi.z), (fj.uv, fj.z))
+    uv_i = np.take(uv_fi, pairs[:, 0], axis=0).astype(np.float64)
+    uv_j = np.take(uv_fj, pairs[:, 1], axis=0).astype(np.float64)
     if cfg.subpixel:
         uv_j = _subpixel(fi, fj, uv_i, uv_j, cfg.lk_window)
-    P_i = _backproject(uv_i, fi.z[pairs[:, 0]].astype(np.float64), K)
+    P_i = _backproject(uv_i, z_fi[pairs[:, 0]].astype(np.float64), K)
     ok, rvec, tvec, inl = cv2.solvePnPRansac(
         P_i, uv_j, K, None, iterationsCount=cfg.ransac_iters, reprojectionError=cfg.ransac_reproj_px,
         confidence=0.999, flags=cv2.SOLVEPNP_SQPNP)
@@ -1360,7 +1430,7 @@ def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     T0 = geo.inv_T(geo.make_T(R_j_i, tvec.ravel()))
 
     # points of frame j with valid depth give the backward term
-    z_j = (depth_at(fj.depth, uv_j, cfg) if cfg.subpixel else fj.z[pairs[:, 1]]).astype(np.float64)
+    z_j = (depth_at(fj.depth, uv_j, cfg) if cfg.subpixel else z_fj[pairs[:, 1]]).astype(np.float64)
     Q_all = _backproject(uv_j, z_j, K)
     has_b = (z_j > 0) if cfg.two_way and cfg.refine else np.zeros(len(z_j), bool)
     iters, w3 = (cfg.refine_iters, cfg.depth_weight) if cfg.refine else (0, 0.0)  # 0: covariance at T0 only

@@ -98,6 +98,9 @@ class EdgeWindow:
         self.span_prev = 0.0
         self.added = 0
         self._pending: Optional[tuple] = None  # the frame add_gap1 took, until add_longer
+        # the newest frame's images are both new (:meth:`add_gap1`); the first frame's
+        # predecessor is unknown here, and a frame without one is taken as new
+        self._fresh = True
 
     def _starts_inside(self, pos: int) -> bool:
         return self.until is None or pos < self.until
@@ -122,6 +125,9 @@ class EdgeWindow:
         pos, self.added = self.added, self.added + 1
         prev_depth_repeat, self._depth_repeat = self._depth_repeat, False
         moments = self._moments_of(timestamp, fk)
+        # both images new (not a repeat of the previous frame's): its gap-1 edges measure its velocity
+        fresh = self.prev_keys is None or (fk.keys[0] != self.prev_keys[0] and fk.keys[1] != self.prev_keys[1])
+        fresh_prev, self._fresh = self._fresh, fresh
         if self.prev_keys is not None:
             self._depth_repeat = fk.keys[1] == self.prev_keys[1]
             fk.stale = stale_stream(self.prev_keys, fk.keys)
@@ -152,6 +158,8 @@ class EdgeWindow:
             if self._starts_inside(prev.pos):
                 edges.append(e)
             step = e.T_i_j if e.ok else (cv if cv is not None else np.eye(4))
+            if e.ok and fresh and fresh_prev and dt > 0:  # for the rolling shutter correction
+                fk.velocity_in = prev.feats.velocity_out = geo.se3_log(e.T_i_j) / dt
             if e.ok:
                 self.v_prev, self.dt_prev = e.T_i_j, dt
                 if not (self._depth_repeat or prev_depth_repeat):
