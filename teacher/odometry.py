@@ -847,9 +847,13 @@ def _to_middle_row(X: NDArray, rows: NDArray, height: int, xi: NDArray, readout_
     """Points ``X`` (..., 3) seen by the image rows ``rows`` (...,) of a rolling-shutter frame,
     moved to the frame's middle-row moment, to first order: ``X + s (w x X + v)``, ``s`` the
     row's time after the middle row's, ``xi = (v, w)`` the camera's body velocity (per s)."""
-    s = ((rows / (height - 1) - 0.5) * readout_s).astype(X.dtype)
-    v, w = xi[:3].astype(X.dtype), xi[3:].astype(X.dtype)
-    return X + s[..., None] * (np.cross(w, X) + v)
+    s = ((np.asarray(rows, np.float64) / (height - 1) - 0.5) * readout_s).astype(X.dtype)[..., None]
+    v, w = (float(a) for a in xi[:3]), (float(a) for a in xi[3:])
+    (vx, vy, vz), (wx, wy, wz) = v, w
+    x, y, z = X[..., 0], X[..., 1], X[..., 2]
+    # w x X + v, written out (np.cross copies its operands into its own layout)
+    m = np.stack([wy * z - wz * y + vx, wz * x - wx * z + vy, wx * y - wy * x + vz], axis=-1)
+    return X + s * m
 
 
 def rolling_shutter_views(fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
@@ -884,12 +888,12 @@ def _rolling_view(f: FrameFeatures, role: str, intr: Intrinsics, cfg: TeacherCon
             if role == "out" and d.vertex is not None:
                 vert = d.vertex.numpy()
                 rows = np.arange(vert.shape[0]) * cfg.dense_target_scale
-                vert = _to_middle_row(vert, rows[:, None].repeat(vert.shape[1], 1), h, xi, cfg.rolling_shutter_s)
+                vert = _to_middle_row(vert, rows[:, None], h, xi, cfg.rolling_shutter_s)
                 dense = DenseMaps(d.points, o3d.core.Tensor(np.ascontiguousarray(vert)), d.normal, d.K)
             elif role == "in":
                 pts = d.points.numpy()
                 rows = np.arange(pts.shape[0]) * cfg.dense_scale
-                pts = _to_middle_row(pts, rows[:, None].repeat(pts.shape[1], 1), h, xi, cfg.rolling_shutter_s)
+                pts = _to_middle_row(pts, rows[:, None], h, xi, cfg.rolling_shutter_s)
                 dense = DenseMaps(o3d.core.Tensor(np.ascontiguousarray(pts)), d.vertex, d.normal, d.K)
         f._rolling[role] = ((uv, z), dense)
     return f._rolling[role]
