@@ -867,7 +867,7 @@ def test_keypoints_agreeing_on_a_wrong_motion_give_way_to_the_rgbd_fallback(offi
     T_bad = T_true @ geo.se3_exp([0.04, 0.0, 0.0, 0.0, 0.0, 0.0])
     T_pred = T_true @ geo.se3_exp([0.003, -0.002, 0.002, 0.002, -0.002, 0.002])
 
-    def wrong(i, j, fi, fj, intr, cfg, dt, pairs):
+    def wrong(i, j, fi, fj, intr, cfg, dt, pairs, rolling=None):
         return EdgeEstimate(i, j, "ok", T_i_j=T_bad.copy(), cov=np.diag([1e-6] * 3 + [3e-6] * 3), matches=100,
                             inliers=90, inlier_ratio=0.9, info={})
 
