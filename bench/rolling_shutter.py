@@ -47,13 +47,11 @@ START = np.array([0.002, -0.002, 0.001, 0.002, 0.001, -0.001])
 
 def row_warp(maps: o3d.core.Tensor, row_step: int, xi: np.ndarray, readout_s: float) -> o3d.core.Tensor:
     """A vertex map (h, w, 3) of every ``row_step``-th image row moved from each row's moment
-    to the middle row's, to first order: ``X + s (w x X + v)``, ``s`` the row's time from the
-    middle row (s), ``xi = (v, w)`` the camera's body velocity (per second)."""
+    to the middle row's, as the teacher moves them (:func:`teacher.odometry._to_middle_row`),
+    at the body velocity ``xi = (v, w)`` (per second)."""
     X = maps.numpy()
-    h = X.shape[0]
-    s = ((np.arange(h) * row_step) / (h * row_step - 1) - 0.5) * readout_s
-    v, w = xi[:3].astype(np.float32), xi[3:].astype(np.float32)
-    return o3d.core.Tensor(np.ascontiguousarray(X + s.astype(np.float32)[:, None, None] * (np.cross(w, X) + v)))
+    rows = (np.arange(X.shape[0]) * row_step)[:, None]
+    return o3d.core.Tensor(np.ascontiguousarray(od._to_middle_row(X, rows, X.shape[0] * row_step, xi, readout_s)))
 
 
 def point_to_plane(T: np.ndarray, di: od.DenseMaps, dj: od.DenseMaps, cfg: TeacherConfig, iters: int) -> np.ndarray:
