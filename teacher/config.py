@@ -634,8 +634,9 @@ TINY = TeacherConfig(gaps=2, n_features=800)
 #: least-squares pose refinement on the inliers), without what ``default`` adds on top:
 #: no robust two-way Newton refinement (``refine`` False, so no backward reprojection and
 #: no 3-D depth term either) and no dense point-to-plane depth alignment
-#: (``dense_iters`` 0, so no stale-stream handling), and no rolling shutter correction. Everything else (features, matching,
-#: feature tracks for gaps 2..K, failure tests, gaps 1..K) is ``default``'s. Its labels are
-#: noisier: on the redkitchen sample see bench/README.md, "Teacher-noise sweep".
+#: (``dense_iters`` 0, so no stale-stream handling), and no rolling shutter correction
+#: (``rolling_shutter_s`` 0). Everything else (features, matching, feature tracks for gaps
+#: 2..K, failure tests, gaps 1..K) is ``default``'s. Its labels are noisier: on the
+#: redkitchen sample see bench/README.md, "Teacher-noise sweep".
 PAPER = replace(DEFAULT, refine=False, dense_iters=0, rolling_shutter_s=0.0)
 PRESETS = {"default": DEFAULT, "tiny": TINY, "paper": PAPER}

@@ -19,6 +19,7 @@ ground truth), report.json, config.json.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import sys
@@ -26,7 +27,6 @@ import threading
 import time
 from collections import Counter, deque
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional
@@ -47,8 +47,8 @@ from data.scenes import open_scene
 from data.sequence import Sequence
 from teacher import processes
 from teacher.config import TeacherConfig
-from teacher.odometry import (KINECT_V1_COLOUR, KINECT_V1_READOUT_S, ColourCamera, EdgeEstimate, FrameFeatures, PhotoMaps, extract,
-                              image_keys, make_orb)
+from teacher.odometry import (KINECT_V1_COLOUR, KINECT_V1_READOUT_S, ColourCamera, EdgeEstimate, FrameFeatures,
+                              PhotoMaps, extract, image_keys, make_orb)
 from teacher.window import EdgeWindow
 
 log = logging.getLogger(__name__)
