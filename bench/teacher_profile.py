@@ -190,36 +190,33 @@ def edges_digest(edges) -> str:
 
 
 def parse_set(items: list[str]) -> dict:
-    """``key=value`` overrides of :class:`TeacherConfig`, typed by the field's default."""
-    base, out = TeacherConfig(), {}
-    for kv in items:
-        key, _, value = kv.partition("=")
-        if not hasattr(base, key):
-            raise SystemExit(f"error: TeacherConfig has no field {key!r}")
-        default = getattr(base, key)
-        if default is None:  # an optional number (None: auto)
-            out[key] = None if value.lower() in ("none", "auto") else float(value)
-            continue
-        kind = type(default)
-        out[key] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
-    return out
+    """``key=value`` overrides of :class:`TeacherConfig` (:func:`_overrides`)."""
+    return _overrides(items, TeacherConfig())
 
 
 def parse_sensor(items: list[str]) -> dict:
-    """``key=value`` overrides of a synthetic scene's :class:`SensorConfig`, typed by the
-    field's default (a pair as ``lo,hi``)."""
+    """``key=value`` overrides of a synthetic scene's :class:`SensorConfig` (:func:`_overrides`)."""
     from data.synthetic.config import SensorConfig
 
-    base, out = SensorConfig(), {}
+    return _overrides(items, SensorConfig())
+
+
+def _overrides(items: list[str], base) -> dict:
+    """``key=value`` overrides of the dataclass ``base``, typed by the field's default: a
+    bool from ``1/true/yes``, a pair as ``lo,hi``, an optional number (default None: auto)
+    as a float or ``none`` / ``auto``."""
+    out = {}
     for kv in items:
         key, _, value = kv.partition("=")
         if not hasattr(base, key):
-            raise SystemExit(f"error: SensorConfig has no field {key!r}")
+            raise SystemExit(f"error: {type(base).__name__} has no field {key!r}")
         kind = type(getattr(base, key))
         if kind is bool:
             out[key] = value.lower() in ("1", "true", "yes")
         elif kind is tuple:
             out[key] = tuple(float(v) for v in value.split(","))
+        elif kind is type(None):
+            out[key] = None if value.lower() in ("none", "auto") else float(value)
         else:
             out[key] = kind(value)
     return out
