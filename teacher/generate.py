@@ -298,14 +298,8 @@ def rolling_shutter_for(seq: Optional[Sequence], cfg: TeacherConfig) -> float:
 
 def rolling_shutter_of_folder(seq_dir: Path) -> float:
     """Auto's readout for a 7-Scenes-layout sequence folder (see :func:`rolling_shutter_for`)."""
-    rendered = Path(seq_dir).parent / "config.json"
-    if rendered.is_file():
-        try:
-            sensor = json.loads(rendered.read_text())["config"]["sensor"]
-            return 0.0 if sensor["noise_free"] else float(sensor["rolling_shutter_s"])
-        except (ValueError, KeyError, TypeError):
-            pass  # not a synthetic scene's config: a real 7-Scenes folder
-    return KINECT_V1_READOUT_S
+    return _from_rendered_sensor(
+        seq_dir, lambda sensor: 0.0 if sensor["noise_free"] else float(sensor["rolling_shutter_s"]), KINECT_V1_READOUT_S)
 
 
 def dense_method_for(seq: Sequence, cfg: TeacherConfig) -> str:
@@ -323,19 +317,28 @@ def dense_method_for(seq: Sequence, cfg: TeacherConfig) -> str:
     return dense_method(cfg, colour_camera_for(seq, cfg))
 
 
-def colour_camera_of_folder(seq_dir: Path) -> Optional[ColourCamera]:
-    """``auto``'s choice for a 7-Scenes-layout sequence folder (see :func:`colour_camera_for`)."""
+def _from_rendered_sensor(seq_dir: Path, read: Callable[[dict], object], default: object) -> object:
+    """``read`` of the sensor model of the synthetic scene whose 7-Scenes-layout folder is
+    ``seq_dir`` (the renderer's ``config.json`` one level up); ``default`` for a real 7-Scenes
+    folder (no such file, or not a synthetic scene's config)."""
     rendered = Path(seq_dir).parent / "config.json"
     if rendered.is_file():
         try:
-            sensor = json.loads(rendered.read_text())["config"]["sensor"]
-            if sensor["noise_free"]:
-                return None
-            return ColourCamera(float(sensor["rgb_focal_scale"]), tuple(map(float, sensor["rgb_shift_px"])),
-                                float(sensor["rgb_baseline_m"]), synchronous=True)
+            return read(json.loads(rendered.read_text())["config"]["sensor"])
         except (ValueError, KeyError, TypeError):
             pass  # not a synthetic scene's config: a real 7-Scenes folder
-    return KINECT_V1_COLOUR
+    return default
+
+
+def colour_camera_of_folder(seq_dir: Path) -> Optional[ColourCamera]:
+    """``auto``'s choice for a 7-Scenes-layout sequence folder (see :func:`colour_camera_for`)."""
+    def read(sensor: dict) -> Optional[ColourCamera]:
+        if sensor["noise_free"]:
+            return None
+        return ColourCamera(float(sensor["rgb_focal_scale"]), tuple(map(float, sensor["rgb_shift_px"])),
+                            float(sensor["rgb_baseline_m"]), synchronous=True)
+
+    return _from_rendered_sensor(seq_dir, read, KINECT_V1_COLOUR)
 
 
 def chain_trajectory(ids: NDArray[np.int64], edges: list[EdgeEstimate]) -> tuple[NDArray[np.float64], list[dict]]:
