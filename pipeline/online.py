@@ -59,7 +59,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Optional, Sequence, TextIO
+from typing import Callable, Iterator, Optional, Sequence, TextIO
 
 import numpy as np
 from numpy.typing import NDArray
@@ -467,22 +467,29 @@ def _colour_camera(source: FrameSource, teacher_cfg):
     """The teacher's colour camera model for ``source``, chosen as ``teacher generate`` does."""
     from teacher.generate import colour_camera_for, colour_camera_of_folder
 
-    if isinstance(source, SequenceSource):
-        return colour_camera_for(source.seq, teacher_cfg)
-    if isinstance(source, FollowSevenScenes) and teacher_cfg.colour_camera == "auto":
-        return colour_camera_of_folder(source.folder)
-    return colour_camera_for(None, teacher_cfg) if teacher_cfg.colour_camera != "auto" else None
+    return _as_generate_does(source, lambda seq: colour_camera_for(seq, teacher_cfg), colour_camera_of_folder,
+                             teacher_cfg.colour_camera == "auto")
 
 
 def _rolling_shutter(source: FrameSource, teacher_cfg) -> float:
     """The teacher's rolling shutter readout for ``source``, chosen as ``teacher generate`` does."""
     from teacher.generate import rolling_shutter_for, rolling_shutter_of_folder
 
+    return _as_generate_does(source, lambda seq: rolling_shutter_for(seq, teacher_cfg), rolling_shutter_of_folder,
+                             teacher_cfg.rolling_shutter_s is None)
+
+
+def _as_generate_does(source: FrameSource, for_seq: Callable, of_folder: Callable, auto: bool):
+    """A teacher setting for ``source`` as ``teacher generate`` picks it for a sequence
+    (``for_seq(seq)``): a followed 7-Scenes-layout folder on auto is read as that folder
+    (``of_folder``, e.g. a synthetic scene's own sensor model); any other source as no
+    sequence (``for_seq(None)``: the setting itself, or auto's choice for a recording that is
+    not a 7-Scenes folder)."""
     if isinstance(source, SequenceSource):
-        return rolling_shutter_for(source.seq, teacher_cfg)
-    if isinstance(source, FollowSevenScenes) and teacher_cfg.rolling_shutter_s is None:
-        return rolling_shutter_of_folder(source.folder)
-    return rolling_shutter_for(None, teacher_cfg)
+        return for_seq(source.seq)
+    if isinstance(source, FollowSevenScenes) and auto:
+        return of_folder(source.folder)
+    return for_seq(None)
 
 
 def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Optional[Path] = None,
