@@ -9,8 +9,9 @@ teacher's maps, ``dense_scale`` / ``dense_target_scale``), from the ground truth
 
 * ``plain``: the maps as they are (what the teacher does);
 * ``warp``: both frames' vertex maps moved to their middle row's moment to first order,
-  ``X + s_r (w x X + v)``, with the true velocity of each frame (the renderer's own central
-  difference of the ground truth): what a rolling-shutter-aware step could at best do;
+  ``X + s_r (w x X + v)`` (:func:`teacher.odometry.map_to_middle_row`, as the teacher moves
+  them), with the true velocity of each frame (the renderer's own central difference of the
+  ground truth): what a rolling-shutter-aware step could at best do;
 * ``warp, wrong sign``: the same warp reversed (a check that the warp is not just noise).
 
 Repeated frames are off (they repeat poses). ``--clean-depth`` turns the depth noise, bias,
@@ -45,15 +46,6 @@ NO_REPEATS = dict(frame_repeat_prob=0.0, rgb_repeat_prob=0.0, depth_repeat_prob=
 START = np.array([0.002, -0.002, 0.001, 0.002, 0.001, -0.001])
 
 
-def row_warp(maps: o3d.core.Tensor, row_step: int, xi: np.ndarray, readout_s: float) -> o3d.core.Tensor:
-    """A vertex map (h, w, 3) of every ``row_step``-th image row moved from each row's moment
-    to the middle row's, as the teacher moves them (:func:`teacher.odometry._to_middle_row`),
-    at the body velocity ``xi = (v, w)`` (per second)."""
-    X = maps.numpy()
-    rows = (np.arange(X.shape[0]) * row_step)[:, None]
-    return o3d.core.Tensor(np.ascontiguousarray(od._to_middle_row(X, rows, X.shape[0] * row_step, xi, readout_s)))
-
-
 def point_to_plane(T: np.ndarray, di: od.DenseMaps, dj: od.DenseMaps, cfg: TeacherConfig, iters: int) -> np.ndarray:
     """``iters`` iterations of Open3D's point-to-plane kernel from ``T`` (T_i_j), as the
     teacher's dense stage runs them (no early stop)."""
@@ -78,7 +70,7 @@ def main(argv: list[str] | None = None) -> None:
     sensor = dataclasses.replace(base.sensor, **NO_REPEATS, **(CLEAN_DEPTH if args.clean_depth else {}),
                                  rolling_shutter_s=args.readout)
     seq = synthetic_sequence(args.scene, config=dataclasses.replace(base, sensor=sensor))
-    gt, K, cfg = seq.groundtruth(), seq.intrinsics.K, TeacherConfig()
+    gt, K, h, cfg = seq.groundtruth(), seq.intrinsics.K, seq.intrinsics.height, TeacherConfig()
     dt = 1.0 / base.fps
     maps: dict[int, od.DenseMaps] = {}
 
@@ -100,9 +92,10 @@ def main(argv: list[str] | None = None) -> None:
             di, dj = dense(i), dense(j)
             for name, sign in (("plain", 0.0), ("warp", 1.0), ("warp, wrong sign", -1.0)):
                 if sign:
-                    wi = od.DenseMaps(di.points, row_warp(di.vertex, cfg.dense_target_scale, velocity(i), sign * readout),
-                                      di.normal, di.K)
-                    wj = od.DenseMaps(row_warp(dj.points, cfg.dense_scale, velocity(j), sign * readout), None, None, dj.K)
+                    wi = od.DenseMaps(di.points, od.map_to_middle_row(di.vertex, cfg.dense_target_scale, h, velocity(i),
+                                                                      sign * readout), di.normal, di.K)
+                    wj = od.DenseMaps(od.map_to_middle_row(dj.points, cfg.dense_scale, h, velocity(j), sign * readout),
+                                      None, None, dj.K)
                 else:
                     wi, wj = di, dj
                 T = point_to_plane(T0, wi, wj, cfg, args.iters)

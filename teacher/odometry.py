@@ -856,6 +856,15 @@ def _to_middle_row(X: NDArray, rows: NDArray, height: int, xi: NDArray, readout_
     return X + s * m
 
 
+def map_to_middle_row(maps: o3d.core.Tensor, row_step: int, height: int, xi: NDArray,
+                      readout_s: float) -> o3d.core.Tensor:
+    """A vertex map (h, w, 3) of every ``row_step``-th row of a ``height``-row image, each
+    point moved to the middle row's moment (:func:`_to_middle_row`)."""
+    X = maps.numpy()
+    rows = (np.arange(X.shape[0]) * row_step)[:, None]
+    return o3d.core.Tensor(np.ascontiguousarray(_to_middle_row(X, rows, height, xi, readout_s)))
+
+
 def rolling_shutter_views(fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
                           cfg: TeacherConfig) -> Optional[tuple]:
     """For an edge (i, j) with ``cfg.rolling_shutter_s``: frame i's keypoints (pixels, depths)
@@ -883,19 +892,13 @@ def _rolling_view(f: FrameFeatures, role: str, intr: Intrinsics, cfg: TeacherCon
         X = _to_middle_row(_backproject(uv[ok], z[ok], K), uv[ok, 1], h, xi, cfg.rolling_shutter_s)
         uv, z = uv.copy(), z.copy()
         uv[ok], z[ok] = _project(X, K), X[:, 2]
-        dense = None
-        if f.dense is not None:
-            d = f.dense
-            if role == "out" and d.vertex is not None:
-                vert = d.vertex.numpy()
-                rows = np.arange(vert.shape[0]) * cfg.dense_target_scale
-                vert = _to_middle_row(vert, rows[:, None], h, xi, cfg.rolling_shutter_s)
-                dense = DenseMaps(d.points, o3d.core.Tensor(np.ascontiguousarray(vert)), d.normal, d.K)
-            elif role == "in":
-                pts = d.points.numpy()
-                rows = np.arange(pts.shape[0]) * cfg.dense_scale
-                pts = _to_middle_row(pts, rows[:, None], h, xi, cfg.rolling_shutter_s)
-                dense = DenseMaps(o3d.core.Tensor(np.ascontiguousarray(pts)), d.vertex, d.normal, d.K)
+        dense, d = None, f.dense
+        if d is not None and role == "out" and d.vertex is not None:  # the frame aligned to
+            vertex = map_to_middle_row(d.vertex, cfg.dense_target_scale, h, xi, cfg.rolling_shutter_s)
+            dense = DenseMaps(d.points, vertex, d.normal, d.K)
+        elif d is not None and role == "in":  # the frame moved
+            dense = DenseMaps(map_to_middle_row(d.points, cfg.dense_scale, h, xi, cfg.rolling_shutter_s), d.vertex,
+                              d.normal, d.K)
         f._rolling[role] = ((uv, z), dense)
     return f._rolling[role]
 
