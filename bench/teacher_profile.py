@@ -25,7 +25,8 @@ mean paired difference of squared translation errors with its standard error (th
 figure for a label-changing choice: the teacher is deterministic, two runs are equal),
 how far each label moved, and for each run the drift of its chained gap-1 edges over one second
 (the relative pose error over every pair of frames 30 apart), the scale of its translations against the truth per gap,
-and its median and largest translation error per gap.
+the same scale of its rotation vectors, and its median and largest translation error per gap;
+gap-1 and all-edge rotation errors are compared like the translations.
 
     OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python -m bench.teacher_profile ../shared/data/7scenes/redkitchen --frames 350:450
     OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python -m bench.teacher_profile synthetic/lab --frames 0:100 --set p2p_cov_stride=2 --save-edges /tmp/a.npz
@@ -37,6 +38,16 @@ and its median and largest translation error per gap.
 changed (data/synthetic/config.py ``SensorConfig``): which part of the sensor costs the
 teacher what. Turn the repeated frames off in both runs of such a comparison: a repeated
 frame repeats its pose, so the ground truth differs with them.
+``--sensor-off`` starts from every part off (:data:`SENSOR_OFF`, repeats included), so that
+``--sensor-off --sensor PART=VALUE`` measures one part alone. ``--open3d`` runs Open3D's hybrid
+odometry (``bench.teacher``'s peer) on the same frames instead of the teacher and keeps its
+gap-1 edges for ``--compare`` (bench/README.md, "Where the teacher's systematic errors on the
+synthetic rooms come from")::
+
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.teacher_profile synthetic/lab --frames 0:150 --sensor-off \
+        --sensor depth_bias_coeff=0.001 --save-edges /tmp/bias.npz
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.teacher_profile synthetic/lab --frames 0:150 --sensor-off \
+        --sensor depth_bias_coeff=0.001 --open3d --save-edges /tmp/bias-o3d.npz
 
 Choose parameters on validation ranges only (redkitchen 350:450, synthetic/lab; see
 bench/README.md, "Ranges").
@@ -194,11 +205,27 @@ def parse_set(items: list[str]) -> dict:
     return _overrides(items, TeacherConfig())
 
 
-def parse_sensor(items: list[str]) -> dict:
-    """``key=value`` overrides of a synthetic scene's :class:`SensorConfig` (:func:`_overrides`)."""
+def parse_sensor(items: list[str], all_off: bool = False) -> dict:
+    """``key=value`` overrides of a synthetic scene's :class:`SensorConfig` (:func:`_overrides`);
+    ``all_off``: on top of :data:`SENSOR_OFF`."""
     from data.synthetic.config import SensorConfig
 
-    return _overrides(items, SensorConfig())
+    return {**(SENSOR_OFF if all_off else {}), **_overrides(items, SensorConfig())}
+
+
+#: every part of the synthetic sensor model off (``--sensor-off``), field by field: unlike
+#: ``noise_free`` the colour camera stays a separate camera (identity model), so that turning
+#: one part back on (``--sensor PART=VALUE``) measures that part alone
+SENSOR_OFF = {
+    "frame_repeat_prob": 0.0, "rgb_repeat_prob": 0.0, "depth_repeat_prob": 0.0,  # a repeat repeats its pose
+    "rolling_shutter_s": 0.0, "motion_blur_exposure": 0.0,
+    "depth_noise_coeff": 0.0, "depth_bias_coeff": 0.0, "disparity_step": 0.0, "residual_distortion_k1": 0.0,
+    "rgb_focal_scale": 1.0, "rgb_shift_px": (0.0, 0.0), "rgb_baseline_m": 0.0,
+    "jpeg_quality": 0, "rgb_blur_sigma": 0.0, "exposure_log_sigma": 0.0, "vignetting": 0.0, "read_noise_dn": 0.0,
+    "shot_noise_gain": 0.0,
+    "projector_baseline_m": 0.0, "edge_hole_px": 0, "grazing_cos": 0.0, "dropout_prob": 0.0, "hole_blob_fraction": 0.0,
+    "invalid_right_cols": 0,
+}
 
 
 def _overrides(items: list[str], base) -> dict:
@@ -274,6 +301,24 @@ def profile(spec: str, frames: str, overrides: dict, save: str | None, why: bool
         reasons.report(seq.ids(), seq.groundtruth() if seq.has_groundtruth else None)
 
 
+def profile_open3d(spec: str, frames: str, save: str | None, sensor: dict | None = None) -> None:
+    """Open3D's hybrid RGB-D odometry (``bench.teacher``'s peer) on the same frames as
+    :func:`profile` would run, its gap-1 edges kept like the teacher's (``--save-edges``), so
+    that ``--compare`` sets it beside a teacher run on the same render."""
+    from bench.teacher import run_open3d
+
+    seq = open_profiled(spec, frames, sensor or {})
+    P, secs, fails = run_open3d(seq)
+    ids = seq.ids()
+    if save:
+        T = np.array([geo.inv_T(P[k]) @ P[k + 1] for k in range(len(ids) - 1)]).reshape(-1, 4, 4)
+        np.savez(save, ij=np.stack([ids[:-1], ids[1:]], axis=1).astype(np.int64).reshape(-1, 2), T=T,
+                 cov=np.full((len(T), 6, 6), np.nan), ids=ids,
+                 gt=seq.groundtruth() if seq.has_groundtruth else np.zeros((0, 4, 4)))
+    print(f"{spec} {frames}{' sensor ' + str(sensor) if sensor else ''}, Open3D hybrid odometry: {len(seq)} frames, "
+          f"{len(seq) / secs:.2f} fps (wall), {fails} failed gap-1 alignments")
+
+
 def compare(a_path: str, b_path: str) -> None:
     a, b = np.load(a_path), np.load(b_path)
     if len(a["gt"]) == 0:
@@ -285,25 +330,29 @@ def compare(a_path: str, b_path: str) -> None:
         out = {}
         for (i, j), T in zip(d["ij"], d["T"]):
             G = geo.relative_pose(gt[pos[int(i)]], gt[pos[int(j)]])
-            out[(int(i), int(j))] = (T, float(np.linalg.norm((geo.inv_T(G) @ T)[:3, 3])), pos[int(j)] - pos[int(i)])
+            E = geo.inv_T(G) @ T
+            out[(int(i), int(j))] = (T, float(np.linalg.norm(E[:3, 3])), pos[int(j)] - pos[int(i)],
+                                     float(np.degrees(np.linalg.norm(geo.se3_log(E)[3:]))))
         return out
 
     ea, eb = table(a), table(b)
     keys = sorted(set(ea) & set(eb))
     for name, keep in (("gap 1", lambda k: ea[k][2] == 1), ("all edges", lambda k: True)):
         ks = [k for k in keys if keep(k)]
-        ta = 1000 * np.array([ea[k][1] for k in ks])
-        tb = 1000 * np.array([eb[k][1] for k in ks])
-        d = tb ** 2 - ta ** 2
-        se = d.std(ddof=1) / np.sqrt(len(d)) if len(d) > 1 else float("nan")
-        print(f"{name}: {len(ks)} edges, trans RMSE {np.sqrt(np.mean(ta ** 2)):.3f} -> {np.sqrt(np.mean(tb ** 2)):.3f} mm, "
-              f"paired difference of squared errors {d.mean():+.4f} +- {se:.4f} mm^2")
+        for what, col, scale, unit, fmt, dfmt in (("trans", 1, 1000, "mm", ".3f", ".4f"), ("rot", 3, 1, "deg", ".4f", ".6f")):
+            ta = scale * np.array([ea[k][col] for k in ks])
+            tb = scale * np.array([eb[k][col] for k in ks])
+            d = tb ** 2 - ta ** 2
+            se = d.std(ddof=1) / np.sqrt(len(d)) if len(d) > 1 else float("nan")
+            print(f"{name}: {len(ks)} edges, {what} RMSE {np.sqrt(np.mean(ta ** 2)):{fmt}} -> {np.sqrt(np.mean(tb ** 2)):{fmt}} "
+                  f"{unit}, paired difference of squared errors {d.mean():+{dfmt}} +- {se:{dfmt}} {unit}^2")
     moved = np.array([1000 * np.linalg.norm((geo.inv_T(ea[k][0]) @ eb[k][0])[:3, 3]) for k in keys])
     print(f"labels moved: median {np.median(moved):.4f} mm, max {moved.max():.4f} mm; "
           f"{int((moved > 0).sum())} of {len(keys)} edges; edges in one run only: {len(set(ea) ^ set(eb))}")
     for name, e in (("A", ea), ("B", eb)):
         print(f"{name}: drift of the chained gap-1 edges over {DRIFT_FRAMES} frames {_drift(e, a['ids'], gt)}; "
               f"translation scale against the truth per gap {_scales(e, gt, pos)}; "
+              f"rotation scale per gap {_scales(e, gt, pos, rotation=True)}; "
               f"translation error per gap, median / max: {_errors(e)}")
 
 
@@ -328,15 +377,19 @@ def _drift(edges: dict, ids, gt) -> str:
     return f"{1000 * trans:.1f} mm / {rot:.2f} deg"
 
 
-def _scales(edges: dict, gt, pos: dict) -> str:
+def _scales(edges: dict, gt, pos: dict, rotation: bool = False) -> str:
     """Per gap, the least-squares scale of the labels' translations against the truth's,
-    ``sum(t_est . t_gt) / sum(t_gt . t_gt)``: 1 without a systematic over- or under-scale."""
+    ``sum(t_est . t_gt) / sum(t_gt . t_gt)``: 1 without a systematic over- or under-scale;
+    ``rotation``: the same of their rotation vectors (a rotation under-estimated by a few
+    per cent accumulates as drift however small the per-edge errors are)."""
+    part = (lambda T: geo.se3_log(T)[3:]) if rotation else (lambda T: T[:3, 3])
     out = []
     for g in sorted({v[2] for v in edges.values()}):
-        pairs = [(T[:3, 3], geo.relative_pose(gt[pos[i]], gt[pos[j]])[:3, 3]) for (i, j), (T, _, gap) in edges.items()
+        pairs = [(part(T), part(geo.relative_pose(gt[pos[i]], gt[pos[j]]))) for (i, j), (T, _, gap, _) in edges.items()
                  if gap == g]
         te, tg = (np.array(x) for x in zip(*pairs))
-        out.append(f"{g}: {float(np.sum(te * tg) / np.sum(tg * tg)):.4f}")
+        den = float(np.sum(tg * tg))
+        out.append(f"{g}: {float(np.sum(te * tg)) / den:.4f}" if den > 0 else f"{g}: -")  # -: the truth does not move
     return ", ".join(out)
 
 
@@ -345,7 +398,7 @@ def _errors(edges: dict) -> str:
     of a few hundred edges can be one wrong edge's."""
     out = []
     for g in sorted({v[2] for v in edges.values()}):
-        err = 1000 * np.array([e for _, e, gap in edges.values() if gap == g])
+        err = 1000 * np.array([e for _, e, gap, _ in edges.values() if gap == g])
         out.append(f"{g}: {np.median(err):.2f} / {err.max():.1f}")
     return ", ".join(out) + " mm"
 
@@ -357,14 +410,21 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE", help="TeacherConfig overrides")
     ap.add_argument("--sensor", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="synthetic scenes: sensor model overrides (data/synthetic/config.py SensorConfig)")
+    ap.add_argument("--sensor-off", action="store_true",
+                    help="synthetic scenes: every part of the sensor model off (SENSOR_OFF), then --sensor on top")
+    ap.add_argument("--open3d", action="store_true",
+                    help="run Open3D's hybrid odometry (bench.teacher's peer) instead of the teacher; gap-1 edges")
     ap.add_argument("--save-edges", metavar="FILE.npz")
     ap.add_argument("--compare", nargs=2, metavar=("A.npz", "B.npz"))
     ap.add_argument("--why", action="store_true", help="per gap, which failure check sent edges to the fallbacks")
     args = ap.parse_args(argv)
     if args.compare:
         compare(*args.compare)
+    elif args.scene and args.open3d:
+        profile_open3d(args.scene, args.frames, args.save_edges, parse_sensor(args.sensor, args.sensor_off))
     elif args.scene:
-        profile(args.scene, args.frames, parse_set(args.set), args.save_edges, args.why, parse_sensor(args.sensor))
+        profile(args.scene, args.frames, parse_set(args.set), args.save_edges, args.why,
+                parse_sensor(args.sensor, args.sensor_off))
     else:
         ap.error("give a scene, or --compare A.npz B.npz")
 

@@ -47,7 +47,9 @@ def test_compare_reports_paired_squared_error_differences(tmp_path, capsys):
     # A's labels are 1 % long at both gaps; three frames are too few for the drift
     assert "A: drift of the chained gap-1 edges over 30 frames - (a gap-1 edge is missing, or too few frames); " \
            "translation scale against the truth per gap 1: 1.0100, 2: 1.0100; " \
+           "rotation scale per gap 1: -, 2: -; " \
            "translation error per gap, median / max: 1: 1.00 / 1.0, 2: 2.00 / 2.0 mm" in out
+    assert "gap 1: 2 edges, rot RMSE 0.0000 -> 0.0000 deg, paired difference of squared errors +0.000000" in out
     assert "B: " in out and "median / max: 1: 1.50 / 2.0, 2: 2.00 / 2.0 mm" in out
 
 
@@ -64,6 +66,32 @@ def test_compare_reports_the_drift_of_the_chained_gap1_edges(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "B: drift of the chained gap-1 edges over 30 frames 30.0 mm / 0.00 deg; " \
            "translation scale against the truth per gap 1: 1.0100" in out
+
+
+def test_compare_reports_rotation_errors_and_their_scale(tmp_path, capsys):
+    """Frames turning 2 deg each about y; A's gap-1 labels turn 2 % too far (0.04 deg off),
+    B's are exact: the rotation RMSE, its paired difference and A's rotation scale."""
+    n = 4
+    rot = lambda deg: geo.make_T(geo.se3_exp([0, 0, 0, 0, np.radians(deg), 0])[:3, :3], [0, 0, 0])
+    gt = np.stack([rot(2.0 * k) for k in range(n)])
+    ij = np.array([(k, k + 1) for k in range(n - 1)])
+    for name, deg in (("a", 2.04), ("b", 2.0)):
+        T = np.stack([rot(deg)] * (n - 1))
+        np.savez(tmp_path / f"{name}.npz", ij=ij, T=T, cov=np.tile(np.eye(6), (n - 1, 1, 1)), ids=np.arange(n), gt=gt)
+    tp.compare(str(tmp_path / "a.npz"), str(tmp_path / "b.npz"))
+    out = capsys.readouterr().out
+    assert "gap 1: 3 edges, rot RMSE 0.0400 -> 0.0000 deg, paired difference of squared errors -0.001600 +- 0.000000" in out
+    assert "A: " in out and "rotation scale per gap 1: 1.0200;" in out
+    assert "B: " in out and out.split("B: ")[1].count("rotation scale per gap 1: 1.0000;") == 1
+
+
+def test_sensor_off_turns_every_part_off_and_takes_overrides_on_top():
+    from data.synthetic.config import SensorConfig
+
+    off = tp.parse_sensor(["depth_bias_coeff=0.001"], all_off=True)
+    assert off["depth_bias_coeff"] == 0.001 and off["rolling_shutter_s"] == 0.0 and off["rgb_focal_scale"] == 1.0
+    assert set(tp.SENSOR_OFF) <= {f for f in SensorConfig.__dataclass_fields__}
+    assert tp.parse_sensor([], all_off=False) == {}
 
 
 def test_why_counts_each_attempts_failure_and_compares_the_refused_estimate(capsys):
