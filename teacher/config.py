@@ -205,8 +205,11 @@ class TeacherConfig:
     one of :func:`teacher.odometry.point_to_plane_covariance` times ``dense_cov_scale``), so a
     blurred pair's poorly localised keypoints give way to the depth, and a pair with little
     depth structure keeps its keypoints. Validation (``gaps=1``, mm / deg / ATE mm): synthetic/lab
-    2.55-2.97 / 0.124-0.135 / 15-17.5 against 3.24 / 0.146 / 21.2 for ``blend`` 0.25. With the
-    hybrid stage (``dense_method``) the fused estimate and its covariance are fused again
+    2.55-2.97 / 0.124-0.135 / 15-17.5 against 3.24 / 0.146 / 21.2 for ``blend`` 0.25; redkitchen
+    350:450 and 200:350 (ninth session): ``blend`` 0.25 worse in gap-1 rotation and over all edges,
+    beyond 2 SE on both (on TUM fr1/xyz, the test sequence, ``blend`` would be better at gap 1: the
+    point-to-plane step shrinks its rotations; bench/README.md, "TUM fr1/xyz: the point-to-plane
+    step shrinks the gap-1 rotations"). With the hybrid stage (``dense_method``) the fused estimate and its covariance are fused again
     with the hybrid result (its covariance times ``hybrid_cov_scale``)."""
     dense_method: str = "auto"
     """Dense step: ``point-to-plane`` (the depth alone), ``hybrid`` (the point-to-plane stage,
