@@ -421,6 +421,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.compare:
         compare(*args.compare)
     elif args.scene and args.open3d:
+        if args.set or args.why:
+            ap.error("--open3d runs Open3D, not the teacher: --set and --why do not apply")
         profile_open3d(args.scene, args.frames, args.save_edges, parse_sensor(args.sensor, args.sensor_off))
     elif args.scene:
         profile(args.scene, args.frames, parse_set(args.set), args.save_edges, args.why,

@@ -209,8 +209,9 @@ class TeacherConfig:
     350:450 and 200:350 (ninth session): ``blend`` 0.25 worse in gap-1 rotation and over all edges,
     beyond 2 SE on both (on TUM fr1/xyz, the test sequence, ``blend`` would be better at gap 1: the
     point-to-plane step shrinks its rotations; bench/README.md, "TUM fr1/xyz: the point-to-plane
-    step shrinks the gap-1 rotations"). With the hybrid stage (``dense_method``) the fused estimate and its covariance are fused again
-    with the hybrid result (its covariance times ``hybrid_cov_scale``)."""
+    step shrinks the gap-1 rotations"). With the hybrid stage (``dense_method``) the fused
+    estimate and its covariance are fused again with the hybrid result (its covariance times
+    ``hybrid_cov_scale``)."""
     dense_method: str = "auto"
     """Dense step: ``point-to-plane`` (the depth alone), ``hybrid`` (the point-to-plane stage,
     then on gap-1 edges a photometric + depth stage, :func:`teacher.odometry.hybrid_align`:
