@@ -31,6 +31,7 @@ import dataclasses
 
 import numpy as np
 
+from bench.teacher_profile import CLEAN_DEPTH, NO_REPEATS  # --clean-depth: the sensor fields set to 0
 from data import geometry as geo
 from data.open3d_import import o3d
 from data.synthetic import synthetic_sequence
@@ -38,10 +39,6 @@ from data.synthetic.config import resolve_preset
 from teacher import odometry as od
 from teacher.config import TeacherConfig
 
-#: sensor fields that --clean-depth sets to 0 (noise, bias, quantisation, holes)
-CLEAN_DEPTH = dict(depth_noise_coeff=0.0, depth_bias_coeff=0.0, disparity_step=0.0, dropout_prob=0.0,
-                   hole_blob_fraction=0.0, edge_hole_px=0, projector_baseline_m=0.0, grazing_cos=0.0)
-NO_REPEATS = dict(frame_repeat_prob=0.0, rgb_repeat_prob=0.0, depth_repeat_prob=0.0)
 #: the start's offset from the ground truth, se(3) (v, w): 3 mm, 0.17 deg
 START = np.array([0.002, -0.002, 0.001, 0.002, 0.001, -0.001])
 

@@ -213,18 +213,21 @@ def parse_sensor(items: list[str], all_off: bool = False) -> dict:
     return {**(SENSOR_OFF if all_off else {}), **_overrides(items, SensorConfig())}
 
 
+#: the synthetic sensor model without repeated frames (a repeated frame repeats its pose, so
+#: the ground truth differs with them)
+NO_REPEATS = dict(frame_repeat_prob=0.0, rgb_repeat_prob=0.0, depth_repeat_prob=0.0)
+#: the synthetic sensor model's depth without noise, bias, quantisation and holes
+CLEAN_DEPTH = dict(depth_noise_coeff=0.0, depth_bias_coeff=0.0, disparity_step=0.0, dropout_prob=0.0,
+                   hole_blob_fraction=0.0, edge_hole_px=0, projector_baseline_m=0.0, grazing_cos=0.0)
 #: every part of the synthetic sensor model off (``--sensor-off``), field by field: unlike
 #: ``noise_free`` the colour camera stays a separate camera (identity model), so that turning
 #: one part back on (``--sensor PART=VALUE``) measures that part alone
 SENSOR_OFF = {
-    "frame_repeat_prob": 0.0, "rgb_repeat_prob": 0.0, "depth_repeat_prob": 0.0,  # a repeat repeats its pose
-    "rolling_shutter_s": 0.0, "motion_blur_exposure": 0.0,
-    "depth_noise_coeff": 0.0, "depth_bias_coeff": 0.0, "disparity_step": 0.0, "residual_distortion_k1": 0.0,
+    **NO_REPEATS, **CLEAN_DEPTH,
+    "rolling_shutter_s": 0.0, "motion_blur_exposure": 0.0, "residual_distortion_k1": 0.0,
     "rgb_focal_scale": 1.0, "rgb_shift_px": (0.0, 0.0), "rgb_baseline_m": 0.0,
     "jpeg_quality": 0, "rgb_blur_sigma": 0.0, "exposure_log_sigma": 0.0, "vignetting": 0.0, "read_noise_dn": 0.0,
-    "shot_noise_gain": 0.0,
-    "projector_baseline_m": 0.0, "edge_hole_px": 0, "grazing_cos": 0.0, "dropout_prob": 0.0, "hole_blob_fraction": 0.0,
-    "invalid_right_cols": 0,
+    "shot_noise_gain": 0.0, "invalid_right_cols": 0,
 }
 
 
@@ -283,9 +286,7 @@ def profile(spec: str, frames: str, overrides: dict, save: str | None, why: bool
     cpu, wall = time.process_time() - c0, time.perf_counter() - w0
     if save:
         ok = [e for e in run.edges if e.ok]
-        np.savez(save, ij=np.array([(e.i, e.j) for e in ok], np.int64).reshape(-1, 2),
-                 T=np.array([e.T_i_j for e in ok]).reshape(-1, 4, 4), cov=np.array([e.cov for e in ok]).reshape(-1, 6, 6),
-                 ids=seq.ids(), gt=seq.groundtruth() if seq.has_groundtruth else np.zeros((0, 4, 4)))
+        save_edges(save, seq, [(e.i, e.j) for e in ok], [e.T_i_j for e in ok], [e.cov for e in ok])
     n = len(seq)
     print(f"{spec} {frames}{' sensor ' + str(sensor) if sensor else ''}{' ' + str(overrides) if overrides else ''}: {n} frames, CPU {1000 * cpu / n:.1f} ms/frame, "
           f"wall {1000 * wall / n:.1f} ms/frame, edges sha1 {edges_digest(run.edges)}")
@@ -301,6 +302,15 @@ def profile(spec: str, frames: str, overrides: dict, save: str | None, why: bool
         reasons.report(seq.ids(), seq.groundtruth() if seq.has_groundtruth else None)
 
 
+def save_edges(path: str, seq, ij: list, T: list, cov: list) -> None:
+    """The ``--save-edges`` file that ``--compare`` reads: the edges' frame ids ``ij`` (M, 2),
+    poses ``T`` (M, 4, 4) and covariances ``cov`` (M, 6, 6), with the run's frame ids and
+    ground truth (N, 4, 4; empty without one)."""
+    np.savez(path, ij=np.array(ij, np.int64).reshape(-1, 2), T=np.array(T).reshape(-1, 4, 4),
+             cov=np.array(cov).reshape(-1, 6, 6), ids=seq.ids(),
+             gt=seq.groundtruth() if seq.has_groundtruth else np.zeros((0, 4, 4)))
+
+
 def profile_open3d(spec: str, frames: str, save: str | None, sensor: dict | None = None) -> None:
     """Open3D's hybrid RGB-D odometry (``bench.teacher``'s peer) on the same frames as
     :func:`profile` would run, its gap-1 edges kept like the teacher's (``--save-edges``), so
@@ -311,10 +321,8 @@ def profile_open3d(spec: str, frames: str, save: str | None, sensor: dict | None
     P, secs, fails = run_open3d(seq)
     ids = seq.ids()
     if save:
-        T = np.array([geo.inv_T(P[k]) @ P[k + 1] for k in range(len(ids) - 1)]).reshape(-1, 4, 4)
-        np.savez(save, ij=np.stack([ids[:-1], ids[1:]], axis=1).astype(np.int64).reshape(-1, 2), T=T,
-                 cov=np.full((len(T), 6, 6), np.nan), ids=ids,
-                 gt=seq.groundtruth() if seq.has_groundtruth else np.zeros((0, 4, 4)))
+        T = [geo.inv_T(P[k]) @ P[k + 1] for k in range(len(ids) - 1)]
+        save_edges(save, seq, list(zip(ids[:-1], ids[1:])), T, [np.full((6, 6), np.nan)] * len(T))
     print(f"{spec} {frames}{' sensor ' + str(sensor) if sensor else ''}, Open3D hybrid odometry: {len(seq)} frames, "
           f"{len(seq) / secs:.2f} fps (wall), {fails} failed gap-1 alignments")
 
