@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m pipeline.demo
+	$(PY) -m ctcvo demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q -p no:dash

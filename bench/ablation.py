@@ -38,18 +38,17 @@ import logging
 import os
 import time
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import torch
 
-from data.formats import Trajectory, read_tum
-from data.io import write_json
-from data.metrics import BASELINE_KEYS, associate, ate_rmse, baseline_trajectories, trajectory_report
-from data.scenes import open_scene
-from learner.config import INPUTS, VARIANTS, PredictConfig
-from learner.predict import predict
-from learner.train import fit
+from ctcvo.data.formats import Trajectory, read_tum
+from ctcvo.data.io import write_json
+from ctcvo.data.metrics import BASELINE_KEYS, associate, ate_rmse, baseline_trajectories, trajectory_report
+from ctcvo.data.scenes import open_scene
+from ctcvo.learner.config import INPUTS, VARIANTS, PredictConfig
+from ctcvo.learner.predict import predict
+from ctcvo.learner.train import fit
 
 TRAJ_KEYS = ["ate_rmse_m", "ate_sub_mean_m", "ate_sub_std_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "se3_l2_mean"]
 CAL_KEYS = ["spearman_sigma_error", "coverage_1sigma", "coverage_2sigma", "outlier_auroc"]
@@ -80,7 +79,7 @@ def baseline_rows(gt: Trajectory, length: int, stride: int) -> dict[str, dict]:
             for name, est in baseline_trajectories(gt).items()}
 
 
-def test_groundtruth(scene: str, frames: Optional[str]) -> Trajectory:
+def test_groundtruth(scene: str, frames: str | None) -> Trajectory:
     """Ground truth of the (single) test sequence."""
     seqs = open_scene(scene, frames=frames)
     if len(seqs) != 1 or seqs[0].groundtruth() is None:

@@ -28,22 +28,22 @@ import sys
 from pathlib import Path
 
 if __name__ == "__main__":
-    from teacher import processes
+    from ctcvo.teacher import processes
 
     processes.start()
 
 import numpy as np  # noqa: E402
 
-from data import geometry as geo  # noqa: E402
-from data.formats import Trajectory  # noqa: E402
-from data.metrics import trajectory_report  # noqa: E402
-from teacher.config import TeacherConfig  # noqa: E402
-from teacher.generate import run_sequence  # noqa: E402
+from ctcvo.data import geometry as geo  # noqa: E402
+from ctcvo.data.formats import Trajectory  # noqa: E402
+from ctcvo.data.metrics import trajectory_report  # noqa: E402
+from ctcvo.teacher.config import TeacherConfig  # noqa: E402
+from ctcvo.teacher.generate import run_sequence  # noqa: E402
 
 
 def _sensor_variant(name: str, offset: tuple[float, float]):
-    from data.synthetic import synthetic_sequence
-    from data.synthetic.config import resolve_preset
+    from ctcvo.data.synthetic import synthetic_sequence
+    from ctcvo.data.synthetic.config import resolve_preset
 
     cfg = resolve_preset(name)
     sensor = dataclasses.replace(cfg.sensor, frame_repeat_prob=0.0, rgb_repeat_prob=0.0, depth_repeat_prob=0.0,
@@ -88,7 +88,7 @@ def synthetic(args) -> list[dict]:
 
 def tum(args) -> list[dict]:
     from bench.teacher import run_open3d
-    from data.tum import TumSequence, interpolate_poses, read_groundtruth
+    from ctcvo.data.tum import TumSequence, interpolate_poses, read_groundtruth
 
     seq = TumSequence(args.tum)
     if args.frames:
@@ -153,7 +153,7 @@ def tum_labels(args) -> list[dict]:
     """The teacher as ``bench.teacher`` runs it (default config, gaps 1-5), with and without the
     compensation, on a TUM folder: gap-1 RPE and ATE of the chained trajectory against the
     ground truth at the RGB times (the "before" beside ``bench.teacher``'s figures)."""
-    from data.tum import TumSequence
+    from ctcvo.data.tum import TumSequence
 
     seq = TumSequence(args.tum)
     if args.frames:

@@ -27,18 +27,18 @@ import argparse
 import dataclasses
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
 
-from learner import loss as L
-from learner.config import FLOW_U_CHANNEL, INPUTS, PRESETS, PredictConfig
-from learner.dataset import Frames, SequenceData
-from learner.model import CTCNet
-from learner.predict import mc_edges
-from learner.train import pair_batches, pairs_step, window_batches, windows_step
+from ctcvo.learner import loss as L
+from ctcvo.learner.config import FLOW_U_CHANNEL, INPUTS, PRESETS, PredictConfig
+from ctcvo.learner.dataset import Frames, SequenceData
+from ctcvo.learner.model import CTCNet
+from ctcvo.learner.predict import mc_edges
+from ctcvo.learner.train import pair_batches, pairs_step, window_batches, windows_step
 
 
 def fake_sequence(n: int, width: int, height: int, max_gap: int, seed: int = 0, mode: str = "rgb") -> SequenceData:

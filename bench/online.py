@@ -42,15 +42,14 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 if __name__ == "__main__":  # as `teacher generate` does: its worker imports while this process does
-    from teacher import processes
+    from ctcvo.teacher import processes
 
     processes.start()
 
-import numpy as np  # noqa: E402
 
-from data.scenes import open_scene  # noqa: E402
-from pipeline import online  # noqa: E402
-from teacher.config import DEFAULT  # noqa: E402
+from ctcvo.data.scenes import open_scene  # noqa: E402
+from ctcvo.pipeline import online  # noqa: E402
+from ctcvo.teacher.config import DEFAULT  # noqa: E402
 
 SCENES = [str(REPO.parent / "shared" / "data" / "7scenes" / "redkitchen" / "seq-sample"),
           str(REPO.parent / "shared" / "data" / "tum" / "images" / "rgbd_dataset_freiburg1_xyz")]
@@ -87,8 +86,8 @@ def bench_scene(spec: str, frames: str, checkpoint: Path | None, tmp: Path, tcfg
                 ocfg: online.OnlineConfig = online.OnlineConfig()) -> dict:
     """One scene's row; ``tcfg``, ``ocfg``: the online runs' teacher (the batch teacher is
     ``DEFAULT``) and online settings."""
-    from posegraph.optimize import optimize
-    from teacher.generate import run_sequence, write_outputs
+    from ctcvo.posegraph.optimize import optimize
+    from ctcvo.teacher.generate import run_sequence, write_outputs
 
     seq = open_scene(spec, frames=frames)[0]
     row: dict = {"scene": seq.name, "frames": len(seq), "load_avg_1min": [os.getloadavg()[0]],

@@ -58,7 +58,7 @@ def _rss_mb() -> float:
 class _Clock:
     """Wall-clock and process CPU time of a block (``with _Clock() as c: ...; c.wall, c.cpu``)."""
 
-    def __enter__(self) -> "_Clock":
+    def __enter__(self) -> _Clock:
         self.w0, self.c0 = time.perf_counter(), time.process_time()
         return self
 
@@ -68,13 +68,13 @@ class _Clock:
 
 def run_one(n: int, gaps: int, solver: str, seed: int = 0, marginals: bool = False) -> dict:
     """Benchmark one size and solver in this process."""
-    from data import geometry as geo
-    from data.formats import Edge
-    from posegraph import graph as pg
-    from posegraph import synthetic as syn
-    from posegraph.config import DEFAULT
-
     import gtsam  # noqa: F401  (import time is not build time)
+
+    from ctcvo.data import geometry as geo
+    from ctcvo.data.formats import Edge
+    from ctcvo.posegraph import graph as pg
+    from ctcvo.posegraph import synthetic as syn
+    from ctcvo.posegraph.config import DEFAULT
 
     rng = np.random.default_rng(seed)
     gt = syn.helix(n, turns=n / 200.0)
@@ -120,8 +120,8 @@ def drop_stretch(teacher: Path, out: Path, a: int, b: int) -> Path:
     step over the hole (constant velocity, as the teacher bridges failed edges)."""
     import shutil
 
-    from data.formats import Trajectory, read_g2o, read_tum, write_g2o, write_tum
-    from posegraph.sources import load_dir, resolve_frames
+    from ctcvo.data.formats import Trajectory, read_g2o, read_tum, write_g2o, write_tum
+    from ctcvo.posegraph.sources import load_dir, resolve_frames
 
     src = load_dir(teacher, "teacher")
     frames = resolve_frames([src])
@@ -145,7 +145,7 @@ def drop_stretch(teacher: Path, out: Path, a: int, b: int) -> Path:
 
 def run_case(spec: str, out: Path, learner_edges: str = "bridge") -> dict:
     """One fusion case (see module doc): the report's rows and the fused-vs-teacher-graph check."""
-    from posegraph.optimize import optimize
+    from ctcvo.posegraph.optimize import optimize
 
     parts = spec.split(":")
     if len(parts) < 3:
@@ -155,7 +155,7 @@ def run_case(spec: str, out: Path, learner_edges: str = "bridge") -> dict:
     if len(parts) > 4 and parts[4]:
         a, b = (int(x) for x in parts[4].split("-"))
         teacher = drop_stretch(teacher, out / name / "teacher_hole", a, b)
-    from posegraph.config import DEFAULT
+    from ctcvo.posegraph.config import DEFAULT
 
     t0 = time.perf_counter()
     cfg = dataclasses.replace(DEFAULT, learner_edges=learner_edges, plots=False)

@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-import data.synthetic as syn
-from data.sevenscenes import SevenScenesSequence
-from data.synthetic.config import PRESETS
+import ctcvo.data.synthetic as syn
+from ctcvo.data.sevenscenes import SevenScenesSequence
+from ctcvo.data.synthetic.config import PRESETS
 
 
 def _cpu() -> float:
@@ -39,8 +39,8 @@ def stage_breakdown(cfg: syn.SceneConfig, n: int = 5) -> dict[str, float]:
     """CPU milliseconds per frame of each stage, one thread, ``n`` frames."""
     import cv2
 
-    from data.synthetic import PNG_PARAMS, depth_to_png_mm
-    from data.synthetic.sensor import depth_sensor
+    from ctcvo.data.synthetic import PNG_PARAMS, depth_to_png_mm
+    from ctcvo.data.synthetic.sensor import depth_sensor
 
     scene, poses = syn.build(cfg)
     fr = syn.FrameRenderer(cfg, scene, poses, nthreads=1)

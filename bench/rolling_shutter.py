@@ -32,12 +32,12 @@ import dataclasses
 import numpy as np
 
 from bench.teacher_profile import CLEAN_DEPTH, NO_REPEATS  # --clean-depth: the sensor fields set to 0
-from data import geometry as geo
-from data.open3d_import import o3d
-from data.synthetic import synthetic_sequence
-from data.synthetic.config import resolve_preset
-from teacher import odometry as od
-from teacher.config import TeacherConfig
+from ctcvo.data import geometry as geo
+from ctcvo.data.open3d_import import o3d
+from ctcvo.data.synthetic import synthetic_sequence
+from ctcvo.data.synthetic.config import resolve_preset
+from ctcvo.teacher import odometry as od
+from ctcvo.teacher.config import TeacherConfig
 
 #: the start's offset from the ground truth, se(3) (v, w): 3 mm, 0.17 deg
 START = np.array([0.002, -0.002, 0.001, 0.002, 0.001, -0.001])

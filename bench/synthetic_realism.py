@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from data import geometry as geo
-from data.formats import read_edges_csv, read_g2o, read_tum
-from data.metrics import relative_pose_error, rpe_rmse
+from ctcvo.data import geometry as geo
+from ctcvo.data.formats import read_edges_csv, read_g2o, read_tum
+from ctcvo.data.metrics import relative_pose_error, rpe_rmse
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "7scenes" / "redkitchen" / "seq-sample"
 
@@ -76,7 +76,7 @@ def main() -> None:
     for name, spec in scenes.items():
         folder = args.out / name
         if not args.reuse:
-            from teacher.generate import generate
+            from ctcvo.teacher.generate import generate
 
             folder = generate(spec, out=folder, overwrite=True)[0]
         results[name] = summary(folder)

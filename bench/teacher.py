@@ -29,7 +29,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 if __name__ == "__main__":  # as `teacher generate` does: its worker imports while this process does
-    from teacher import processes
+    from ctcvo.teacher import processes
 
     processes.start()
 
@@ -37,13 +37,13 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from data import geometry as geo  # noqa: E402
-from data.chain import chain_steps  # noqa: E402
-from data.formats import Trajectory  # noqa: E402
-from data.metrics import trajectory_report  # noqa: E402
-from data.scenes import open_scene  # noqa: E402
-from teacher.config import TeacherConfig  # noqa: E402
-from teacher.generate import run_sequence  # noqa: E402
+from ctcvo.data import geometry as geo  # noqa: E402
+from ctcvo.data.chain import chain_steps  # noqa: E402
+from ctcvo.data.formats import Trajectory  # noqa: E402
+from ctcvo.data.metrics import trajectory_report  # noqa: E402
+from ctcvo.data.scenes import open_scene  # noqa: E402
+from ctcvo.teacher.config import TeacherConfig  # noqa: E402
+from ctcvo.teacher.generate import run_sequence  # noqa: E402
 
 REDKITCHEN = REPO.parent / "shared" / "data" / "7scenes" / "redkitchen" / "seq-sample"
 TUM_IMAGES = REPO.parent / "shared" / "data" / "tum" / "images" / "rgbd_dataset_freiburg1_xyz"
@@ -54,7 +54,7 @@ SYNTHETIC = ["synthetic/office", "synthetic/lab", "synthetic/kitchen", "syntheti
 
 def run_open3d(seq) -> tuple[np.ndarray, float, int]:
     """Gap-1 chain of Open3D's compute_rgbd_odometry (hybrid term), T_k_{k+1} = inv(T_target_source)."""
-    from data.open3d_import import o3d
+    from ctcvo.data.open3d_import import o3d
 
     K = seq.intrinsics
     intr = o3d.camera.PinholeCameraIntrinsic(K.width, K.height, K.fx, K.fy, K.cx, K.cy)
@@ -106,8 +106,8 @@ def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frame
     if synthetic_frames and spec.startswith("synthetic/"):  # a shorter walk of the preset (rendered anew)
         from dataclasses import replace
 
-        from data.synthetic import synthetic_sequence
-        from data.synthetic.config import resolve_preset
+        from ctcvo.data.synthetic import synthetic_sequence
+        from ctcvo.data.synthetic.config import resolve_preset
 
         name = spec.split("/", 1)[1]
         seq = synthetic_sequence(name, config=replace(resolve_preset(name), frames=synthetic_frames))

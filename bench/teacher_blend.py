@@ -18,9 +18,9 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from data.scenes import open_scene
-from teacher.config import TeacherConfig
-from teacher.generate import build_report, run_sequence
+from ctcvo.data.scenes import open_scene
+from ctcvo.teacher.config import TeacherConfig
+from ctcvo.teacher.generate import build_report, run_sequence
 
 REPO = Path(__file__).resolve().parents[1]
 

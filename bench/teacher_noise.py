@@ -48,16 +48,15 @@ import shutil
 import sys
 import time
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
-from data import geometry as geo
-from data.errors import VOError
-from data.formats import Edge, Trajectory, read_g2o, read_tum, write_g2o, write_tum
-from data.io import ensure_dir, git_revision, write_json, write_text
-from data.metrics import BASELINES, baseline_reports, se3_l2_errors, trajectory_report
-from data.scenes import open_scene
+from ctcvo.data import geometry as geo
+from ctcvo.data.errors import VOError
+from ctcvo.data.formats import Edge, Trajectory, read_g2o, read_tum, write_g2o, write_tum
+from ctcvo.data.io import ensure_dir, git_revision, write_json, write_text
+from ctcvo.data.metrics import BASELINES, baseline_reports, se3_l2_errors, trajectory_report
+from ctcvo.data.scenes import open_scene
 
 log = logging.getLogger("teacher_noise")
 
@@ -65,7 +64,7 @@ log = logging.getLogger("teacher_noise")
 # ----------------------------------------------------------------------------------
 # ground truth and label errors
 # ----------------------------------------------------------------------------------
-def groundtruth(scene: str, frames: Optional[str]) -> tuple[np.ndarray, Trajectory]:
+def groundtruth(scene: str, frames: str | None) -> tuple[np.ndarray, Trajectory]:
     """Frame ids (N,) and ground truth of the single sequence of ``scene`` / ``frames``."""
     seqs = open_scene(scene, frames=frames)
     if len(seqs) != 1 or seqs[0].groundtruth() is None:
@@ -107,7 +106,7 @@ def component_rms(edges: list[Edge], ids: np.ndarray, gt: np.ndarray, gap: int) 
 # ----------------------------------------------------------------------------------
 # noisy control teacher
 # ----------------------------------------------------------------------------------
-def add_label_noise(teacher: Path, scene: str, calib_frames: Optional[str], target: float, out: Path,
+def add_label_noise(teacher: Path, scene: str, calib_frames: str | None, target: float, out: Path,
                     seed: int = 0) -> dict:
     """Write ``out``: ``teacher``'s folder with calibrated extra label noise (see the module
     docstring). Returns the ``label_noise`` block."""
@@ -199,9 +198,9 @@ def finished(run: Path) -> bool:
 
 
 def run_sweep(args: argparse.Namespace) -> dict:
-    from learner.config import PredictConfig
-    from learner.predict import predict
-    from learner.train import fit
+    from ctcvo.learner.config import PredictConfig
+    from ctcvo.learner.predict import predict
+    from ctcvo.learner.train import fit
 
     teachers = dict(t.split("=", 1) for t in args.teacher)
     given = dict(c.split("=", 1) for c in args.checkpoint)
@@ -318,7 +317,7 @@ def plot(res: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="command", required=True)
     n = sub.add_parser("noisy", help="write a teacher folder with calibrated extra label noise")

@@ -11,11 +11,11 @@ import argparse
 import numpy as np
 
 from bench import teacher as bench_teacher
-from data import geometry as geo
-from data.metrics import relative_pose_error
-from data.scenes import open_scene
-from teacher.config import TeacherConfig
-from teacher.generate import run_sequence
+from ctcvo.data import geometry as geo
+from ctcvo.data.metrics import relative_pose_error
+from ctcvo.data.scenes import open_scene
+from ctcvo.teacher.config import TeacherConfig
+from ctcvo.teacher.generate import run_sequence
 
 
 def gap1_errors_mm(gt: np.ndarray, poses: np.ndarray) -> np.ndarray:

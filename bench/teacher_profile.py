@@ -61,16 +61,16 @@ import dataclasses
 import hashlib
 import sys
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
-from data import geometry as geo
-from data.scenes import open_scene
-from teacher import generate as gen
-from teacher import odometry as od
-from teacher import window as win
-from teacher.config import TeacherConfig
+from ctcvo.data import geometry as geo
+from ctcvo.data.scenes import open_scene
+from ctcvo.teacher import generate as gen
+from ctcvo.teacher import odometry as od
+from ctcvo.teacher import window as win
+from ctcvo.teacher.config import TeacherConfig
 
 #: teacher.odometry functions timed (module globals, so calls between them are timed too)
 TIMED = ("estimate_edge", "match", "match_wide", "_estimate", "refine_two_way", "dense_refine",
@@ -100,7 +100,8 @@ def instrument(timers: Timers, seq_cls: type) -> None:
     """Wrap the teacher's functions, OpenCV's PnP calls, Open3D's point-to-plane kernel and
     the sequence's image readers (this process only; for profiling, never in the tools)."""
     import cv2
-    from data.open3d_import import o3d
+
+    from ctcvo.data.open3d_import import o3d
 
     for name in TIMED:
         setattr(od, name, timers.wrap(getattr(od, name), name))
@@ -208,7 +209,7 @@ def parse_set(items: list[str]) -> dict:
 def parse_sensor(items: list[str], all_off: bool = False) -> dict:
     """``key=value`` overrides of a synthetic scene's :class:`SensorConfig` (:func:`_overrides`);
     ``all_off``: on top of :data:`SENSOR_OFF`."""
-    from data.synthetic.config import SensorConfig
+    from ctcvo.data.synthetic.config import SensorConfig
 
     return {**(SENSOR_OFF if all_off else {}), **_overrides(items, SensorConfig())}
 
@@ -259,8 +260,8 @@ def open_profiled(spec: str, frames: str, sensor: dict):
         return open_scene(spec, frames=frames)[0]
     if not spec.startswith("synthetic/"):
         raise SystemExit("error: --sensor takes a synthetic scene (synthetic/NAME)")
-    from data.synthetic import synthetic_sequence
-    from data.synthetic.config import resolve_preset
+    from ctcvo.data.synthetic import synthetic_sequence
+    from ctcvo.data.synthetic.config import resolve_preset
 
     name = spec.split("/", 1)[1]
     try:
@@ -373,8 +374,8 @@ def _drift(edges: dict, ids, gt) -> str:
     RPE, which steps by the gap, would have three pairs), the RMSE of the relative pose error
     of the trajectory chained from the gap-1 edges: the error that accumulates, which the
     per-edge errors do not show."""
-    from data.chain import chain_steps
-    from data.metrics import relative_pose_error, relative_poses
+    from ctcvo.data.chain import chain_steps
+    from ctcvo.data.metrics import relative_pose_error, relative_poses
 
     keys = [(int(i), int(j)) for i, j in zip(ids[:-1], ids[1:])]
     if any(k not in edges for k in keys) or len(ids) <= DRIFT_FRAMES:

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data import bag
-from data.errors import ConfigError, DataError
-from data.formats import read_tum
-from data.scenes import open_scene, scene_slug
-from teacher import cli as teacher_cli
+from ctcvo.data import bag
+from ctcvo.data.errors import ConfigError
+from ctcvo.data.formats import read_tum
+from ctcvo.data.scenes import open_scene, scene_slug
+from ctcvo.teacher import cli as teacher_cli
 
 FRAMES = "0:24"
 
@@ -253,8 +253,8 @@ def test_posegraph_and_learner_clis_take_bag_scenes(tmp_path, tiny_seq, capsys):
     the topic options to its bag scenes only."""
     import argparse
 
-    from data.scenes import add_topic_options, scenes_with_topics
-    from posegraph import cli as pg_cli
+    from ctcvo.data.scenes import add_topic_options, scenes_with_topics
+    from ctcvo.posegraph import cli as pg_cli
 
     p = _write(tmp_path, tiny_seq)
     assert teacher_cli.main(["generate", "--scene", str(p), "--out", str(tmp_path / "t"), "--preset", "tiny",

@@ -3,17 +3,15 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from data import geometry as geo
-from data.errors import VOError
-from data.formats import read_g2o, read_tum
-from teacher import cli
-
 import bench.teacher_noise as tn  # noqa: E402
+from ctcvo.data import geometry as geo
+from ctcvo.data.errors import VOError
+from ctcvo.data.formats import read_g2o, read_tum
+from ctcvo.teacher import cli
 
 
 @pytest.fixture(scope="module")

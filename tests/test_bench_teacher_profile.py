@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bench import teacher_profile as tp
-from data import geometry as geo
+from ctcvo.data import geometry as geo
 
 
 def test_overrides_take_the_fields_type():
@@ -86,7 +86,7 @@ def test_compare_reports_rotation_errors_and_their_scale(tmp_path, capsys):
 
 
 def test_sensor_off_turns_every_part_off_and_takes_overrides_on_top():
-    from data.synthetic.config import SensorConfig
+    from ctcvo.data.synthetic.config import SensorConfig
 
     off = tp.parse_sensor(["depth_bias_coeff=0.001"], all_off=True)
     assert off["depth_bias_coeff"] == 0.001 and off["rolling_shutter_s"] == 0.0 and off["rgb_focal_scale"] == 1.0
@@ -97,7 +97,7 @@ def test_sensor_off_turns_every_part_off_and_takes_overrides_on_top():
 def test_why_counts_each_attempts_failure_and_compares_the_refused_estimate(capsys):
     """``--why``: per gap, the paths and the chain of attempt statuses of the edges the first
     attempt did not make; a refused estimate's error beside the label that replaced it."""
-    from teacher.odometry import EdgeEstimate
+    from ctcvo.teacher.odometry import EdgeEstimate
 
     gt = np.stack([geo.make_T(np.eye(3), [0.1 * k, 0, 0]) for k in range(3)])
     off = lambda i, j, mm: geo.relative_pose(gt[i], gt[j]) @ geo.make_T(np.eye(3), [mm / 1000, 0, 0])

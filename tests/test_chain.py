@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from data import geometry as geo
-from data.chain import chain_edges, chain_steps
+from ctcvo.data import geometry as geo
+from ctcvo.data.chain import chain_edges, chain_steps
 
 
 def _poses(n: int, seed: int = 0) -> np.ndarray:

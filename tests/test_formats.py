@@ -16,11 +16,20 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from data import formats
-from data import geometry as geo
-from data.errors import FormatError
-from data.formats import (EDGE_CSV_COLUMNS, Edge, Trajectory, read_edges_csv, read_g2o, read_tum,
-                          write_edges_csv, write_g2o, write_tum)
+from ctcvo.data import formats
+from ctcvo.data import geometry as geo
+from ctcvo.data.errors import FormatError
+from ctcvo.data.formats import (
+    EDGE_CSV_COLUMNS,
+    Edge,
+    Trajectory,
+    read_edges_csv,
+    read_g2o,
+    read_tum,
+    write_edges_csv,
+    write_g2o,
+    write_tum,
+)
 
 
 def _random_T(rng: np.random.Generator, scale: float = 1.0) -> np.ndarray:
@@ -331,21 +340,21 @@ def test_setup_logging_shows_ours_at_info_and_libraries_at_warning() -> None:
     import subprocess
     import sys
 
-    code = ("import logging; from data.io import setup_logging; setup_logging(); "
+    code = ("import logging; from ctcvo.data.io import setup_logging; setup_logging(); "
             "logging.getLogger('numexpr.utils').info('NumExpr defaulting to 2 threads.'); "
             "logging.getLogger('numexpr.utils').warning('a library warning'); "
-            "logging.getLogger('teacher.generate').info('ours'); "
-            "logging.getLogger('teacher.generate').debug('not without -v')")
+            "logging.getLogger('ctcvo.teacher.generate').info('ours'); "
+            "logging.getLogger('ctcvo.teacher.generate').debug('not without -v')")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parents[1])
-    assert res.stderr.splitlines() == ["WARNING numexpr.utils: a library warning", "INFO teacher.generate: ours"]
+    assert res.stderr.splitlines() == ["WARNING numexpr.utils: a library warning", "INFO ctcvo.teacher.generate: ours"]
 
 
 def test_json_safe_writes_non_finite_numbers_as_null(tmp_path: Path) -> None:
     """The one NaN-to-null helper: nested containers, NumPy scalars; write_json stays strict."""
     import json
 
-    from data.io import json_safe, write_json
+    from ctcvo.data.io import json_safe, write_json
 
     obj = {"a": float("nan"), "b": [1.5, np.float64("inf"), np.float32(2.0), np.int64(3)],
            "c": {"d": (np.nan, "x", None, True)}}

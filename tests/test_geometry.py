@@ -12,7 +12,7 @@ import pytest
 import scipy.linalg
 from scipy.spatial.transform import Rotation
 
-from data import geometry as geo
+from ctcvo.data import geometry as geo
 
 RNG_SEED = 7
 
@@ -448,9 +448,15 @@ def test_metrics_baselines_known_answers_on_a_screw_motion() -> None:
     """Constant screw motion ``gt_k = T0 S^k``: zero motion stays at ``T0`` (every gap-1
     pair misses one ``S``), constant velocity is ``gt`` one frame late (only the first pair
     misses ``S``)."""
-    from data.formats import Trajectory
-    from data.metrics import (BASELINE_KEYS, BASELINES, baseline_reports, baseline_trajectories,
-                              constant_velocity_poses, zero_motion_poses)
+    from ctcvo.data.formats import Trajectory
+    from ctcvo.data.metrics import (
+        BASELINE_KEYS,
+        BASELINES,
+        baseline_reports,
+        baseline_trajectories,
+        constant_velocity_poses,
+        zero_motion_poses,
+    )
 
     rng = np.random.default_rng(RNG_SEED)
     n, xi = 12, np.array([0.05, -0.02, 0.1, 0.01, 0.03, -0.02])

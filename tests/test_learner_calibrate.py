@@ -12,16 +12,26 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from data.errors import ConfigError, DataError, FormatError
-from data.formats import read_g2o
-from learner import cli
-from learner.calibrate import (CALIBRATION_FILE, Calibration, GroupFit, calibrate, file_sha1, fit_groups,
-                               fit_variance_model, mahalanobis2, nees_stats, read_calibration)
-from learner.config import CalibrationConfig, PredictConfig
-from learner.predict import predict
-from learner.train import fit
 from test_learner_train import gt_poses, write_sequence, write_teacher
+
+from ctcvo.data.errors import ConfigError, DataError, FormatError
+from ctcvo.data.formats import read_g2o
+from ctcvo.learner import cli
+from ctcvo.learner.calibrate import (
+    CALIBRATION_FILE,
+    Calibration,
+    GroupFit,
+    calibrate,
+    file_sha1,
+    fit_groups,
+    fit_variance_model,
+    mahalanobis2,
+    nees_stats,
+    read_calibration,
+)
+from ctcvo.learner.config import CalibrationConfig, PredictConfig
+from ctcvo.learner.predict import predict
+from ctcvo.learner.train import fit
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -177,7 +187,7 @@ def _copy_run(ckpt: Path, dst: Path) -> Path:
 @pytest.mark.slow
 def test_calibrate_writes_a_readable_calibration(run, data_dirs, tmp_path, monkeypatch) -> None:
     ckpt = _copy_run(run, tmp_path / "run")
-    from data.sequence import Sequence
+    from ctcvo.data.sequence import Sequence
 
     def no_gt(self):
         raise AssertionError("calibration must not read ground truth")
@@ -207,8 +217,8 @@ def test_calibrate_reruns_by_the_rule(run, data_dirs, tmp_path, monkeypatch, cap
     """The same inputs keep calibration.json without predicting again; other inputs are a
     one-line error naming what differs until --overwrite; a run killed while predicting
     leaves the previous file as it was."""
-    import learner.predict as P
-    from data.runs import StaleOutputError
+    import ctcvo.learner.predict as P
+    from ctcvo.data.runs import StaleOutputError
 
     ckpt = _copy_run(run, tmp_path / "run")
     fit_fp = (ckpt.parent / "fingerprint.json").read_text()
@@ -388,7 +398,7 @@ def test_skill_figures_against_zero_motion_and_constant_velocity():
     """Labels of a camera moving at constant velocity (0.01 per step in v_x): a learner that
     halves every motion is 0.5x zero motion's distance, and worse than the constant-velocity
     guess from the previous label, which is exact (NaN for the pairs with no previous step)."""
-    from learner.calibrate import constant_velocity_l2, skill_figures
+    from ctcvo.learner.calibrate import constant_velocity_l2, skill_figures
 
     i = np.array([0, 1, 2, 3, 0, 1, 2])
     j = np.array([1, 2, 3, 4, 2, 3, 4])

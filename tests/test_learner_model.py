@@ -6,19 +6,18 @@ import numpy as np
 import pytest
 import torch
 
-from data import geometry as geo
-from data.errors import ConfigError
-from learner import loss as L
-from learner.config import PRESETS, TINY
-from learner.model import CTCNet, load_pretrained_vgg
-
+from ctcvo.data import geometry as geo
+from ctcvo.data.errors import ConfigError
+from ctcvo.learner import loss as L
+from ctcvo.learner.config import PRESETS, TINY
+from ctcvo.learner.model import CTCNet, load_pretrained_vgg
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _pairs(n: int, cfg) -> torch.Tensor:
     """Random pair inputs with the channels of the config's input (6 rgb, 8 rgbd, 9 flow)."""
-    from learner.dataset import INPUTS
+    from ctcvo.learner.dataset import INPUTS
 
     g = torch.Generator().manual_seed(0)
     return torch.randint(0, 256, (n, INPUTS[cfg.input], cfg.height, cfg.width), dtype=torch.uint8, generator=g)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from data import geometry as geo
-from learner import se3
+from ctcvo.data import geometry as geo
+from ctcvo.learner import se3
 
 F64 = torch.float64
 

@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 import torch
 
-from data import geometry as geo
-from data.errors import ConfigError, DataError, VOError
-from data.formats import Edge, read_tum, write_g2o
-from learner import cli
-from learner.config import VARIANTS, PredictConfig
-from learner.predict import auroc, predict
-from learner.train import fit, load_checkpoint
+from ctcvo.data import geometry as geo
+from ctcvo.data.errors import ConfigError, DataError, VOError
+from ctcvo.data.formats import Edge, read_tum, write_g2o
+from ctcvo.learner import cli
+from ctcvo.learner.config import VARIANTS, PredictConfig
+from ctcvo.learner.predict import auroc, predict
+from ctcvo.learner.train import fit, load_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
 N_FRAMES = 20
@@ -128,7 +128,7 @@ def test_mirrored_labels_are_the_mirrored_motion() -> None:
     lands at the mirrored pixel when the mirrored point is moved by the mirrored label
     (principal point at the image centre); compositions of mirrored labels are the
     mirrored composition, so the CTC still holds."""
-    from learner.train import _MIRROR
+    from ctcvo.learner.train import _MIRROR
 
     rng = np.random.default_rng(0)
     W = 128
@@ -153,7 +153,7 @@ def test_mirrored_labels_are_the_mirrored_motion() -> None:
 
 
 def test_mirror_flips_only_the_chosen_samples() -> None:
-    from learner.train import _MIRROR, _mirror
+    from ctcvo.learner.train import _MIRROR, _mirror
 
     x = torch.arange(2 * 6 * 2 * 3, dtype=torch.float32).view(2, 6, 2, 3)
     lab = torch.ones(2, 6)
@@ -190,9 +190,9 @@ def test_reversed_pairs_and_windows_keep_labels_and_ctc_exact(reverse_prob) -> N
     """Time reversal: with exact labels, a network that returns the true motion between the
     frames it is shown has zero regression and CTC loss, also on pairs and windows played
     backwards (frames swapped and re-ordered, labels negated)."""
-    from learner.dataset import SequenceData
-    from learner.train import pairs_step, windows_step
-    from learner.config import TrainConfig
+    from ctcvo.learner.config import TrainConfig
+    from ctcvo.learner.dataset import SequenceData
+    from ctcvo.learner.train import pairs_step, windows_step
 
     N, G, W = 30, 3, 6
     gt = _random_walk(np.random.default_rng(1), N)
@@ -224,10 +224,9 @@ def test_scale_augmentation_keeps_labels_and_ctc_exact() -> None:
     (frame indices in the colour, inverse depth 1 / m before scaling) fits the augmented
     pairs and windows exactly (regression and CTC loss zero); one that ignores the depth
     does not."""
-    from learner.config import TrainConfig
-    from learner.dataset import Frames, SequenceData
-    from learner.dataset import gt_labels
-    from learner.train import pairs_step, windows_step
+    from ctcvo.learner.config import TrainConfig
+    from ctcvo.learner.dataset import Frames, SequenceData, gt_labels
+    from ctcvo.learner.train import pairs_step, windows_step
 
     N, G, W = 24, 3, 5
     gt = _random_walk(np.random.default_rng(2), N)
@@ -265,8 +264,8 @@ def test_input_pairs_rgb_rgbd_flow_and_flowd() -> None:
     the DIS flow i -> j, which on a texture shifted by (dx, dy) pixels at twice the
     resolution is (dx, dy) / 2 at the network's, negated for the reversed pair and, in
     the horizontal, by a mirror."""
-    from learner.dataset import Frames
-    from learner.train import _mirror
+    from ctcvo.learner.dataset import Frames
+    from ctcvo.learner.train import _mirror
 
     rng = np.random.default_rng(0)
     H, W, N = 24, 32, 3
@@ -329,9 +328,9 @@ def test_paper_preset_single_forward_backward() -> None:
     at 320x240 it alone took ~10 s of the suite."""
     import dataclasses
 
-    from learner import loss as L
-    from learner.config import PAPER
-    from learner.model import CTCNet
+    from ctcvo.learner import loss as L
+    from ctcvo.learner.config import PAPER
+    from ctcvo.learner.model import CTCNet
 
     torch.manual_seed(0)
     net = CTCNet(PAPER.model).train()
@@ -377,7 +376,7 @@ def test_resume_reaches_the_same_state(fixture_seq, tmp_path) -> None:
 
 def _train_one_epoch_then_stop(seq: Path, out: Path, kw: dict) -> None:
     """Run the 3-epoch schedule but stop ("kill") after epoch 1."""
-    import learner.train as T
+    import ctcvo.learner.train as T
 
     orig = T.save_checkpoint
     calls = {"n": 0}
@@ -403,8 +402,8 @@ def test_steps_override_keeps_the_preset_proportions(fixture_seq, tmp_path) -> N
     """``--steps`` keeps the preset's phase-1 and warm-up proportions (the cpu preset:
     1000 of 1500 steps in phase 1, 100 of warm-up), an explicit value wins, and the
     learning rate warms up, peaks, then decays to ``lr * lr_final``."""
-    from learner.config import get_preset
-    from learner.train import lr_at
+    from ctcvo.learner.config import get_preset
+    from ctcvo.learner.train import lr_at
 
     seq, teacher = fixture_seq
     cpu = get_preset("cpu").train
@@ -446,7 +445,7 @@ def test_resume_with_another_preset_or_variant_fails(fixture_seq, tmp_path) -> N
         fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=teacher, resume=True)
     import dataclasses
 
-    from learner.config import TINY
+    from ctcvo.learner.config import TINY
 
     reshaped = dataclasses.replace(TINY, model=dataclasses.replace(TINY.model, lstm_hidden=8))
     with pytest.raises(ConfigError, match="another network shape of preset 'tiny'"):
@@ -459,7 +458,7 @@ def test_resume_with_another_preset_or_variant_fails(fixture_seq, tmp_path) -> N
 def test_nan_loss_is_a_clear_error_and_keeps_checkpoint(fixture_seq, tmp_path, monkeypatch) -> None:
     seq, teacher = fixture_seq
     fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher, steps=2)
-    import learner.loss as L
+    import ctcvo.learner.loss as L
 
     before = (tmp_path / "run" / "checkpoint.pt").read_bytes()
     real = L.pair_loss
@@ -603,7 +602,7 @@ def test_ddp_two_cpu_processes(fixture_seq, tmp_path) -> None:
     seq, teacher = fixture_seq
     torchrun = Path(sys.executable).with_name("torchrun")
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    cmd = [str(torchrun), "--standalone", "--nproc_per_node=2", "-m", "learner.cli", "fit", "--scene", str(seq),
+    cmd = [str(torchrun), "--standalone", "--nproc_per_node=2", "-m", "ctcvo.learner.cli", "fit", "--scene", str(seq),
            "--variant", "ctc", "--preset", "tiny", "--out", str(tmp_path / "ddp"), "--teacher", str(teacher)]
     proc = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -643,7 +642,7 @@ def test_tiny_model_overfits_exact_labels_and_only_aligned_ones(labels: str, tmp
     evaluation. The same check fails when the labels are shuffled across pairs or shifted
     by one frame (frames and labels misaligned): a pipeline that pairs images with the
     wrong labels cannot pass it."""
-    import learner.dataset as D
+    import ctcvo.learner.dataset as D
 
     seq = write_random_walk_sequence(tmp_path)
     if labels != "aligned":
@@ -674,7 +673,7 @@ def test_tiny_model_overfits_exact_labels_and_only_aligned_ones(labels: str, tmp
 def test_device_choice(monkeypatch) -> None:
     """``--device auto`` takes CUDA when it is there and the CPU otherwise; ``cuda`` without
     a GPU and unknown names are clear errors; a single process never needs torchrun."""
-    from learner.train import _setup_dist, resolve_device
+    from ctcvo.learner.train import _setup_dist, resolve_device
 
     monkeypatch.delenv("WORLD_SIZE", raising=False)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
@@ -695,19 +694,19 @@ def test_no_skill_warning(caplog) -> None:
     validation frames (or, without them, its training frames), and quietly otherwise."""
     import logging
 
-    from learner.train import _warn_if_no_skill
+    from ctcvo.learner.train import _warn_if_no_skill
 
-    with caplog.at_level(logging.INFO, logger="learner.train"):
+    with caplog.at_level(logging.INFO, logger="ctcvo.learner.train"):
         _warn_if_no_skill({"train_se3_l2": 0.004, "train_zero_motion_se3_l2": 0.01,
                            "val_se3_l2": 0.012, "val_zero_motion_se3_l2": 0.011})
     assert [r.levelname for r in caplog.records] == ["WARNING"] and "validation" in caplog.text
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="learner.train"):
+    with caplog.at_level(logging.INFO, logger="ctcvo.learner.train"):
         _warn_if_no_skill({"train_se3_l2": 0.012, "train_zero_motion_se3_l2": 0.01,
                            "val_se3_l2": 0.008, "val_zero_motion_se3_l2": 0.011})
     assert [r.levelname for r in caplog.records] == ["INFO"] and "0.73x zero motion" in caplog.text
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="learner.train"):
+    with caplog.at_level(logging.INFO, logger="ctcvo.learner.train"):
         _warn_if_no_skill({"train_se3_l2": 0.012, "train_zero_motion_se3_l2": 0.01})
     assert [r.levelname for r in caplog.records] == ["WARNING"] and "training" in caplog.text
 
@@ -719,7 +718,7 @@ def test_init_fine_tunes_from_another_checkpoint(fixture_seq, tmp_path) -> None:
     seq, teacher = fixture_seq
     first = fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "a", teacher_root=teacher)
     w0 = _state(first.checkpoint)
-    import learner.train as T
+    import ctcvo.learner.train as T
 
     seen = {}
     real = T.CTCNet.load_state_dict
@@ -746,7 +745,7 @@ def test_init_fine_tunes_from_another_checkpoint(fixture_seq, tmp_path) -> None:
 def test_flow_cache_gives_the_same_input_and_is_shared() -> None:
     """A pair's flow is computed once: the second draw returns the same numbers from the
     cache, which the :meth:`Frames.head` view shares; the cache stops at its bound."""
-    import learner.dataset as D
+    import ctcvo.learner.dataset as D
 
     rng = np.random.default_rng(3)
     grey = rng.integers(0, 256, (4, 48, 64)).astype(np.uint8)

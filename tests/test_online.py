@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data.formats import read_g2o, read_tum
-from data.scenes import open_scene
-from pipeline import online
-from teacher.config import TINY
+from ctcvo.data.formats import read_g2o, read_tum
+from ctcvo.data.scenes import open_scene
+from ctcvo.pipeline import online
+from ctcvo.teacher.config import TINY
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -27,8 +27,8 @@ TCFG = TINY  # gaps 2, 800 features: the tiny scene in seconds
 @pytest.fixture(scope="module")
 def batch(tmp_path_factory) -> Path:
     """``teacher generate`` and ``posegraph optimize`` (batch) on synthetic/tiny."""
-    from posegraph.optimize import optimize
-    from teacher.generate import generate
+    from ctcvo.posegraph.optimize import optimize
+    from ctcvo.teacher.generate import generate
 
     root = tmp_path_factory.mktemp("batch")
     generate("synthetic/tiny", root / "teacher", config=TCFG.__class__(**{**TCFG.to_dict(), "workers": 1}),
@@ -102,8 +102,8 @@ def test_pose_after_gap1_solves_the_same_edges(batch, online_run, tmp_path):
 def test_window_halves_give_the_edges_of_add():
     """EdgeWindow.add_gap1 then add_longer gives add's edges; a second add_gap1 before
     add_longer is refused (the tracks of the first frame would be lost)."""
-    from teacher.odometry import extract
-    from teacher.window import EdgeWindow
+    from ctcvo.teacher.odometry import extract
+    from ctcvo.teacher.window import EdgeWindow
 
     seq = open_scene("synthetic/tiny", frames="0:4")[0]
     feats = [[extract(seq.rgb(k), seq.depth(k), TCFG, K=seq.intrinsics.K) for k in range(4)] for _ in range(2)]
@@ -217,7 +217,7 @@ def test_follow_times_out_without_frames(tmp_path):
     (tmp_path / "stuck").mkdir()
     (tmp_path / "stuck" / "frame-000000.depth.png").write_bytes(b"")
     src = online.open_source(str(tmp_path / "stuck"), follow=True, cfg=online.OnlineConfig(poll_s=0.01, timeout_s=0.2))
-    from data.errors import DataError
+    from ctcvo.data.errors import DataError
 
     with pytest.raises(DataError, match="no frame arrived"):
         online.run(src, tmp_path / "o", TCFG, progress=False)
@@ -302,9 +302,9 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
 def test_online_learner_edges_equal_predict(batch, tmp_path):
     """With dropout off the MC mean is the network's output: the online learner's edges
     equal ``learner predict``'s (the LSTM over the same chunks), and they enter the graph."""
-    from learner.config import PredictConfig
-    from learner.predict import predict
-    from learner.train import fit
+    from ctcvo.learner.config import PredictConfig
+    from ctcvo.learner.predict import predict
+    from ctcvo.learner.train import fit
 
     res = fit(["synthetic/tiny"], variant="ctc", preset="tiny", out=tmp_path / "run",
               teacher_root=batch / "teacher", calibrate=False)
@@ -369,7 +369,7 @@ def test_a_killed_run_is_run_again_and_fails_leave_nothing(tmp_path):
     import sys
 
     out = tmp_path / "o"
-    argv = [sys.executable, "-m", "pipeline.online", "--scene", "synthetic/tiny", "--preset", "tiny", "--out", str(out)]
+    argv = [sys.executable, "-m", "ctcvo.pipeline.online", "--scene", "synthetic/tiny", "--preset", "tiny", "--out", str(out)]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.Popen(argv, cwd=Path(__file__).resolve().parents[1], env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
@@ -388,7 +388,7 @@ def test_a_killed_run_is_run_again_and_fails_leave_nothing(tmp_path):
     assert not (out / online.FINAL_TRAJECTORY).exists()
     rows = read_tum(out / online.TRAJECTORY)  # whole rows only
     assert 3 <= len(rows) < 20
-    from data.runs import StaleOutputError
+    from ctcvo.data.runs import StaleOutputError
 
     with pytest.raises(StaleOutputError, match="holds outputs of other inputs"):
         online.online("synthetic/tiny", out, frames="0:10", teacher_cfg=TCFG, progress=False)
@@ -396,7 +396,7 @@ def test_a_killed_run_is_run_again_and_fails_leave_nothing(tmp_path):
     assert not res.kept and res.frames == 20 and len(read_tum(out / online.TRAJECTORY)) == 20
 
     (tmp_path / "empty").mkdir()
-    from data.errors import DataError
+    from ctcvo.data.errors import DataError
 
     with pytest.raises(DataError, match="no frame arrived"):
         online.online(str(tmp_path / "empty"), tmp_path / "runs" / "x", follow=True, teacher_cfg=TCFG,
@@ -437,7 +437,7 @@ def _tum_frames(n: int = 20):
     with depth 4 ms after RGB, the camera, and groundtruth.txt rows at the RGB times."""
     import cv2
 
-    from data import geometry as geo
+    from ctcvo.data import geometry as geo
 
     seq = open_scene("synthetic/tiny")[0]
     gt = seq.groundtruth()
@@ -534,7 +534,7 @@ def test_follow_a_tum_folder_being_written(tmp_path, monkeypatch):
 
 def test_follow_picks_the_layout_and_waits_for_one(tmp_path):
     cfg = online.OnlineConfig(poll_s=0.01, timeout_s=0.2)
-    from data.errors import DataError
+    from ctcvo.data.errors import DataError
 
     (tmp_path / "tum_fr1").mkdir()
     (tmp_path / "tum_fr1" / "rgb.txt").write_text("# nothing yet\n")

@@ -1,4 +1,4 @@
-"""data.open3d_import: Open3D without its ML datasets and web viewer until they are used."""
+"""ctcvo.data.open3d_import: Open3D without its ML datasets and web viewer until they are used."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 _SCRIPT = """
 import sys
-from data.open3d_import import o3d
+from ctcvo.data.open3d_import import o3d
 import numpy as np
 heavy = ("sklearn", "pandas", "dash", "plotly")
 print("loaded-before", sorted(m for m in heavy if m in sys.modules))

@@ -15,7 +15,7 @@ def demo_runs(tmp_path_factory):
     """The demo's runs/ folder, its two outputs and the two runs' times."""
     import torch
 
-    from pipeline import demo
+    from ctcvo.pipeline import demo
 
     tmp = tmp_path_factory.mktemp("demo")
     mp = pytest.MonkeyPatch()
@@ -68,8 +68,8 @@ def test_demo_rerun_reads_only(demo_runs):
 def test_posegraph_cuts_a_longer_teacher_run_to_the_learner_frames(demo_runs, tmp_path, monkeypatch):
     """Teacher over 0:12, learner over 4:12: the graph uses the 8 frames both cover (no
     disconnected learner row); --frames 6:12 cuts both further."""
-    from learner.predict import predict
-    from posegraph.optimize import optimize
+    from ctcvo.learner.predict import predict
+    from ctcvo.posegraph.optimize import optimize
 
     tmp, _, _, _ = demo_runs
     monkeypatch.chdir(tmp)

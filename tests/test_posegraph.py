@@ -8,11 +8,11 @@ import gtsam
 import numpy as np
 import pytest
 
-from data import geometry as geo
-from data.formats import Edge
-from posegraph import synthetic as syn
-from posegraph.config import DEFAULT, PLAIN
-from posegraph.graph import GraphError, chain_poses, solve
+from ctcvo.data import geometry as geo
+from ctcvo.data.formats import Edge
+from ctcvo.posegraph import synthetic as syn
+from ctcvo.posegraph.config import DEFAULT, PLAIN
+from ctcvo.posegraph.graph import GraphError, chain_poses, solve
 
 
 def _loop(n: int = 16) -> np.ndarray:
@@ -139,7 +139,7 @@ def test_isam2_matches_lm_on_noisy_graph():
 def test_vectorised_residuals_match_gtsam():
     """The vectorised whitened residuals equal GTSAM's BetweenFactorPose3 whitened error,
     also for gross errors (30 degrees) where a small-angle shortcut would be wrong."""
-    from posegraph.graph import whitened_residuals
+    from ctcvo.posegraph.graph import whitened_residuals
 
     rng = np.random.default_rng(4)
     gt = syn.helix(12)

@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data.formats import Trajectory
-from data.metrics import BASELINE_KEYS, baseline_reports
-from posegraph import report
-from posegraph import synthetic as syn
-from posegraph.cli import main
-from posegraph.report import METRIC_KEYS
+from ctcvo.data.formats import Trajectory
+from ctcvo.data.metrics import BASELINE_KEYS, baseline_reports
+from ctcvo.posegraph import report
+from ctcvo.posegraph import synthetic as syn
+from ctcvo.posegraph.cli import main
+from ctcvo.posegraph.report import METRIC_KEYS
 
 N = 24
 
@@ -113,9 +113,9 @@ def test_scene_defaults_to_runs_folders(dirs, tmp_path, monkeypatch, capsys):
 def test_console_script_smoke(dirs, tmp_path):
     t, _ = dirs
     out = tmp_path / "cli"
-    exe = Path(sys.executable).parent / "posegraph"
-    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "posegraph.cli"]
-    p = subprocess.run(cmd + ["optimize", "--edges", str(t / "edges.g2o"), "--out", str(out), "--no-plots"],
+    exe = Path(sys.executable).parent / "ctcvo"
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "ctcvo"]
+    p = subprocess.run(cmd + ["posegraph", "optimize", "--edges", str(t / "edges.g2o"), "--out", str(out), "--no-plots"],
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     rep = json.loads((out / "report.json").read_text())
@@ -216,7 +216,7 @@ def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
     scale and the teacher's edges survive the outlier pass; ``--no-calibrate`` keeps
     the covariances as given (and loses the learner's edges). With ``--learner-edges all``:
     by default learner edges only bridge where the teacher's edges leave frames apart."""
-    from data.formats import read_g2o, write_g2o
+    from ctcvo.data.formats import read_g2o, write_g2o
 
     t, l = dirs
     edges, _ = read_g2o(l / "edges.g2o")

@@ -11,17 +11,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data import geometry as geo
-from data.errors import FormatError
-from data.formats import Edge, Trajectory
-from data.uncertainty import CHI2_6_1SIGMA, CHI2_6_2SIGMA, CHI2_6_MEDIAN, mahalanobis2, nees_stats
-from posegraph import synthetic as syn
-from posegraph.calibration import GapScales, fit_gap_scales, read_gap_scales
-from posegraph.cli import main
-from posegraph.config import DEFAULT
-from posegraph.graph import bridge_edges, components
-from posegraph.optimize import optimize
-from posegraph.report import nees
+from ctcvo.data import geometry as geo
+from ctcvo.data.errors import FormatError
+from ctcvo.data.formats import Edge, Trajectory
+from ctcvo.data.uncertainty import CHI2_6_1SIGMA, CHI2_6_2SIGMA, CHI2_6_MEDIAN, mahalanobis2, nees_stats
+from ctcvo.posegraph import synthetic as syn
+from ctcvo.posegraph.calibration import GapScales, fit_gap_scales, read_gap_scales
+from ctcvo.posegraph.cli import main
+from ctcvo.posegraph.config import DEFAULT
+from ctcvo.posegraph.graph import bridge_edges, components
+from ctcvo.posegraph.optimize import optimize
+from ctcvo.posegraph.report import nees
 
 TRUE = {1: (0.004, 0.002), 2: (0.006, 0.003), 3: (0.008, 0.004)}  # sigma (m, rad) per gap
 CLAIMED = {1: 1 / 100.0, 2: 1 / 40.0, 3: 1 / 10.0}  # claimed covariance = true * this
@@ -114,7 +114,7 @@ def _folders(tmp_path: Path, n: int = 120, ratio: float | None = None, drop: tup
     t_dir = tmp_path / "teacher"
     syn.write_source_dir(t_dir, gt, teacher, times) if drop is None else None
     if drop is not None:  # the teacher's trajectory: its gap-1 chain, constant velocity over the hole
-        from data.formats import write_edges_csv, write_g2o, write_tum
+        from ctcvo.data.formats import write_edges_csv, write_g2o, write_tum
 
         step = {e.i: e.T_i_j for e in teacher if e.j == e.i + 1}
         traj, last = [np.eye(4)], np.eye(4)
@@ -163,7 +163,7 @@ def test_learner_no_better_than_zero_motion_weighs_nothing(tmp_path):
     although the learner's edges (biased here) would otherwise pull the graph."""
     t, l, gt = _folders(tmp_path, ratio=1.1)
     for f in (l / "edges.g2o",):  # a learner with a bias: every edge 1 cm too long in x
-        from data.formats import read_g2o, write_g2o
+        from ctcvo.data.formats import read_g2o, write_g2o
 
         edges, _ = read_g2o(f)
         write_g2o(f, [dataclasses.replace(e, T_i_j=e.T_i_j @ geo.se3_exp([0.01, 0, 0, 0, 0, 0])) for e in edges])
@@ -190,7 +190,7 @@ def test_by_default_learner_edges_only_bridge(tmp_path):
     """learner_edges = "bridge" (default): a skilled but biased learner leaves the teacher
     graph as it is where the teacher's edges connect every frame; with "all" it pulls it."""
     t, l, _ = _folders(tmp_path, ratio=0.5)
-    from data.formats import read_g2o, write_g2o
+    from ctcvo.data.formats import read_g2o, write_g2o
 
     edges, _ = read_g2o(l / "edges.g2o")
     write_g2o(l / "edges.g2o", [dataclasses.replace(e, T_i_j=e.T_i_j @ geo.se3_exp([0.01, 0, 0, 0, 0, 0]))

@@ -12,13 +12,21 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from data import geometry as geo
-from data.errors import ConfigError, DataError, VOError
-from data.scenes import open_scene
-from data.sequence import Intrinsics, read_depth, read_rgb
-from data.sevenscenes import SevenScenesSequence, open_scene_folder
-from data.tum import (DEPTH_SCALE, TUM_INTRINSICS, TumSequence, associate, interpolate_poses,
-                      intrinsics_for, read_groundtruth, read_image_list)
+from ctcvo.data import geometry as geo
+from ctcvo.data.errors import ConfigError, DataError, VOError
+from ctcvo.data.scenes import open_scene
+from ctcvo.data.sequence import Intrinsics, read_depth, read_rgb
+from ctcvo.data.sevenscenes import SevenScenesSequence, open_scene_folder
+from ctcvo.data.tum import (
+    DEPTH_SCALE,
+    TUM_INTRINSICS,
+    TumSequence,
+    associate,
+    interpolate_poses,
+    intrinsics_for,
+    read_groundtruth,
+    read_image_list,
+)
 
 W, H = 8, 6  # tiny fake images
 
@@ -295,9 +303,9 @@ def test_bad_intrinsics_file(tmp_path: Path) -> None:
 
 
 def test_unknown_synthetic_name() -> None:
-    synthetic = pytest.importorskip("data.synthetic", reason="data/synthetic not written yet")
+    synthetic = pytest.importorskip("ctcvo.data.synthetic", reason="data/synthetic not written yet")
     if not hasattr(synthetic, "synthetic_sequence"):
-        pytest.skip("data.synthetic.synthetic_sequence (called by data/scenes.py) not written yet")
+        pytest.skip("ctcvo.data.synthetic.synthetic_sequence (called by data/scenes.py) not written yet")
     with pytest.raises(VOError, match="no-such-scene"):
         open_scene("synthetic/no-such-scene")
 
@@ -439,7 +447,7 @@ def test_tum_association_drops_unpaired(tmp_path: Path) -> None:
 
 def test_tum_restricted_to_gt_span(tmp_path: Path, caplog) -> None:
     folder = make_tum_seq(tmp_path / "fr2_fake", n=6, gt_span=(0.15, 0.45))
-    with caplog.at_level(logging.INFO, logger="data.tum"):
+    with caplog.at_level(logging.INFO, logger="ctcvo.data.tum"):
         seq = TumSequence(folder)
     assert "restricted" in caplog.text
     np.testing.assert_allclose(seq.times(), [1000.2, 1000.3, 1000.4])
@@ -450,7 +458,7 @@ def test_tum_restricted_to_gt_span(tmp_path: Path, caplog) -> None:
 
 def test_tum_no_gt_overlap_or_no_gt(tmp_path: Path, caplog) -> None:
     folder = make_tum_seq(tmp_path / "a", n=3, gt_span=(5.0, 6.0))
-    with caplog.at_level(logging.WARNING, logger="data.tum"):
+    with caplog.at_level(logging.WARNING, logger="ctcvo.data.tum"):
         seq = TumSequence(folder)
     assert not seq.has_groundtruth and seq.groundtruth() is None and len(seq) == 3
     assert "no ground truth" in caplog.text
@@ -464,7 +472,7 @@ def test_tum_gt_gap_warning(tmp_path: Path, caplog) -> None:
     lines = f.read_text().splitlines()
     keep = [ln for ln in lines if ln.startswith("#") or not (1000.02 < float(ln.split()[0]) < 1000.38)]
     f.write_text("\n".join(keep) + "\n")
-    with caplog.at_level(logging.WARNING, logger="data.tum"):
+    with caplog.at_level(logging.WARNING, logger="ctcvo.data.tum"):
         seq = TumSequence(folder)
     assert "3 frames fall in ground-truth gaps" in caplog.text
     np.testing.assert_allclose(seq.groundtruth()[:, 0, 3], 0.1 * np.arange(4), atol=1e-6)
@@ -531,7 +539,7 @@ def test_tum_missing_or_empty_lists(tmp_path: Path) -> None:
 
 
 def test_frame_ranges_overlap():
-    from data.sequence import frame_ranges_overlap
+    from ctcvo.data.sequence import frame_ranges_overlap
 
     assert frame_ranges_overlap(None, "450:600") and frame_ranges_overlap("0:450", None)
     assert frame_ranges_overlap("375:450", "400:")

@@ -14,9 +14,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data.errors import ConfigError
-from data.runs import (Fingerprint, StaleOutputError, claim, differences, frames_id, output_folder, stage_dir,
-                       write_fingerprint)
+from ctcvo.data.errors import ConfigError
+from ctcvo.data.runs import (
+    Fingerprint,
+    StaleOutputError,
+    claim,
+    differences,
+    frames_id,
+    output_folder,
+    stage_dir,
+    write_fingerprint,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -60,7 +68,7 @@ def test_a_code_version_bump_makes_kept_outputs_stale(tmp_path, monkeypatch) -> 
     """The same inputs written by an older version of a stage's code are not kept: the
     error says which version wrote them; a folder from before versions were recorded
     (no ``version``) counts as version 0."""
-    import data.runs as runs
+    import ctcvo.data.runs as runs
 
     out = tmp_path / "stage"
     out.mkdir()
@@ -127,8 +135,8 @@ def test_fit_labels_every_range_reruns_and_predict_keeps_out_of_the_run(tiny_run
     teacher once over 0:20 (both ranges labelled). A second identical fit is kept; other
     inputs are an error until --overwrite. predict writes to runs/<scene>/predict (never
     the training run, even for the training scene) and is skipped when rerun."""
-    from learner.predict import predict
-    from learner.train import fit
+    from ctcvo.learner.predict import predict
+    from ctcvo.learner.train import fit
 
     kw = dict(variant="cnn-unsup", preset="tiny", frames="0:8", val_scenes=["synthetic/tiny"], val_frames="8:20",
               steps=2)
@@ -164,8 +172,8 @@ def test_fit_labels_every_range_reruns_and_predict_keeps_out_of_the_run(tiny_run
 
 
 def test_cli_ctrl_c_is_one_line_and_resume_needs_only_out(tiny_run, monkeypatch, capsys, caplog) -> None:
-    import learner.train as T
-    from learner import cli
+    import ctcvo.learner.train as T
+    from ctcvo.learner import cli
 
     real = T._train_epoch
 
@@ -197,9 +205,9 @@ def test_cli_ctrl_c_is_one_line_and_resume_needs_only_out(tiny_run, monkeypatch,
 # command lines
 # ----------------------------------------------------------------------------------
 def _parsers():
-    from learner.cli import _parser as learner_parser
-    from posegraph.cli import _parser as posegraph_parser
-    from teacher.cli import build_parser as teacher_parser
+    from ctcvo.learner.cli import _parser as learner_parser
+    from ctcvo.posegraph.cli import _parser as posegraph_parser
+    from ctcvo.teacher.cli import build_parser as teacher_parser
 
     for p in (teacher_parser(), learner_parser(), posegraph_parser()):
         yield p
@@ -216,16 +224,16 @@ def test_every_option_has_help_and_no_sphinx_markup() -> None:
         for a in p._actions:
             if a.option_strings and a.dest != "help":
                 assert a.help and len(a.help) > 8, (p.prog, a.option_strings)
-    from learner.cli import _parser
+    from ctcvo.learner.cli import _parser
 
     fit_help = " ".join(_parser()._subparsers._group_actions[0].choices["fit"].format_help().split())
     assert "'tiny' - a toy network for the tests only" in fit_help and "(default: auto)" in fit_help
 
 
 def test_verbose_in_one_place_for_every_cli() -> None:
-    from learner.cli import _parser as lp
-    from posegraph.cli import _parser as pp
-    from teacher.cli import build_parser as tp
+    from ctcvo.learner.cli import _parser as lp
+    from ctcvo.posegraph.cli import _parser as pp
+    from ctcvo.teacher.cli import build_parser as tp
 
     for parser, cmd in ((tp(), ["generate", "--scene", "x"]), (lp(), ["predict", "--checkpoint", "c", "--scene", "x"]),
                         (pp(), ["optimize", "--scene", "x"])):
@@ -235,13 +243,11 @@ def test_verbose_in_one_place_for_every_cli() -> None:
 
 
 def test_posegraph_imports_neither_learner_nor_teacher_nor_torch() -> None:
-    code = ("import sys, posegraph.optimize, posegraph.cli, posegraph.graph, posegraph.report, posegraph.sources, "
-            "posegraph.online\n"
-            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'learner', 'teacher', 'pipeline'))\n"
+    mods = ["ctcvo.posegraph." + f.stem for f in sorted((REPO / "ctcvo" / "posegraph").glob("*.py")) if f.stem != "__init__"]
+    assert len(mods) > 5, mods
+    code = (f"import sys; import {', '.join(mods)}\n"
+            "bad = sorted(m for m in sys.modules if m.split('.')[0] == 'torch' or m.startswith(('ctcvo.learner', "
+            "'ctcvo.teacher', 'ctcvo.pipeline')))\n"
             "assert not bad, bad")
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    for f in (REPO / "posegraph").glob("*.py"):
-        text = f.read_text()
-        assert "import learner" not in text and "from learner" not in text, f
-        assert "import teacher" not in text and "from teacher" not in text, f

@@ -8,16 +8,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import data.synthetic as syn
-from data.errors import ConfigError, DataError
-from data.geometry import is_rigid
-from data.scenes import open_scene
-from data.synthetic.config import PRESETS, SensorConfig
-from data.synthetic.layout import SceneBuilder
-from data.synthetic.renderer import Renderer
-from data.synthetic.sensor import ColourSensor, colour_camera_pad, depth_sensor, projector_shadow
-from data.synthetic.textures import tex_plain
-from data.synthetic.trajectory import motion_stats
+import ctcvo.data.synthetic as syn
+from ctcvo.data.errors import ConfigError, DataError
+from ctcvo.data.geometry import is_rigid
+from ctcvo.data.scenes import open_scene
+from ctcvo.data.synthetic.config import PRESETS, SensorConfig
+from ctcvo.data.synthetic.layout import SceneBuilder
+from ctcvo.data.synthetic.renderer import Renderer
+from ctcvo.data.synthetic.sensor import ColourSensor, colour_camera_pad, depth_sensor, projector_shadow
+from ctcvo.data.synthetic.textures import tex_plain
+from ctcvo.data.synthetic.trajectory import motion_stats
 
 FX, CX, CY, W, H = 585.0, 320.0, 240.0, 640, 480
 
@@ -316,7 +316,7 @@ def test_dropped_frames_repeat_the_previous_files(tmp_path: Path):
 def test_colour_files_are_the_sensor_jpeg(tmp_path) -> None:
     """The colour files are the sensor model's JPEG itself (as the 7-Scenes sample's): read
     back, they equal the rendered image exactly; the noise-free variant stays lossless PNG."""
-    from data.sequence import read_rgb
+    from ctcvo.data.sequence import read_rgb
 
     cfg = dataclasses.replace(PRESETS["tiny"], frames=3, sensor=dataclasses.replace(
         PRESETS["tiny"].sensor, frame_repeat_prob=0, rgb_repeat_prob=0, depth_repeat_prob=0))
@@ -337,7 +337,7 @@ def test_training_corpus_rooms(tmp_path: Path):
     """``synthetic/room-<N>``: rooms of the three layouts in turn, each from its own seed
     (never a named scene's) with its own trajectory statistics; ``-clean`` works for them
     too, unknown forms are refused, and a room renders."""
-    from data.synthetic.config import CORPUS_SEED0, resolve_preset
+    from ctcvo.data.synthetic.config import CORPUS_SEED0, resolve_preset
 
     rooms = [resolve_preset(f"room-{k}") for k in range(6)]
     assert [r.layout for r in rooms] == ["office", "kitchen", "lab"] * 2
@@ -357,7 +357,7 @@ def test_corpus_spec(tmp_path: Path, monkeypatch):
     """``synthetic/corpus-<COUNT>[x<FRAMES>]`` opens rooms 0..COUNT-1 as separate sequences;
     ``room-<N>x<FRAMES>`` is room N (same room, same trajectory statistics) with another
     number of frames; malformed specs are refused with the list of known names."""
-    from data.synthetic.config import corpus_names, resolve_preset
+    from ctcvo.data.synthetic.config import corpus_names, resolve_preset
 
     assert corpus_names("corpus-3") == ["room-0", "room-1", "room-2"]
     assert corpus_names("corpus-2x40") == ["room-0x40", "room-1x40"]

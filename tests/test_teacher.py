@@ -14,15 +14,15 @@ import gtsam
 import numpy as np
 import pytest
 
-from data import geometry as geo
-from data.formats import read_edges_csv, read_g2o, read_tum
-from data.metrics import relative_pose_error
-from data.open3d_import import openmp_threads
-from data.scenes import open_scene
-from teacher import cli
-from teacher.config import TeacherConfig
-from teacher.generate import chain_trajectory, run_sequence
-from teacher.odometry import EdgeEstimate, estimate_edge, extract
+from ctcvo.data import geometry as geo
+from ctcvo.data.formats import read_edges_csv, read_g2o, read_tum
+from ctcvo.data.metrics import relative_pose_error
+from ctcvo.data.open3d_import import openmp_threads
+from ctcvo.data.scenes import open_scene
+from ctcvo.teacher import cli
+from ctcvo.teacher.config import TeacherConfig
+from ctcvo.teacher.generate import chain_trajectory, run_sequence
+from ctcvo.teacher.odometry import EdgeEstimate, estimate_edge, extract
 
 
 def _pair_error(seq, a: int, b: int, cfg: TeacherConfig) -> tuple[EdgeEstimate, float, float]:
@@ -36,8 +36,8 @@ def _pair_error(seq, a: int, b: int, cfg: TeacherConfig) -> tuple[EdgeEstimate, 
 @pytest.fixture(scope="module")
 def office_clean():
     """Noise-free rendering of the textured 'office' room, 12 frames."""
-    from data.synthetic import synthetic_sequence
-    from data.synthetic.config import resolve_preset
+    from ctcvo.data.synthetic import synthetic_sequence
+    from ctcvo.data.synthetic.config import resolve_preset
 
     cfg = dataclasses.replace(resolve_preset("office-clean"), frames=12)
     return synthetic_sequence("office-clean", config=cfg)
@@ -66,7 +66,7 @@ def test_paper_preset_switches_off_refinement_and_dense_step(office_clean):
     change its poses, no edge has a dense record, and its noise-free gap-1 poses are further
     from the truth than the default teacher's (measured: median 2.6 against 0.4 mm) but
     within 10 mm / 0.5 deg, with positive-definite covariances."""
-    from teacher.config import PAPER
+    from ctcvo.teacher.config import PAPER
 
     assert not PAPER.refine and PAPER.dense_iters == 0
     other = dataclasses.replace(PAPER, two_way=False, depth_weight=0.0, refine_iters=20, huber_px=3.0)
@@ -88,7 +88,7 @@ def test_dense_step_recovers_a_perturbed_pose(office_clean, sparse_only):
     """The dense depth alignment started 1 cm / 0.5 deg off the true pose of a noise-free
     pair ends within 1 mm / 0.05 deg of it (taken whole, ``dense_blend = 1``); with a shift
     bound smaller than the perturbation it is rejected and the starting pose is kept."""
-    from teacher.odometry import dense_maps, dense_refine
+    from ctcvo.teacher.odometry import dense_maps, dense_refine
 
     seq, cfg = office_clean, dataclasses.replace(TeacherConfig(), dense_blend=1.0)
     if sparse_only:
@@ -112,7 +112,7 @@ def test_dense_step_recovers_a_perturbed_pose(office_clean, sparse_only):
 def test_dense_blend_moves_part_of_the_way(office_clean):
     """``dense_blend = b`` puts the pose at the fraction b of the geodesic from the sparse
     to the dense estimate: its offset from the start is b times the full step's."""
-    from teacher.odometry import dense_maps, dense_refine
+    from ctcvo.teacher.odometry import dense_maps, dense_refine
 
     seq = office_clean
     gt = seq.groundtruth()
@@ -130,7 +130,7 @@ def test_dense_blend_moves_part_of_the_way(office_clean):
 
 def test_dense_step_rejects_a_frame_without_depth(office_clean):
     """No valid depth in frame i: nothing pairs up, the sparse estimate stays."""
-    from teacher.odometry import dense_maps, dense_refine
+    from ctcvo.teacher.odometry import dense_maps, dense_refine
 
     seq, cfg = office_clean, TeacherConfig()
     T0 = geo.relative_pose(*seq.groundtruth()[[0, 1]])
@@ -160,9 +160,9 @@ def test_worker_processes_give_the_same_edges(office_clean):
 
 _LABELS_DIGEST = """
 import dataclasses, hashlib, sys
-from data.scenes import open_scene
-from teacher.config import TINY
-from teacher.generate import run_sequence
+from ctcvo.data.scenes import open_scene
+from ctcvo.teacher.config import TINY
+from ctcvo.teacher.generate import run_sequence
 cfg = dataclasses.replace(TINY, workers=1, threads=int(sys.argv[1]))
 h = hashlib.sha1()
 for e in run_sequence(open_scene("synthetic/tiny")[0], cfg, progress=False).edges:
@@ -199,7 +199,7 @@ def _dense_step_in_child(threads: int) -> tuple[dict, float]:
     from 3 mm off: (its ``info["dense"]``, the translation left)."""
     from threadpoolctl import threadpool_limits
 
-    from teacher.odometry import dense_maps, dense_refine
+    from ctcvo.teacher.odometry import dense_maps, dense_refine
 
     cfg = TeacherConfig()
     K = np.array([[585.0, 0, 320], [0, 585, 240], [0, 0, 1]])
@@ -219,7 +219,7 @@ def test_workers_run_openmp_with_several_threads():
     threads (libgomp does not survive fork); the server imports with one thread."""
     from concurrent.futures import ProcessPoolExecutor, TimeoutError
 
-    from teacher import processes
+    from ctcvo.teacher import processes
 
     processes.start()
     ex = ProcessPoolExecutor(1, mp_context=processes.context())
@@ -257,7 +257,7 @@ def _two_way_problem(seed: int, outliers: int = 0):
 
 def _numeric_jacobian(T, *args):
     """Central differences of ``_residuals(T @ exp(d), *args)`` w.r.t. d (right perturbation)."""
-    from teacher.odometry import _residuals
+    from ctcvo.teacher.odometry import _residuals
 
     cols = []
     for k in range(6):
@@ -270,7 +270,7 @@ def _numeric_jacobian(T, *args):
 def test_covariance_matches_numeric_jacobian():
     """The refinement's covariance is sigma^2 (J^T J)^-1 with J w.r.t. T @ exp(delta),
     delta in (v, w): checked against finite differences of the residuals."""
-    from teacher.odometry import refine_two_way
+    from ctcvo.teacher.odometry import refine_two_way
 
     K, T_true, P, uv_j, Q, uv_i, _ = _two_way_problem(3)
     T, cov, r = refine_two_way(geo.se3_exp(np.zeros(6)), P, uv_j, Q, uv_i, K, huber=10.0, iters=20)
@@ -284,7 +284,7 @@ def test_covariance_matches_numeric_jacobian():
 def test_jacobian_with_depth_term_matches_finite_differences():
     """The closed-form Jacobian of every residual block (forward, backward, and the
     z^2-weighted 3-D term) against central differences of the residuals."""
-    from teacher.odometry import _residuals
+    from ctcvo.teacher.odometry import _residuals
 
     K, T_true, P, uv_j, Q, uv_i, P_b = _two_way_problem(5)
     T = T_true @ geo.se3_exp([0.003, -0.002, 0.004, 0.002, 0.001, -0.003])
@@ -303,8 +303,8 @@ def test_rmse_check_refuses_nothing_the_inlier_gate_admits():
     (1.5 px at g = 2: 1.5 g/2). At g = 3 with the check left at 1.5 it refused well-fitting
     estimates of TUM fr1/xyz's longer edges (bench/README.md, "Why TUM frames cost more
     teacher CPU")."""
-    from data.sequence import Intrinsics
-    from teacher.odometry import FrameFeatures, _estimate
+    from ctcvo.data.sequence import Intrinsics
+    from ctcvo.teacher.odometry import FrameFeatures, _estimate
 
     cfg = TeacherConfig()
     g = cfg.refine_inlier_px
@@ -338,7 +338,7 @@ def test_refinement_converges_to_the_huber_optimum():
     """With 15 % gross outliers, the refinement ends at a stationary point of the Huber
     cost: its gradient J^T psi(r) is ~0 there (the first-order optimality the old
     reweighted iteration did not reach in its 6 steps), and the pose is close to the truth."""
-    from teacher.odometry import _huber, _residuals, refine_two_way
+    from ctcvo.teacher.odometry import _huber, _residuals, refine_two_way
 
     K, T_true, P, uv_j, Q, uv_i, P_b = _two_way_problem(7, outliers=30)
     T0 = T_true @ geo.se3_exp([0.01, 0.01, -0.01, 0.005, -0.005, 0.005])
@@ -360,8 +360,8 @@ def test_teacher_on_real_redkitchen_within_bound(redkitchen):
     bench/README.md)."""
     seq = open_scene(str(redkitchen), frames="0:120")[0]
     run = run_sequence(seq, dataclasses.replace(TeacherConfig(), gaps=3), progress=False)
-    from data.formats import Trajectory
-    from data.metrics import trajectory_report
+    from ctcvo.data.formats import Trajectory
+    from ctcvo.data.metrics import trajectory_report
 
     rep = trajectory_report(Trajectory(seq.times(), seq.groundtruth()), Trajectory(seq.times(), run.poses))
     assert all(e.ok for e in run.edges if e.j - e.i == 1)
@@ -543,7 +543,7 @@ def test_cli_tiny_preset(tmp_path):
 
 
 def test_stale_stream_needs_exactly_one_repeated_image():
-    from teacher.odometry import image_keys, stale_stream
+    from ctcvo.teacher.odometry import image_keys, stale_stream
 
     rng = np.random.default_rng(0)
     rgb = [rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(2)]
@@ -562,8 +562,8 @@ def test_edges_at_a_repeated_colour_image_follow_the_depth(tmp_path):
     colour-keypoint estimate blended a quarter of the way (``dense_on_stale=False``). (The
     rule of real recordings and of longer edges: the gap-1 edges of synthetic scenes have
     the depth-alone step, ``depth_beside_colour_repeat``, off here.)"""
-    from data.synthetic import REPEAT_RGB, repeat_plan, synthetic_sequence
-    from data.synthetic.config import PRESETS
+    from ctcvo.data.synthetic import REPEAT_RGB, repeat_plan, synthetic_sequence
+    from ctcvo.data.synthetic.config import PRESETS
 
     base = PRESETS["office"]
     cfg = dataclasses.replace(base, frames=30, sensor=dataclasses.replace(
@@ -641,9 +641,9 @@ def test_wide_matching_finds_repeated_texture():
     acceleration): guided matching (12 px radius) misses the true matches, exhaustive matching
     finds a twin for every keypoint so the ratio test keeps almost nothing; the cross-checked
     36 px search around the prediction, without the ratio test, finds them."""
-    from data.sequence import Intrinsics
-    from data.synthetic.textures import tex_repeat
-    from teacher.odometry import match, match_wide
+    from ctcvo.data.sequence import Intrinsics
+    from ctcvo.data.synthetic.textures import tex_repeat
+    from ctcvo.teacher.odometry import match, match_wide
 
     rng = np.random.default_rng(3)
     tex = tex_repeat(rng, np.array([0.9, 0.85, 0.7], np.float32), np.array([0.2, 0.3, 0.5], np.float32), size=512)
@@ -670,7 +670,7 @@ def test_wide_matching_finds_repeated_texture():
 def test_failed_edges_are_bridged_and_counted(office_clean, tmp_path):
     """The report counts each edge's path and the constant-velocity bridges; edges.csv has
     the path per edge."""
-    from teacher.generate import TeacherRun, write_outputs
+    from ctcvo.teacher.generate import TeacherRun, write_outputs
 
     seq = office_clean.select(0, 5)
     step = geo.relative_pose(*seq.groundtruth()[[0, 1]])
@@ -697,10 +697,10 @@ def test_teacher_tracks_the_stress_scenes(name, tmp_path):
     """Each stress preset (8 frames of it): no failed gap-1 edge and no constant-velocity
     bridge, gap-1 RPE under 10 mm. Where the stress is the texture, the fallback chain is
     what tracks: most gap-1 edges come from the dense paths (sparse matching starves)."""
-    from data.formats import Trajectory
-    from data.metrics import trajectory_report
-    from data.synthetic import synthetic_sequence
-    from data.synthetic.config import PRESETS
+    from ctcvo.data.formats import Trajectory
+    from ctcvo.data.metrics import trajectory_report
+    from ctcvo.data.synthetic import synthetic_sequence
+    from ctcvo.data.synthetic.config import PRESETS
 
     seq = synthetic_sequence(name, cache_dir=tmp_path, config=dataclasses.replace(PRESETS[name], frames=8))
     run = run_sequence(seq, dataclasses.replace(TeacherConfig(), gaps=2, workers=1), progress=False)
@@ -716,9 +716,9 @@ def test_teacher_tracks_the_stress_scenes(name, tmp_path):
 def test_stress_presets_render_their_stress():
     """The stress presets differ from the named scenes where they claim to: far views (most
     valid depth beyond 3 m), fast rotation, a full-period exposure, restyled textures."""
-    from data.synthetic import build
-    from data.synthetic.config import PRESETS
-    from data.synthetic.trajectory import motion_stats
+    from ctcvo.data.synthetic import build
+    from ctcvo.data.synthetic.config import PRESETS
+    from ctcvo.data.synthetic.trajectory import motion_stats
 
     fast = motion_stats(build(PRESETS["stress-fast"])[1], 30.0)
     office = motion_stats(build(PRESETS["office"])[1], 30.0)
@@ -732,7 +732,7 @@ def test_information_fusion_weighs_by_covariance(office_clean):
     """``dense_fusion = "information"``: a sparse estimate with a huge covariance gives way to
     the dense alignment (as ``dense_blend = 1`` would), one with a tiny covariance stays put,
     and one in between lands in between."""
-    from teacher.odometry import dense_maps, dense_refine
+    from ctcvo.teacher.odometry import dense_maps, dense_refine
 
     seq = office_clean
     gt = seq.groundtruth()
@@ -742,7 +742,7 @@ def test_information_fusion_weighs_by_covariance(office_clean):
     whole = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy())
     dense_refine(whole, *maps, cfg, blend=1.0)
     full = geo.se3_log(geo.inv_T(T0) @ whole.T_i_j)
-    from teacher.odometry import point_to_plane_covariance
+    from ctcvo.teacher.odometry import point_to_plane_covariance
 
     equal = cfg.dense_cov_scale * point_to_plane_covariance(whole.T_i_j, *maps, cfg, stride=cfg.p2p_cov_stride)[0]
     moved = {}
@@ -763,7 +763,7 @@ def test_colour_registration_inverts_the_colour_camera_model():
     pixels: at the depth pixel :meth:`ColourCamera.to_depth_pixels` gives for a colour pixel,
     the registered image holds that colour pixel's value (a smooth image, a fronto-parallel
     wall at 1.5 m, so the parallax term is the same both ways)."""
-    from teacher.odometry import KINECT_V1_COLOUR
+    from ctcvo.teacher.odometry import KINECT_V1_COLOUR
 
     K = np.array([[585.0, 0, 320], [0, 585.0, 240], [0, 0, 1]])
     yy, xx = np.mgrid[0:480, 0:640].astype(np.float32)
@@ -785,7 +785,7 @@ def test_hybrid_step_recovers_a_perturbed_pose(office_clean):
     0.12 deg of it (measured 1.37 mm / 0.093 deg: Open3D's kernel reads frame i at the
     nearest pixel, so even started at the truth it settles 0.2-1.3 mm away on these
     frames); its covariance is positive definite."""
-    from teacher.odometry import hybrid_align, hybrid_covariance
+    from ctcvo.teacher.odometry import hybrid_align, hybrid_covariance
 
     seq = office_clean
     cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid")
@@ -809,7 +809,7 @@ def test_hybrid_dense_step_only_where_colour_and_depth_agree(office_clean):
     takes the depth stage whole and then, with ``hybrid_on_stale`` (its photometric maps
     match its depth, see :class:`teacher.window.EdgeWindow`), the hybrid stage fused with
     the depth stage's covariance; without it the depth alone."""
-    from teacher.odometry import dense_refine
+    from ctcvo.teacher.odometry import dense_refine
 
     seq = office_clean
     cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid")
@@ -837,7 +837,7 @@ def test_photo_weight_scales_the_grey_not_the_covariance(office_clean):
     """``photo_weight`` w scales the grey maps by sqrt(w) (so the kernel weighs the
     photometric residual w times the depth residual, its Huber threshold scaled alike); the
     hybrid covariance, each term divided by its own residual variance, stays the same."""
-    from teacher.odometry import hybrid_covariance
+    from ctcvo.teacher.odometry import hybrid_covariance
 
     seq = office_clean
     maps = {}
@@ -859,7 +859,7 @@ def test_keypoints_agreeing_on_a_wrong_motion_give_way_to_the_rgbd_fallback(offi
     rgbd fallback from the motion prediction (``sparse_status`` ``dense_disagrees``), close
     to the truth. With the depth stage alone (``point-to-plane``: real recordings) the
     sparse estimate stays, as before."""
-    import teacher.odometry as od
+    import ctcvo.teacher.odometry as od
 
     seq = office_clean
     gt = seq.groundtruth()
@@ -943,9 +943,9 @@ def test_window_gives_a_depth_repeat_the_colour_of_its_depth(office_clean):
     shows, and a chunk that starts at a depth repeat (``prev_photo``,
     :func:`teacher.generate._photo_before`) reads the maps the window would hold back from
     the frames before it."""
-    from teacher.generate import _photo_before
-    from teacher.odometry import make_orb
-    from teacher.window import EdgeWindow
+    from ctcvo.teacher.generate import _photo_before
+    from ctcvo.teacher.odometry import make_orb
+    from ctcvo.teacher.window import EdgeWindow
 
     seq = office_clean
     cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid", gaps=2)
@@ -977,7 +977,7 @@ def test_window_gives_a_depth_repeat_the_colour_of_its_depth(office_clean):
 def test_constant_velocity_spans_a_dropped_frame(office_clean, monkeypatch):
     """The gap-1 prediction is the last good gap-1 motion over the time between the frames:
     unchanged under timestamp jitter, scaled along its twist over a dropped frame."""
-    from teacher import window as wmod
+    from ctcvo.teacher import window as wmod
 
     seq = office_clean
     cfg = dataclasses.replace(TeacherConfig(), gaps=2)
@@ -1030,11 +1030,11 @@ def test_dense_method_auto_follows_the_sensor(office_clean, tmp_path):
     exposed together; frames get the photometric maps), point-to-plane for a 7-Scenes
     folder without the renderer's config (a real Kinect v1 recording) and for a noise-free
     scene (no colour model); an unknown name is a ConfigError."""
-    from data.errors import ConfigError
-    from data.sevenscenes import SevenScenesSequence
-    from data.synthetic import synthetic_sequence
-    from data.synthetic.config import PRESETS
-    from teacher.generate import colour_camera_for, dense_method_for
+    from ctcvo.data.errors import ConfigError
+    from ctcvo.data.sevenscenes import SevenScenesSequence
+    from ctcvo.data.synthetic import synthetic_sequence
+    from ctcvo.data.synthetic.config import PRESETS
+    from ctcvo.teacher.generate import colour_camera_for, dense_method_for
 
     cfg = TeacherConfig()
     assert cfg.dense_method == "auto"
@@ -1084,7 +1084,7 @@ def test_dense_max_gap_keeps_the_dense_step_to_short_edges(tmp_path, capsys):
     long0 = {(e.i, e.j): e for e in e0 if e.j - e.i == 2}
     assert not any(np.allclose(e.T_i_j, long0[e.i, e.j].T_i_j, atol=1e-9) for e in e1 if e.j - e.i == 2)
     seq = open_scene("synthetic/tiny", frames="0:2")[0]
-    from teacher.config import TINY
+    from ctcvo.teacher.config import TINY
 
     fa, fb = (extract(seq.rgb(k), seq.depth(k), TINY, K=seq.intrinsics.K) for k in range(2))
     sparse = estimate_edge(0, 1, fa, fb, seq.intrinsics, TINY, 1 / 30, np.eye(4), dense=False)
@@ -1101,7 +1101,7 @@ def test_stable_argsort_is_numpys_stable_order():
     """Guided matching's sort (:func:`teacher.odometry._stable_argsort`): NumPy's stable
     order, ties kept in input order, on keys with many ties; keys too large for the
     position bits take NumPy's stable sort itself."""
-    from teacher.odometry import _stable_argsort
+    from ctcvo.teacher.odometry import _stable_argsort
 
     rng = np.random.default_rng(3)
     for n in (0, 1, 7, 9100):
@@ -1142,7 +1142,7 @@ def test_point_to_plane_covariance_follows_its_definition(office_clean, stride):
     """The vectorised covariance (row gathers of the surface each edge hits, no per-frame
     table) equals the plain per-point recipe, on a pair of office frames at a perturbed pose
     (some points leave the image or the truncation distance)."""
-    from teacher.odometry import dense_maps, point_to_plane_covariance
+    from ctcvo.teacher.odometry import dense_maps, point_to_plane_covariance
 
     seq, cfg = office_clean, TeacherConfig()
     gt = seq.groundtruth()
@@ -1162,7 +1162,7 @@ def test_gap1_edges_beside_a_colour_repeat_use_the_depth_alone(office_clean):
     depth; between the two, the same depth map twice, the keypoints give the identity. The
     feature tracks go on through them (the gap-2 edges keep their tracks). Off
     (``depth_beside_colour_repeat`` False), the usual chain makes them."""
-    from teacher.window import EdgeWindow
+    from ctcvo.teacher.window import EdgeWindow
 
     seq = office_clean
     gt = seq.groundtruth()
@@ -1199,10 +1199,10 @@ def _render_frames_of(name: str, frames: range, out):
     :func:`data.synthetic.render_scene` renders the whole preset (same poses, noise and
     repeated images; ids and timestamps as in the preset), with its ``config.json``; the
     preset's sequence restricted to those frames, without rendering the rest."""
-    from data import synthetic as syn
-    from data.io import write_json
-    from data.sevenscenes import SevenScenesSequence
-    from data.synthetic.config import resolve_preset
+    from ctcvo.data import synthetic as syn
+    from ctcvo.data.io import write_json
+    from ctcvo.data.sevenscenes import SevenScenesSequence
+    from ctcvo.data.synthetic.config import resolve_preset
 
     cfg = resolve_preset(name)
     scene, poses = syn.build(cfg)
@@ -1236,9 +1236,9 @@ def test_edge_out_of_a_repeat_spans_two_periods_of_a_fast_turn(tmp_path):
     the depth moments (twice the motion 246-247), finds the motion; and the plausibility
     bound spans from frame 247's moment. Before: a failed gap-1 edge (``implausible_motion``
     over one period), and with the bound alone, the wrong minimum accepted."""
-    from data.formats import Trajectory
-    from data.metrics import trajectory_report
-    from data.synthetic import REPEAT_FRAME
+    from ctcvo.data.formats import Trajectory
+    from ctcvo.data.metrics import trajectory_report
+    from ctcvo.data.synthetic import REPEAT_FRAME
 
     seq, plan = _render_frames_of("stress-fast", range(245, 251), tmp_path / "fast")
     assert plan[248] == REPEAT_FRAME and [int(i) for i in seq.ids()] == list(range(245, 251))
@@ -1266,8 +1266,8 @@ def test_plausibility_bound_and_second_start_follow_the_depth_moments(office_cle
     rgbd fallback's second start the constant velocity between the two depth moments: twice
     the last motion out of a whole repeat, the identity onto a depth repeat. A chunk that
     starts after repeats reads those moments back (:func:`teacher.generate._moments_before`)."""
-    from teacher import window as wmod
-    from teacher.generate import _moments_before
+    from ctcvo.teacher import window as wmod
+    from ctcvo.teacher.generate import _moments_before
 
     seq = office_clean
     cfg = dataclasses.replace(TeacherConfig(), gaps=2)
@@ -1307,7 +1307,7 @@ def test_motion_between_depth_moments_is_moved_to_the_colour_moments():
     :func:`_to_colour_moments` recovers the latter from the former (its covariance scaled
     by the ratio of the time spans), :func:`_depth_moments` goes the other way, and frames
     without offsets are left alone."""
-    from teacher.odometry import FrameFeatures, _depth_moments, _to_colour_moments
+    from ctcvo.teacher.odometry import FrameFeatures, _depth_moments, _to_colour_moments
 
     def frame(offset):
         return FrameFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32),
@@ -1341,8 +1341,8 @@ def test_colour_depth_offsets_compensated_on_a_synthetic_walk(tmp_path):
     ``depth_time_compensation`` the gap-1 labels of the point-to-plane teacher (real
     recordings' dense step) are closer to the ground truth than without it. Without offsets
     the option changes no edge, bit for bit."""
-    from data.synthetic import synthetic_sequence
-    from data.synthetic.config import PRESETS
+    from ctcvo.data.synthetic import synthetic_sequence
+    from ctcvo.data.synthetic.config import PRESETS
 
     base = PRESETS["tiny"]
     sensor = dataclasses.replace(base.sensor, frame_repeat_prob=0.0, rgb_repeat_prob=0.0, depth_repeat_prob=0.0)
@@ -1372,7 +1372,7 @@ def test_middle_row_moves_a_point_by_its_rows_time_at_the_velocity():
     """``_to_middle_row``: the bottom row is read half the readout after the middle row, so
     a point seen there moves by that time times the velocity (v + w x X); the middle row
     stays; the top row moves the other way."""
-    from teacher.odometry import _to_middle_row
+    from ctcvo.teacher.odometry import _to_middle_row
 
     X = np.array([[0.1, 0.2, 2.0]] * 3)
     rows = np.array([0.0, 239.5, 479.0])
@@ -1387,9 +1387,9 @@ def test_middle_row_moves_a_point_by_its_rows_time_at_the_velocity():
 def test_rolling_shutter_readout_auto_follows_the_scene(tmp_path):
     """Auto: a synthetic scene's own sensor readout (0 when noise-free), Kinect v1's for
     anything else; a set value wins; a bad one is a ConfigError."""
-    from data.errors import ConfigError
-    from teacher.generate import rolling_shutter_for, rolling_shutter_of_folder
-    from teacher.odometry import KINECT_V1_READOUT_S
+    from ctcvo.data.errors import ConfigError
+    from ctcvo.teacher.generate import rolling_shutter_for, rolling_shutter_of_folder
+    from ctcvo.teacher.odometry import KINECT_V1_READOUT_S
 
     cfg = TeacherConfig()
     assert rolling_shutter_for(open_scene("synthetic/tiny")[0], cfg) == 0.027

@@ -1,0 +1,106 @@
+"""The learner frame by frame: MC-dropout edges of each new frame as frames arrive
+(``vo-online``, pipeline/online.py), equal to ``learner predict``'s on the same frames.
+
+The per-frame inputs are those :func:`learner.dataset.load_frames` caches for a whole
+sequence; the network, its calibration and the MC-dropout settings are those of
+:mod:`learner.predict`.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ctcvo.data.sequence import Frame
+
+log = logging.getLogger(__name__)
+
+
+class OnlineLearner:
+    """MC-dropout edges (k-g, k), g = 1..max_gap, of each new frame: the pairs are encoded
+    once, the dropout layers resampled K times; gap 1 from the LSTM head (LSTM variants;
+    chunks of ``window_max`` pairs as in ``learner predict``, the LSTM being causal the
+    newest output equals the batch one), longer gaps from the direct head. Mean and
+    covariance as in :func:`learner.predict.mc_edges`, calibrated with the checkpoint's
+    ``calibration.json`` when there is one."""
+
+    def __init__(self, checkpoint: Path, cfg=None, device: str = "cpu", use_calibration: bool = True,
+                 seed: int = 0) -> None:
+        import torch
+
+        from ctcvo.learner.calibrate import calibration_for
+        from ctcvo.learner.config import PredictConfig, check_variant
+        from ctcvo.learner.predict import load_model
+
+        self.cfg = cfg or PredictConfig()
+        self.model, state = load_model(Path(checkpoint), None, device)
+        found = calibration_for(Path(checkpoint), self.cfg) if use_calibration else None
+        self.calibration = found[1] if found is not None else None
+        if found is None and use_calibration:
+            log.info("no calibration.json beside %s: MC-dropout covariances used as they are", checkpoint)
+        self.uses_lstm = check_variant(state["variant"])[0]
+        self.window = int(state["train_config"]["window_max"])
+        m = self.model.cfg
+        self.width, self.height, self.mode = m.width, m.height, m.input
+        self.buf: deque[tuple] = deque(maxlen=self.cfg.max_gap + 1)
+        self.z1: list = []  # gap-1 latents of the current LSTM chunk
+        self.n = 0
+        torch.manual_seed(seed)
+
+    def inputs(self, frame: Frame) -> tuple:
+        """Per-frame network inputs (resized RGB, inverse depth, grey at 2x), as the learner caches them."""
+        from ctcvo.learner.config import FLOW_U_CHANNEL
+        from ctcvo.learner.dataset import grey2x_input, invdepth_input, rgb_input
+
+        rgb = rgb_input(frame.rgb, self.width, self.height)
+        inv = invdepth_input(frame.depth, self.width, self.height) if self.mode != "rgb" else None
+        grey = (grey2x_input(frame.rgb, self.width, self.height)
+                if self.mode in FLOW_U_CHANNEL else None)  # the inputs with optical flow
+        return rgb, inv, grey
+
+    def add(self, inputs: tuple) -> list[tuple[int, NDArray[np.float64], NDArray[np.float64], str]]:
+        """(gap, mean twist (6,), covariance (6, 6), head) of the edges ending at the new frame."""
+        import torch
+
+        from ctcvo.learner.dataset import Frames
+
+        self.buf.append(inputs)
+        k, self.n = self.n, self.n + 1
+        G = min(self.cfg.max_gap, len(self.buf) - 1)
+        if G < 1:
+            return []
+        stack = [None if self.buf[0][c] is None else np.stack([b[c] for b in self.buf]) for c in range(3)]
+        frames = Frames(stack[0], stack[1], stack[2], self.mode)
+        last = len(self.buf) - 1
+        gaps = np.arange(1, G + 1)
+        with torch.no_grad():
+            z = self.model.encode(frames.pairs(torch.as_tensor(last - gaps), torch.full((G,), last)).to(
+                self.model.output_scale.device))
+            out: list[tuple[str, torch.Tensor]] = []
+            if self.uses_lstm:
+                if (k - 1) % self.window == 0:
+                    self.z1 = []
+                self.z1.append(z[0])
+                out.append(("lstm", self.model.sequential_mc(torch.stack(self.z1)[None], self.cfg.samples,
+                                                             self.cfg.drop)[:, 0, -1]))
+                rest = z[1:]
+            else:
+                rest = z
+            if len(rest):
+                d = self.model.direct_mc(rest, self.cfg.samples, self.cfg.drop)  # (K, n, 6)
+                out += [("direct", d[:, n]) for n in range(d.shape[1])]
+        res = []
+        for g, (head, samples) in zip(gaps.tolist(), out):
+            s = samples.double().cpu().numpy()
+            mean = s.mean(0)
+            dev = s - mean
+            cov = dev.T @ dev / max(self.cfg.samples - 1, 1)
+            cov = 0.5 * (cov + cov.T) + self.cfg.cov_floor * np.eye(6)
+            if self.calibration is not None:
+                cov = self.calibration.apply(cov[None], [head], np.array([g]))[0]
+            res.append((g, mean, cov, head))
+        return res

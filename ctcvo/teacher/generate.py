@@ -1,0 +1,509 @@
+"""``teacher generate``: noisy relative-pose labels for every frame pair (i, i+g), g = 1..K.
+
+Pipeline per sequence (frames streamed once, each frame's features reused by all its
+edges):
+
+0. the sequence is cut into chunks that worker processes handle independently;
+1. a helper thread decodes frames and extracts ORB features ahead of the main loop;
+2. the gap-1 edge (k-1, k) is matched with a constant-velocity prediction (guided
+   matching) and estimated by PnP-RANSAC + two-way refinement;
+3. its inlier matches extend feature tracks; each longer edge (k-g, k) is estimated
+   from the tracks that survive from k-g to k (falling back to guided matching with
+   the chained gap-1 motion, then to exhaustive matching);
+4. the gap-1 trajectory is chained; a failed gap-1 edge is bridged by the shortest good
+   edge that spans it, else by constant velocity, and the report lists every bridge.
+
+Outputs (docs/formats.md): edges.g2o, edges.csv, trajectory.tum, groundtruth.tum (with
+ground truth), report.json, config.json.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import sys
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from threadpoolctl import threadpool_limits
+from tqdm import tqdm
+
+from ctcvo.data import geometry as geo
+from ctcvo.data.chain import chain_edges
+from ctcvo.data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
+from ctcvo.data.io import ensure_dir, git_revision, json_safe, write_json
+from ctcvo.data.metrics import relative_pose_error, trajectory_report
+from ctcvo.data.open3d_import import openmp_threads
+from ctcvo.data.runs import Fingerprint, claim, frames_id, output_folder, scene_id, stage_dir, write_fingerprint
+from ctcvo.data.scenes import open_scene
+from ctcvo.data.sequence import Sequence
+from ctcvo.teacher import processes
+from ctcvo.teacher.config import TeacherConfig
+from ctcvo.teacher.odometry import (
+    KINECT_V1_COLOUR,
+    KINECT_V1_READOUT_S,
+    ColourCamera,
+    EdgeEstimate,
+    FrameFeatures,
+    PhotoMaps,
+    extract,
+    image_keys,
+    make_orb,
+)
+from ctcvo.teacher.window import EdgeWindow
+
+log = logging.getLogger(__name__)
+
+OUTPUT_FILES = ("edges.g2o", "edges.csv", "trajectory.tum", "groundtruth.tum", "config.json", "report.json")
+
+
+@dataclass
+class TeacherRun:
+    """What :func:`run_sequence` computed (before writing)."""
+
+    edges: list[EdgeEstimate]
+    poses: NDArray[np.float64]  # (N, 4, 4) chained T_world_cam, frame 0 at the identity
+    bridges: list[dict]
+    seconds: float
+
+
+def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> TeacherRun:
+    """Estimate every edge (i, i+g), g = 1..cfg.gaps, and the chained gap-1 trajectory.
+
+    With ``cfg.workers > 1`` and enough frames, the sequence is cut into chunks of about
+    ``cfg.chunk_frames`` frames that this process and ``workers - 1`` worker processes
+    estimate independently (each chunk also reads the ``gaps`` frames after it, so no edge
+    is lost at a boundary); processes, not threads, because the refinement is NumPy code
+    that holds the GIL. They are forked by a fork server (:mod:`teacher.processes`; call
+    its ``start()`` early to have them ready), so a script that calls this with
+    ``workers > 1`` must guard its entry point with ``if __name__ == "__main__":`` (as
+    multiprocessing requires).
+    """
+    n = len(seq)
+    t0 = time.perf_counter()
+    dense_method_for(seq, cfg)  # a bad dense_method is a ConfigError before any work
+    bounds = _chunks(n, cfg)
+    bar = tqdm(total=n, desc=f"teacher {seq.name}", unit="frame", disable=not (progress and sys.stderr.isatty()))
+    if len(bounds) == 1:
+        edges = _run_chunk(seq, cfg, 0, n, bar.update)
+    else:
+        edges = _run_chunks(seq, cfg, bounds, bar.update)
+    bar.close()
+    edges.sort(key=lambda e: (e.i, e.j))
+    poses, bridges = chain_trajectory(seq.ids(), edges)
+    return TeacherRun(edges, poses, bridges, time.perf_counter() - t0)
+
+
+def _run_chunks(seq: Sequence, cfg: TeacherConfig, bounds: list[tuple[int, int]],
+                on_frame: Callable[[int], object]) -> list[EdgeEstimate]:
+    """Edges of all chunks, shared between this process and ``cfg.workers - 1`` children.
+
+    Chunks are handed out one at a time as a process becomes free: children from the
+    front, this process from the back. A child is sent its first chunk only once it has
+    started (at once if :func:`teacher.processes.start` ran early enough; else about 2 s
+    of imports), and this process works meanwhile. A chunk queued in a pool cannot be
+    taken back, so handing all out up front left this process idle at the end
+    (synthetic/office, 300 frames: 1.8 s of 7.4). The chunk bounds depend only on the
+    sequence length, so the edges do not depend on who computes which chunk.
+    """
+    processes.start()
+    todo = deque(bounds)
+    lock = threading.Lock()
+
+    def take(front: bool) -> tuple[int, int] | None:
+        with lock:
+            return None if not todo else todo.popleft() if front else todo.pop()
+
+    def feed(children: ProcessPoolExecutor) -> list[EdgeEstimate]:
+        """Keeps one child busy, one chunk at a time (runs in a thread of this process)."""
+        out: list[EdgeEstimate] = []
+        try:
+            children.submit(_started).result()
+            while (ab := take(front=True)) is not None:
+                out += children.submit(_run_chunk, seq, cfg, *ab, None).result()
+                on_frame(ab[1] - ab[0])
+        except BaseException:
+            todo.clear()  # the others stop after their current chunk
+            raise
+        return out
+
+    edges: list[EdgeEstimate] = []
+    with ProcessPoolExecutor(cfg.workers - 1, mp_context=processes.context()) as children, \
+            ThreadPoolExecutor(cfg.workers - 1) as feeders:
+        fed = [feeders.submit(feed, children) for _ in range(cfg.workers - 1)]
+        try:
+            while (ab := take(front=False)) is not None:
+                edges += _run_chunk(seq, cfg, *ab, on_frame)
+        except BaseException:
+            todo.clear()
+            raise
+        for f in fed:
+            edges += f.result()
+    return edges
+
+
+def _started() -> None:
+    """A no-op a child runs to show it has started and imported this module."""
+
+
+def _chunks(n: int, cfg: TeacherConfig) -> list[tuple[int, int]]:
+    """Frame-position ranges [a, b) of the chunks (one chunk when not worth splitting)."""
+    if cfg.workers <= 1 or n < 2 * cfg.chunk_frames:
+        return [(0, n)]
+    k = max(cfg.workers, round(n / cfg.chunk_frames))
+    edges = np.linspace(0, n, k + 1).round().astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
+               on_frame: Callable[[int], object] | None = None) -> list[EdgeEstimate]:
+    """Edges (i, j) whose first frame position lies in [k0, k1), with j - i <= gaps.
+
+    Frames k0 .. k1 + gaps - 1 are streamed once: one helper thread decodes and extracts
+    features ahead; the main thread hands each frame to a :class:`teacher.window.EdgeWindow`
+    (the gap-1 edge guided by constant velocity, its inliers extending the feature tracks,
+    then the longer edges ending at that frame from the tracks, predicted by the chained
+    motion). Both threads run Open3D's kernels and BLAS with ``cfg.threads`` threads.
+    """
+    n = len(seq)
+    ids, times, offsets = seq.ids(), seq.times(), seq.depth_offsets()
+    intr = seq.intrinsics
+    k_end = min(n, k1 + cfg.gaps)
+    edges: list[EdgeEstimate] = []
+    orb = make_orb(cfg)
+    colour = colour_camera_for(seq, cfg)  # it also picks the dense step's method (dense_method_for)
+    cfg = dataclasses.replace(cfg, rolling_shutter_s=rolling_shutter_for(seq, cfg))
+
+    def _extract(k: int) -> FrameFeatures:
+        return extract(seq.rgb(k), seq.depth(k), cfg, orb, intr.K, colour)  # one thread uses this ORB
+
+    # fingerprints of the frame before the chunk, to tell whether frame k0 repeats it; the
+    # walks back over earlier frames (rare) share them
+    keys_of = _KeysOf(seq)
+    prev_keys = keys_of(k0 - 1) if k0 > 0 else None
+    window = EdgeWindow(intr, cfg, prev_keys, until=k1 - k0,
+                        prev_photo=lambda: _photo_before(seq, k0, cfg, orb, colour, keys_of),
+                        prev_moments=lambda: _moments_before(seq, k0, keys_of))
+    # OpenMP's thread count is per calling thread: limit this one and the helper
+    with openmp_threads(cfg.threads), \
+            ThreadPoolExecutor(1, initializer=threadpool_limits, initargs=(cfg.threads,)) as pool:
+        ahead = 3
+        feat_futs: dict[int, Future] = {k: pool.submit(_extract, k) for k in range(k0, min(k_end, k0 + ahead))}
+        for k in range(k0, k_end):
+            fk = feat_futs.pop(k).result()
+            if k + ahead < k_end:
+                feat_futs[k + ahead] = pool.submit(_extract, k + ahead)
+            edges += window.add(int(ids[k]), float(times[k]), fk, float(offsets[k]))
+            if on_frame is not None and k < k1:
+                on_frame(1)
+    return edges
+
+
+class _KeysOf:
+    """:func:`teacher.odometry.image_keys` of a sequence's frames by position, each frame
+    decoded once: the walks back over the frames before a chunk (:func:`_moments_before`,
+    :func:`_photo_before`) read the same frames."""
+
+    def __init__(self, seq: Sequence) -> None:
+        self.seq, self._keys = seq, {}
+
+    def __call__(self, k: int) -> tuple[bytes, bytes]:
+        if k not in self._keys:
+            self._keys[k] = image_keys(self.seq.rgb(k), self.seq.depth(k))
+        return self._keys[k]
+
+
+def _moments_before(seq: Sequence, k: int, keys_of: _KeysOf | None = None) -> tuple[float, float]:
+    """The moments (colour, depth; seconds) frame ``k - 1``'s images show, as a window that
+    had seen the sequence from its start would hold them (:meth:`teacher.window.EdgeWindow._moments_of`):
+    the timestamp of the last frame up to ``k - 1`` whose colour (depth) image differs from
+    its predecessor's. For a chunk whose first frame repeats an image of the frame before it."""
+    keys_of = keys_of or _KeysOf(seq)
+    times = seq.times()
+    found: list[float | None] = [None, None]
+    j = k - 1
+    while j > 0 and None in found:
+        cur, prev = keys_of(j), keys_of(j - 1)
+        for c in (0, 1):
+            if found[c] is None and cur[c] != prev[c]:
+                found[c] = float(times[j])
+        j -= 1
+    return tuple(float(times[0]) if m is None else m for m in found)
+
+
+def _photo_before(seq: Sequence, k: int, cfg: TeacherConfig, orb, colour: ColourCamera | None,
+                  keys_of: _KeysOf | None = None) -> tuple[PhotoMaps | None, bool]:
+    """The photometric maps and ``colour_behind`` mark of frame ``k - 1`` as a window that
+    had seen the sequence from its start would hold them (:mod:`teacher.window`): back over
+    the frames that repeat the previous frame's depth to the last one that does not, whose
+    own maps (only their depth when its colour repeats: :meth:`PhotoMaps.depth_only`) they
+    share; marked when that frame's colour repeats and every frame after it repeated its
+    colour too. For a chunk whose first frame repeats the depth of the frame before it
+    (rare: the frames are read again)."""
+    keys_of = keys_of or _KeysOf(seq)
+    j, behind, grey = k - 1, True, True
+    while j > 0:
+        cur, prev = keys_of(j), keys_of(j - 1)
+        behind = behind and cur[0] == prev[0]
+        if cur[1] != prev[1]:  # new depth: this frame's own maps, only their depth when its colour repeats
+            grey = cur[0] != prev[0]
+            break
+        j -= 1
+    else:
+        behind = False  # the sequence's first frame: its own maps
+    f = extract(seq.rgb(j), seq.depth(j), cfg, orb, seq.intrinsics.K, colour)
+    photo = f.dense.photo if f.dense is not None else None
+    if photo is None:
+        return None, False
+    return (photo if grey else photo.depth_only()), behind
+
+
+def colour_camera_for(seq: Sequence, cfg: TeacherConfig) -> ColourCamera | None:
+    """The colour camera model ``cfg.colour_camera`` names for ``seq`` (None: registered).
+
+    ``auto``: a synthetic scene (a 7-Scenes-layout folder whose parent holds the renderer's
+    ``config.json``) gets its own sensor model's ``rgb_*`` fields (registered when
+    noise-free); another 7-Scenes-layout folder the Kinect v1 fit; anything else (TUM RGB-D,
+    whose depth is registered to colour) none."""
+    from ctcvo.data.errors import ConfigError
+
+    if cfg.colour_camera == "registered":
+        return None
+    if cfg.colour_camera == "kinect-v1":
+        return KINECT_V1_COLOUR
+    if cfg.colour_camera != "auto":
+        raise ConfigError(f"colour_camera must be auto, registered or kinect-v1, got {cfg.colour_camera!r}")
+    from ctcvo.data.sevenscenes import SevenScenesSequence
+
+    if not isinstance(seq, SevenScenesSequence):
+        return None
+    return colour_camera_of_folder(Path(seq.root))
+
+
+def rolling_shutter_for(seq: Sequence | None, cfg: TeacherConfig) -> float:
+    """``cfg.rolling_shutter_s`` for ``seq``, auto (None) resolved: a synthetic scene's (a
+    7-Scenes-layout folder whose parent holds the renderer's ``config.json``) own sensor
+    model's readout, 0 when noise-free; any other recording Kinect v1's (:data:`KINECT_V1_READOUT_S`)."""
+    from ctcvo.data.errors import ConfigError
+
+    if cfg.rolling_shutter_s is not None:
+        if not (np.isfinite(cfg.rolling_shutter_s) and 0.0 <= cfg.rolling_shutter_s < 1.0):
+            raise ConfigError(f"rolling_shutter_s must be in [0, 1) s, got {cfg.rolling_shutter_s!r}")
+        return float(cfg.rolling_shutter_s)
+    from ctcvo.data.sevenscenes import SevenScenesSequence
+
+    if isinstance(seq, SevenScenesSequence):
+        return rolling_shutter_of_folder(Path(seq.root))
+    return KINECT_V1_READOUT_S
+
+
+def rolling_shutter_of_folder(seq_dir: Path) -> float:
+    """Auto's readout for a 7-Scenes-layout sequence folder (see :func:`rolling_shutter_for`)."""
+    return _from_rendered_sensor(
+        seq_dir, lambda sensor: 0.0 if sensor["noise_free"] else float(sensor["rolling_shutter_s"]), KINECT_V1_READOUT_S)
+
+
+def dense_method_for(seq: Sequence, cfg: TeacherConfig) -> str:
+    """The dense step's method for ``seq``: ``cfg.dense_method``, with ``auto`` resolved by
+    the colour camera model ``colour_camera_for`` picks (:func:`teacher.odometry.dense_method`):
+    ``hybrid`` for a synthetic scene's sensor model (colour and depth exposed at the same
+    instant), ``point-to-plane`` otherwise (real Kinect v1 recordings: 7-Scenes, whose
+    ground truth follows the depth while the colour is exposed at other times, TUM RGB-D;
+    noise-free synthetic scenes, whose colour needs no model)."""
+    from ctcvo.data.errors import ConfigError
+    from ctcvo.teacher.odometry import dense_method
+
+    if cfg.dense_method not in ("auto", "hybrid", "point-to-plane"):
+        raise ConfigError(f"dense_method must be auto, hybrid or point-to-plane, got {cfg.dense_method!r}")
+    return dense_method(cfg, colour_camera_for(seq, cfg))
+
+
+def _from_rendered_sensor(seq_dir: Path, read: Callable[[dict], object], default: object) -> object:
+    """``read`` of the sensor model of the synthetic scene whose 7-Scenes-layout folder is
+    ``seq_dir`` (the renderer's ``config.json`` one level up); ``default`` for a real 7-Scenes
+    folder (no such file, or not a synthetic scene's config)."""
+    rendered = Path(seq_dir).parent / "config.json"
+    if rendered.is_file():
+        try:
+            return read(json.loads(rendered.read_text())["config"]["sensor"])
+        except (ValueError, KeyError, TypeError):
+            pass  # not a synthetic scene's config: a real 7-Scenes folder
+    return default
+
+
+def colour_camera_of_folder(seq_dir: Path) -> ColourCamera | None:
+    """``auto``'s choice for a 7-Scenes-layout sequence folder (see :func:`colour_camera_for`)."""
+    def read(sensor: dict) -> ColourCamera | None:
+        if sensor["noise_free"]:
+            return None
+        return ColourCamera(float(sensor["rgb_focal_scale"]), tuple(map(float, sensor["rgb_shift_px"])),
+                            float(sensor["rgb_baseline_m"]), synchronous=True)
+
+    return _from_rendered_sensor(seq_dir, read, KINECT_V1_COLOUR)
+
+
+def chain_trajectory(ids: NDArray[np.int64], edges: list[EdgeEstimate]) -> tuple[NDArray[np.float64], list[dict]]:
+    """Chain the good edges into ``T_world_cam`` (frame 0 at the identity) with
+    :func:`data.chain.chain_edges`: gap-1 edges first, a failed gap-1 edge bridged by the
+    shortest good edge spanning it, frames no good edge reaches placed by constant velocity.
+    Returns (poses (N, 4, 4), bridges)."""
+    at = {int(f): p for p, f in enumerate(ids)}
+    good = [e for e in edges if e.ok]
+    chained = chain_edges(ids, [(at[e.i], at[e.j]) for e in good], [e.T_i_j for e in good], fill_gaps=True)
+    return chained.poses, chained.bridges
+
+
+def _edge_rows(edges: list[EdgeEstimate], ts: dict[int, float]) -> list[dict]:
+    return [{
+        "i": e.i, "j": e.j, "t_i": f"{ts[e.i]:.6f}", "t_j": f"{ts[e.j]:.6f}", "status": e.status,
+        "matches": e.matches, "inliers": e.inliers, "inlier_ratio": float(e.inlier_ratio),
+        "rmse_px": float(e.rmse_px), "trans_m": float(e.info.get("trans_m", float("nan"))),
+        "rot_deg": float(e.info.get("rot_deg", float("nan"))),
+        **_dense_cells(e), "path": e.info.get("path", "none"),
+    } for e in edges]
+
+
+def _dense_cells(e: EdgeEstimate) -> dict:
+    """``dense_fitness`` and ``dense_shift_m`` (0 when the dense result was rejected); no
+    cells when the dense step did not run (failed edge or step disabled)."""
+    d = e.info.get("dense")
+    if d is None:
+        return {}
+    return {"dense_fitness": float(d["fitness"]), "dense_shift_m": float(d["shift_m"]) if d["accepted"] else 0.0}
+
+
+def _label_errors(edges: list[EdgeEstimate], gt: NDArray, ids: NDArray) -> dict:
+    """Per-gap RMS error of the good labels against ground truth (trans m, rot deg)."""
+    pos = {int(f): p for p, f in enumerate(ids)}
+    by_gap: dict[int, list[tuple[float, float]]] = {}
+    for e in edges:
+        if e.ok:
+            a, b = pos[e.i], pos[e.j]
+            by_gap.setdefault(b - a, []).append(relative_pose_error(geo.relative_pose(gt[a], gt[b]), e.T_i_j))
+    out = {}
+    for g, errs in sorted(by_gap.items()):
+        a = np.array(errs)
+        out[str(g)] = {"edges": len(a), "trans_rmse_m": float(np.sqrt(np.mean(a[:, 0] ** 2))),
+                       "rot_rmse_deg": float(np.sqrt(np.mean(a[:, 1] ** 2)))}
+    return out
+
+
+def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
+    """``report.json`` content (keys documented in docs/formats.md)."""
+    n = len(seq)
+    status = Counter(e.status for e in run.edges)
+    gap1_failed = [e for e in run.edges if not e.ok and _gap(seq, e) == 1]
+    rep: dict = {
+        "sequence": seq.name,
+        "frames": n,
+        "edges": int(status.get("ok", 0)),
+        "failed_edges": int(sum(v for s, v in status.items() if s != "ok")),
+        "failed_gap1_edges": len(gap1_failed),
+        "failures_by_reason": {s: int(v) for s, v in status.items() if s != "ok"},
+        "dense_rejected_edges": sum(1 for e in run.edges if "dense" in e.info and not e.info["dense"]["accepted"]),
+        "stale_stream_edges": sum(1 for e in run.edges if e.info.get("dense", {}).get("stale_stream")),
+        "bridges": run.bridges,
+        "constant_velocity_bridges": sum(1 for b in run.bridges if b["method"] == "constant velocity"),
+        "edge_paths": dict(sorted(Counter(e.info.get("path", "none") for e in run.edges).items())),
+        "gap1_edge_paths": dict(sorted(Counter(e.info.get("path", "none") for e in run.edges
+                                               if _gap(seq, e) == 1).items())),
+        "dense_method": dense_method_for(seq, cfg) if cfg.dense_iters > 0 else "none",
+        "fps": n / run.seconds if run.seconds > 0 else float("nan"),
+        "seconds": run.seconds,
+    }
+    gt = seq.groundtruth()
+    if gt is not None and n >= 2:
+        times = seq.times()
+        rep.update(trajectory_report(Trajectory(times, gt), Trajectory(times, run.poses)))
+        rep["label_error_by_gap"] = _label_errors(run.edges, gt, seq.ids())
+    return rep
+
+
+def _gap(seq: Sequence, e: EdgeEstimate) -> int:
+    ids = seq.ids()
+    return int(np.searchsorted(ids, e.j) - np.searchsorted(ids, e.i))
+
+
+def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path, extra: dict,
+                  fingerprint: Fingerprint | None = None) -> dict:
+    """Write every output file atomically; then ``fingerprint.json``, and ``report.json``
+    last (it marks completion)."""
+    ensure_dir(out)
+    ids, times = seq.ids(), seq.times()
+    ts = {int(f): float(t) for f, t in zip(ids, times)}
+    good = [Edge(e.i, e.j, e.T_i_j, e.cov) for e in run.edges if e.ok]
+    write_g2o(out / "edges.g2o", good, {int(f): T for f, T in zip(ids, run.poses)})
+    write_edges_csv(out / "edges.csv", _edge_rows(run.edges, ts))
+    write_tum(out / "trajectory.tum", Trajectory(times, run.poses))
+    gt = seq.groundtruth()
+    if gt is not None:
+        write_tum(out / "groundtruth.tum", Trajectory(times, gt))
+    write_json(out / "config.json", {"teacher": cfg.to_dict(), "git_revision": git_revision(), **extra})
+    report = build_report(seq, run, cfg)
+    if fingerprint is not None:
+        write_fingerprint(out, fingerprint)
+    write_json(out / "report.json", json_safe(report))
+    return report
+
+
+def fingerprint(spec: str, seq: Sequence, cfg: TeacherConfig) -> Fingerprint:
+    """The inputs of a sequence's teacher outputs: scene, sequence, frames, the config (the
+    number of worker processes only through the chunk bounds, which are what shapes the
+    edges)."""
+    conf = cfg.to_dict()
+    conf.pop("workers")
+    return Fingerprint("teacher", {"scene": scene_id(spec), "sequence": seq.name, "frames": frames_id(seq.ids()),
+                                   "teacher": conf, "chunks": [list(b) for b in _chunks(len(seq), cfg)]})
+
+
+def generate(spec: str, out: Path | None = None, split: str = "all", frames: str | None = None,
+             config: TeacherConfig = TeacherConfig(), overwrite: bool = False, progress: bool = True) -> list[Path]:
+    """Run the teacher on every sequence of ``spec``; returns one output folder per sequence.
+
+    A sequence whose folder holds the outputs of the same inputs (``fingerprint.json``,
+    :mod:`data.runs`) is skipped; outputs of other inputs are replaced with ``overwrite``,
+    otherwise they are an error that says what differs.
+    """
+    from ctcvo.data.errors import ConfigError
+
+    if config.gaps < 1:
+        raise ConfigError(f"--gaps must be >= 1, got {config.gaps}")
+    if config.dense_max_gap < 0:
+        raise ConfigError(f"--dense-max-gap must be >= 0 (0: every edge), got {config.dense_max_gap}")
+    if config.workers > 1:
+        processes.start()  # the workers import while the scene opens (or renders)
+    base = Path(out) if out is not None else stage_dir(spec, "teacher")
+    with output_folder(base):
+        seqs = open_scene(spec, split=split, frames=frames)
+        dirs = []
+        for seq in seqs:
+            d = base if len(seqs) == 1 else base / seq.name
+            dirs.append(d)
+            fp = fingerprint(spec, seq, config)
+            finished = (d / "report.json").is_file()
+            if claim(d, fp, done=finished, has_outputs=finished, overwrite=overwrite, outputs=OUTPUT_FILES):
+                log.info("%s: teacher output of the same inputs in %s: kept", seq.name, d)
+                continue
+            if len(seq) < 2:
+                raise ConfigError(f"{seq.name}: need at least 2 frames, got {len(seq)}")
+            run = run_sequence(seq, config, progress)
+            rep = write_outputs(seq, run, config, d, {"scene": spec, "split": split, "frames": frames}, fp)
+            log.info("%s", summary_line(seq.name, rep))
+    return dirs
+
+
+def summary_line(name: str, rep: dict) -> str:
+    s = (f"{name}: {rep['frames']} frames, {rep['edges']} edges ({rep['failed_edges']} failed, "
+         f"{rep['failed_gap1_edges']} at gap 1), {rep['fps']:.1f} fps")
+    if "rpe_trans_rmse_m" in rep:
+        s += (f"; gap-1 RPE {1000 * rep['rpe_trans_rmse_m']:.2f} mm / {rep['rpe_rot_rmse_deg']:.3f} deg, "
+              f"ATE {1000 * rep['ate_rmse_m']:.1f} mm, se3 L2 {rep['se3_l2_mean']:.5f}")
+    return s
