@@ -1,0 +1,113 @@
+"""What the stages write is held to the outputs recorded before the redesign (at e21391c).
+
+tests/data/golden/ holds the teacher's edges.g2o of the real redkitchen sample and fr3/teddy
+(frames 0:30, default preset) and of synthetic/tiny (tiny and default presets), the tiny
+learner's seeded losses and predictions, and the pose graph's trajectory, all written by the
+code before the redesign. On the machine they were recorded on (same CPU model and library
+versions, in golden.json) every file must be byte-identical; elsewhere OpenCV's and Open3D's
+SIMD paths may differ in the last bits, so the numbers are compared at a tight tolerance.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d
+import pytest
+import torch
+from conftest import SHARED_DATA, require_real_data
+
+from ctcvo.cli import main
+
+GOLDEN = Path(__file__).parent / "data" / "golden"
+META = json.loads((GOLDEN / "golden.json").read_text())
+REDKITCHEN = SHARED_DATA / "7scenes" / "redkitchen" / "seq-sample"
+TEDDY = SHARED_DATA / "tum" / "images" / "rgbd_dataset_freiburg3_teddy"
+
+pytestmark = pytest.mark.slow
+
+
+def _cpu() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return "unknown"
+
+
+SAME_MACHINE = META["machine"] == {**META["machine"], "cpu": _cpu(), "numpy": np.__version__, "opencv": cv2.__version__,
+                                   "open3d": open3d.__version__, "torch": torch.__version__}
+
+
+def _numbers(text: str) -> tuple[list[list[str]], np.ndarray]:
+    """The non-numeric tokens of each line (tags, ids) and every numeric value."""
+    tags, nums = [], []
+    for line in text.splitlines():
+        words = line.split()
+        tags.append([w for w in words if not _is_float(w)])
+        nums.extend(float(w) for w in words if _is_float(w))
+    return tags, np.array(nums)
+
+
+def _is_float(w: str) -> bool:
+    try:
+        float(w)
+    except ValueError:
+        return False
+    return "." in w or "e" in w.lower()
+
+
+def assert_same(path: Path, golden: str) -> None:
+    got = path.read_text()
+    want = gzip.decompress((GOLDEN / golden).read_bytes()).decode()
+    if SAME_MACHINE:
+        assert got == want, f"{path} differs from {golden} (bit-identical expected on the recording machine)"
+        return
+    (gt, gn), (wt, wn) = _numbers(got), _numbers(want)
+    assert gt == wt and gn.shape == wn.shape, f"{path}: other edges or frames than {golden}"
+    np.testing.assert_allclose(gn, wn, rtol=1e-5, atol=1e-7, err_msg=f"{path} vs {golden}")
+
+
+def _ctcvo(*argv: object) -> None:
+    assert main([str(a) for a in argv]) == 0, argv
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("name, scene", [("redkitchen", REDKITCHEN), ("teddy", TEDDY)])
+def test_teacher_labels_on_real_data_are_unchanged(tmp_path: Path, name: str, scene: Path) -> None:
+    require_real_data(scene)
+    out = tmp_path / name
+    _ctcvo("teacher", "generate", "--scene", scene, "--frames", "0:30", "--out", out)
+    assert_same(out / "edges.g2o", f"{name}-0-30.g2o.gz")
+
+
+def test_synthetic_teacher_learner_and_graph_are_unchanged(tmp_path: Path, one_torch_thread: None) -> None:
+    _ctcvo("teacher", "generate", "--scene", "synthetic/tiny", "--preset", "tiny", "--out", tmp_path / "tiny")
+    assert_same(tmp_path / "tiny" / "edges.g2o", "tiny-tiny.g2o.gz")
+    _ctcvo("teacher", "generate", "--scene", "synthetic/tiny", "--out", tmp_path / "labels")
+    assert_same(tmp_path / "labels" / "edges.g2o", "tiny-default.g2o.gz")
+
+    _ctcvo("learner", "fit", "--scene", "synthetic/tiny", "--preset", "tiny", "--teacher", tmp_path / "labels",
+           "--out", tmp_path / "learner")
+    history = json.loads((tmp_path / "learner" / "history.json").read_text())
+    losses = [{k: v for k, v in r.items() if k.endswith(("_loss", "_ctc", "_reg"))} for r in history]
+    want = META["tiny_learner_losses"]
+    assert [sorted(r) for r in losses] == [sorted(r) for r in want]
+    if SAME_MACHINE:
+        assert losses == want
+    else:
+        np.testing.assert_allclose([v for r in losses for v in r.values()], [v for r in want for v in r.values()],
+                                   rtol=1e-5)
+
+    _ctcvo("learner", "predict", "--checkpoint", tmp_path / "learner" / "checkpoint.pt", "--scene", "synthetic/tiny",
+           "--out", tmp_path / "predict")
+    assert_same(tmp_path / "predict" / "edges.g2o", "tiny-predict.g2o.gz")
+    _ctcvo("posegraph", "optimize", "--scene", "synthetic/tiny", "--teacher", tmp_path / "tiny",
+           "--learner", tmp_path / "predict", "--out", tmp_path / "posegraph", "--no-plots")
+    assert_same(tmp_path / "posegraph" / "trajectory.tum", "tiny-posegraph.tum.gz")
