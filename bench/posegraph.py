@@ -169,7 +169,8 @@ def run_case(spec: str, out: Path, learner_edges: str = "bridge") -> dict:
     check = None
     if tg and tg["ate_rmse_m"] is not None:
         check = {k: fu[k] <= tg[k] * (1 + 1e-9) for k in ("ate_rmse_m", "rpe_1s_trans_m", "rpe_1s_rot_deg")}
-    return {"case": name, "spec": spec, "learner_edges": learner_edges, "report": str(o / "report.json"), "time_s": round(time.perf_counter() - t0, 1),
+    return {"case": name, "spec": spec, "learner_edges": learner_edges, "report": str(o / "report.json"),
+            "time_s": round(time.perf_counter() - t0, 1),
             "rows": rows, "skill_gate": rep.get("skill_gate"), "bridges": rep.get("bridges"),
             "covariance_scales": rep.get("covariance_scales"), "fused_le_teacher_graph": check}
 

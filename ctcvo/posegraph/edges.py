@@ -20,15 +20,14 @@ from ctcvo.data.chain import UnionFind, chain_edges
 from ctcvo.data.errors import VOError
 from ctcvo.data.formats import Edge
 
-# a bridge edge's standard deviation as a multiple of the graph's typical (smallest-gap) edge:
-# moderate, since a 0.05 m / 3 deg bridge among 1 mm redkitchen edges made GTSAM's elimination
-# indeterminant (bench/README.md, "Fusion that never hurts")
+# a bridge edge's standard deviation as a multiple of the graph's typical (smallest-gap) edge: loose,
+# yet moderate, since a fixed 0.05 m / 3 deg bridge among 1 mm redkitchen edges made GTSAM's
+# elimination indeterminant (issue 12, "Fusion that never hurts"; not varied since)
 BRIDGE_SIGMA_FACTOR = 10.0
 
 
 class GraphError(VOError):
     """The pose graph cannot be built or solved (disconnected, indeterminant, bad edge)."""
-
 
 
 @dataclass

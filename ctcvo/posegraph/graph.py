@@ -289,4 +289,4 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: NDArray[
     return res
 
 
-__all__ = ["GraphError", "OutlierRecord", "SolveResult", "solve"]
+__all__ = ["OutlierRecord", "SolveResult", "solve"]
