@@ -72,9 +72,11 @@ def run_one(n: int, gaps: int, solver: str, seed: int = 0, marginals: bool = Fal
 
     from ctcvo.data import geometry as geo
     from ctcvo.data.formats import Edge
+    from ctcvo.posegraph import edges as pe
     from ctcvo.posegraph import graph as pg
     from ctcvo.posegraph import synthetic as syn
     from ctcvo.posegraph.config import DEFAULT
+    from ctcvo.posegraph.solvers import check_determinate
 
     rng = np.random.default_rng(seed)
     gt = syn.helix(n, turns=n / 200.0)
@@ -90,16 +92,16 @@ def run_one(n: int, gaps: int, solver: str, seed: int = 0, marginals: bool = Fal
     cfg = dataclasses.replace(DEFAULT, solver=solver)
     rss0 = _rss_mb()
 
-    initial = pg.chain_poses(ids, edges)  # dead reckoning along the gap-1 edges
+    initial = pe.chain_poses(ids, edges)  # dead reckoning along the gap-1 edges
     with _Clock() as build:
-        a = pg.edge_arrays(ids, edges)
+        a = pe.edge_arrays(ids, edges)
         prob = pg._Problem(ids, a, initial, cfg)
         prob.factors(np.ones(len(edges)))
     with _Clock() as opt:  # the optimiser alone: one robust solve from the chained poses
         graph, values, result, iters = prob.solve(np.ones(len(edges), bool), np.ones(len(edges)), initial)
     err0, err1 = graph.error(values), graph.error(result)
     with _Clock() as check:
-        pg.check_determinate(graph, result)
+        check_determinate(graph, result)
     del graph, values, result, prob
     with _Clock() as full:
         res = pg.solve(ids, edges, initial, dataclasses.replace(cfg, marginals=marginals))
@@ -167,7 +169,8 @@ def run_case(spec: str, out: Path, learner_edges: str = "bridge") -> dict:
     check = None
     if tg and tg["ate_rmse_m"] is not None:
         check = {k: fu[k] <= tg[k] * (1 + 1e-9) for k in ("ate_rmse_m", "rpe_1s_trans_m", "rpe_1s_rot_deg")}
-    return {"case": name, "spec": spec, "learner_edges": learner_edges, "report": str(o / "report.json"), "time_s": round(time.perf_counter() - t0, 1),
+    return {"case": name, "spec": spec, "learner_edges": learner_edges, "report": str(o / "report.json"),
+            "time_s": round(time.perf_counter() - t0, 1),
             "rows": rows, "skill_gate": rep.get("skill_gate"), "bridges": rep.get("bridges"),
             "covariance_scales": rep.get("covariance_scales"), "fused_le_teacher_graph": check}
 

@@ -19,7 +19,7 @@ from ctcvo.posegraph import synthetic as syn
 from ctcvo.posegraph.calibration import GapScales, fit_gap_scales, read_gap_scales
 from ctcvo.posegraph.cli import main
 from ctcvo.posegraph.config import DEFAULT
-from ctcvo.posegraph.graph import bridge_edges, components
+from ctcvo.posegraph.edges import bridge_edges, components
 from ctcvo.posegraph.optimize import optimize
 from ctcvo.posegraph.report import nees
 

@@ -41,11 +41,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ctcvo.data import geometry as geo
-from ctcvo.data.errors import FormatError
+from ctcvo.data.errors import DataError, FormatError
 from ctcvo.data.formats import Edge
-from ctcvo.data.io import read_json_file
-from ctcvo.posegraph import graph as pg
+from ctcvo.data.io import git_revision, read_json_file, write_json
+from ctcvo.data.runs import Fingerprint, claim, output_folder, upstream_digest
+from ctcvo.data.uncertainty import CHI2_6_MEDIAN
+from ctcvo.posegraph import edges as pe
 from ctcvo.posegraph.config import DEFAULT, PoseGraphConfig
+from ctcvo.posegraph.graph import solve
+from ctcvo.posegraph.report import nees
+from ctcvo.posegraph.sources import find_sequence_dirs, load_dir, poses_for_frames, resolve_frames
 
 log = logging.getLogger(__name__)
 
@@ -178,16 +183,16 @@ def fit_gap_scales(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial:
     per-gap edge counts, trimmed counts, redundancy sums and the iterations."""
     frame_ids = np.sort(np.asarray(frame_ids, dtype=np.int64))
     edges = list(edges)
-    a = pg.edge_arrays(frame_ids, edges)
-    pg.validate_edges(frame_ids, edges, a)
-    pg.check_connected(frame_ids, edges, a)
+    a = pe.edge_arrays(frame_ids, edges)
+    pe.validate_edges(frame_ids, edges, a)
+    pe.check_connected(frame_ids, edges, a)
     own = np.array([src != "bridge" for src in a.source], dtype=bool)  # bridge edges join, never calibrate
     gap = np.where(own, a.gap, 0)
     gaps = sorted({int(g) for g in gap[own] if (gap == g).sum() >= min_edges})
     if not gaps:
-        raise pg.GraphError(f"no gap has {min_edges} edges to calibrate on")
+        raise pe.GraphError(f"no gap has {min_edges} edges to calibrate on")
     if initial is None:
-        initial = pg.chain_poses(frame_ids, edges)
+        initial = pe.chain_poses(frame_ids, edges)
     solve_cfg = dataclasses.replace(cfg, calibrate=False, residual_threshold=float("inf"), marginals=False,
                                     solver="lm")
     scale = {g: 1.0 for g in gaps}
@@ -198,8 +203,8 @@ def fit_gap_scales(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial:
         s_e = np.array([scale.get(int(g), scale[min(gaps, key=lambda x: abs(x - g))]) if g else 1.0 for g in gap])
         covs = a.cov * s_e[:, None, None]
         scaled = [dataclasses.replace(e, cov=c) for e, c in zip(edges, covs)]
-        poses = pg.solve(frame_ids, scaled, poses, solve_cfg).poses
-        r2 = pg.edge_residuals(poses, a.pos, geo.orthonormalize(a.T), np.linalg.inv(covs)) ** 2
+        poses = solve(frame_ids, scaled, poses, solve_cfg).poses
+        r2 = pe.edge_residuals(poses, a.pos, geo.orthonormalize(a.T), np.linalg.inv(covs)) ** 2
         rho = np.zeros(len(edges))
         for lo in range(0, len(frame_ids) - 1, BLOCK_FRAMES):
             hi = min(lo + BLOCK_FRAMES, len(frame_ids) - 1)
@@ -240,9 +245,6 @@ def groundtruth_gap_scales(frame_ids: NDArray[np.int64], edges: Sequence[Edge], 
     The median, not the mean: the teacher's errors are heavy-tailed, and a mean-based scale
     (office -> lab, validation) over-covered (1-sigma coverage 0.89, NEES/6 0.59) where the
     median-based one came out at 0.70 / 1.39 (bench/README.md)."""
-    from ctcvo.data.uncertainty import CHI2_6_MEDIAN
-    from ctcvo.posegraph.report import nees
-
     frame_ids = np.sort(np.asarray(frame_ids, dtype=np.int64))
     pos = {int(k): p for p, k in enumerate(frame_ids)}
     gap = np.array([abs(pos[e.j] - pos[e.i]) for e in edges])
@@ -266,11 +268,6 @@ def calibrate_teacher(teachers: Sequence[Path], out: Path, max_gap: int | None =
     teacher folders' digests, method, max_gap, config) under ``fingerprint``; an ``out``
     of the same inputs is kept and returned, one of other inputs is replaced only with
     ``overwrite``, otherwise :class:`data.runs.StaleOutputError` says what differs."""
-    from ctcvo.data.errors import DataError
-    from ctcvo.data.io import git_revision, write_json
-    from ctcvo.data.runs import Fingerprint, claim, output_folder, upstream_digest
-    from ctcvo.posegraph.sources import find_sequence_dirs
-
     if method not in METHODS:
         raise DataError(f"calibration method must be one of {', '.join(METHODS)}, got {method!r}")
     folders = []
@@ -299,15 +296,12 @@ def calibrate_teacher(teachers: Sequence[Path], out: Path, max_gap: int | None =
 
 def _fit_teacher_scales(folders: list[Path], max_gap: int | None, cfg: PoseGraphConfig, method: str) -> GapScales:
     """The fit of :func:`calibrate_teacher` over the sequence folders ``folders``."""
-    from ctcvo.data.errors import DataError
-    from ctcvo.posegraph.sources import load_dir, poses_for_frames, resolve_frames
-
     sums: dict[int, list[float]] = {}
     pooled: dict[int, list] = {}
     per = []
     for f in folders:
         src = load_dir(f, "teacher")
-        frames = resolve_frames([src], cfg.fps)
+        frames = resolve_frames([src])
         pos = {int(k): p for p, k in enumerate(frames.ids)}
         edges = [e for e in src.edges if max_gap is None or abs(pos[e.j] - pos[e.i]) <= max_gap]
         if method == "groundtruth":
@@ -321,7 +315,7 @@ def _fit_teacher_scales(folders: list[Path], max_gap: int | None, cfg: PoseGraph
                         "edges": {str(g): len(x) for g, x in by.items()}})
             continue
         init = poses_for_frames(src.trajectory, frames)
-        bridges = pg.bridge_edges(frames.ids, edges, init, pg.bridge_cov(frames.ids, edges, cfg.bridge_sigma_factor))
+        bridges = pe.bridge_edges(frames.ids, edges, init, pe.bridge_cov(frames.ids, edges))
         if bridges:
             log.warning("%s: %d bridge edge(s) join a disconnected teacher graph (not calibrated)", f, len(bridges))
         fit = fit_gap_scales(frames.ids, edges + bridges, init, cfg)
@@ -334,8 +328,6 @@ def _fit_teacher_scales(folders: list[Path], max_gap: int | None, cfg: PoseGraph
             acc[0] += w * s
             acc[1] += w
     if method == "groundtruth":
-        from ctcvo.data.uncertainty import CHI2_6_MEDIAN
-
         scales = {g: float(np.median(np.concatenate(x))) / CHI2_6_MEDIAN for g, x in pooled.items()}
     else:
         scales = {g: a / w for g, (a, w) in sums.items() if w > 0}

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ctcvo.data.cli import add_command, make_parser, run
 from ctcvo.data.scenes import add_topic_options, scene_with_topics
-from ctcvo.posegraph.config import DEFAULT, KERNELS, OUTLIER_ACTIONS, PRESETS, SOLVERS
+from ctcvo.posegraph.config import DEFAULT, KERNELS, LEARNER_EDGES, PRESETS, SOLVERS, SOURCES
 
 PRESET_HELP = ("presets: 'default' - robust (Huber) Levenberg-Marquardt with per-source covariance calibration "
                "and outlier removal; 'plain' - no kernel, no calibration, no outlier test; "
@@ -42,25 +42,15 @@ def _parser() -> argparse.ArgumentParser:
     o.add_argument("--overwrite", action="store_true",
                    help="replace outputs of other inputs in --out instead of stopping with an error")
     o.add_argument("--preset", choices=sorted(PRESETS), default="default", help="solver settings, see above")
-    o.add_argument("--use", dest="sources", choices=["auto", "teacher", "learner", "fused"],
+    o.add_argument("--use", dest="sources", choices=SOURCES,
                    help="edge sources in the graph; auto: every source given " + _d("sources"))
-    o.add_argument("--learner-edges", dest="learner_edges", choices=["bridge", "all"],
+    o.add_argument("--learner-edges", dest="learner_edges", choices=LEARNER_EDGES,
                    help="bridge: learner edges only where the teacher's edges leave frames apart; "
                         "all: every edge, weighed by its covariance " + _d("learner_edges"))
-    o.add_argument("--init", choices=["auto", "teacher", "learner", "chain"],
-                   help="initial values: a source's trajectory.tum or the chained edges " + _d("init"))
     o.add_argument("--solver", choices=SOLVERS, help="batch Levenberg-Marquardt or incremental iSAM2 " + _d("solver"))
     o.add_argument("--kernel", choices=KERNELS, help="robust kernel of every edge " + _d("kernel"))
-    o.add_argument("--kernel-k", type=float, help="robust kernel width (whitened units) " + _d("kernel_k"))
-    o.add_argument("--max-gap", type=int, help="drop edges spanning more frames " + _d("max_gap"))
     o.add_argument("--residual-threshold", type=float,
                    help="whitened residual above which an edge is an outlier " + _d("residual_threshold"))
-    o.add_argument("--max-trans-sigma", dest="max_trans_sigma_m", type=float,
-                   help="drop edges whose translation sigma is larger, metres " + _d("max_trans_sigma_m"))
-    o.add_argument("--max-rot-sigma", dest="max_rot_sigma_deg", type=float,
-                   help="drop edges whose rotation sigma is larger, degrees " + _d("max_rot_sigma_deg"))
-    o.add_argument("--outlier-action", choices=OUTLIER_ACTIONS,
-                   help="what happens to an outlier edge " + _d("outlier_action"))
     o.add_argument("--no-calibrate", dest="calibrate", action="store_false", default=None,
                    help="use every source's covariances as given (no per-source scale from residuals)")
     o.add_argument("--marginals", action="store_true", default=None, help="write marginals.npz")

@@ -1,7 +1,7 @@
 """The pose graph frame by frame: GTSAM's ISAM2 over the frames as they arrive, reviewed
 (covariance scales per edge source, outlier edges) by the rules of ``posegraph optimize``
-(:mod:`posegraph.graph`), and finished by its batch solve. Used by ``vo-online``
-(pipeline/online.py); imports neither the learner nor the teacher.
+(:mod:`posegraph.graph`), and finished by its batch solve. Used by the
+online pipeline (pipeline/online.py, ``ctcvo online``); imports neither the learner nor the teacher.
 """
 
 from __future__ import annotations
@@ -11,10 +11,23 @@ import logging
 import time
 from collections.abc import Sequence
 
+import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
 from ctcvo.data import geometry as geo
+from ctcvo.posegraph.config import ONLINE, PoseGraphConfig
+from ctcvo.posegraph.edges import GraphError, edge_residuals
+from ctcvo.posegraph.factors import between_factors, gtsam_error, prior_factor
+from ctcvo.posegraph.graph import solve
+from ctcvo.posegraph.robust import (
+    CALIBRATION_SCALE_RANGE,
+    CALIBRATION_TOLERANCE,
+    DOWNWEIGHT_FACTOR,
+    outlier_masks,
+    source_scale_factors,
+)
+from ctcvo.posegraph.solvers import ISAM2_FINAL_UPDATES, isam2
 
 log = logging.getLogger(__name__)
 
@@ -25,24 +38,17 @@ class OnlineGraph:
     the teacher's chained trajectory) and enters with its edges.
 
     The graph is reviewed as ``posegraph optimize`` reviews it - covariance scale per
-    edge source (:func:`posegraph.graph.source_scale_factors`: median squared whitened residual
+    edge source (:func:`posegraph.robust.source_scale_factors`: median squared whitened residual
     against chi-square(6), corrected for the graph's redundancy) and outlier edges
-    (:func:`posegraph.graph.outlier_masks`) - online: when it reaches ``review_from`` frames,
+    (:func:`posegraph.robust.outlier_masks`) - online: when it reaches ``review_from`` frames,
     at every doubling after that, and at the end until nothing changes. Factors whose scale
     or status changed are swapped in one ISAM2 update (log2(N) reviews over a run, so the
     cost stays amortised), so the robust kernel sees the residuals at the scale the batch
     solve sees them."""
 
-    def __init__(self, cfg=None, review_from: int = 16) -> None:
-        import gtsam
-
-        from ctcvo.posegraph.config import ONLINE
-
+    def __init__(self, cfg: PoseGraphConfig | None = None, review_from: int = 16) -> None:
         self.cfg = cfg or ONLINE
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(self.cfg.isam2_relinearize_threshold)
-        params.relinearizeSkip = 1
-        self.isam = gtsam.ISAM2(params)
+        self.isam = isam2()
         self.ids: list[int] = []
         self.pos: dict[int, int] = {}
         self.latest: dict[int, NDArray[np.float64]] = {}
@@ -59,31 +65,25 @@ class OnlineGraph:
 
     def _edge_factors(self, edges: list, weak: NDArray[np.bool_] | None = None) -> list:
         """Robust factors of ``edges`` under the current source scales (``weak``: times
-        ``cfg.downweight_factor``), built by :func:`posegraph.graph.between_factors`."""
-        from ctcvo.posegraph.graph import between_factors
-
+        ``DOWNWEIGHT_FACTOR``), built by :func:`posegraph.factors.between_factors`."""
         if not edges:
             return []
         ids = np.array([[e.i, e.j] for e in edges], dtype=np.int64)
         meas = [geo.to_gtsam_pose3(geo.orthonormalize(e.T_i_j)) for e in edges]
         mult = np.array([self.scale.get(e.extra.get("source", ""), 1.0) for e in edges])
         if weak is not None:
-            mult = mult * np.where(weak, self.cfg.downweight_factor, 1.0)
+            mult = mult * np.where(weak, DOWNWEIGHT_FACTOR, 1.0)
         covs = np.stack([e.cov for e in edges]) * mult[:, None, None]
-        return between_factors(ids, meas, covs, self.cfg)
+        return between_factors(ids, meas, covs, self.cfg.kernel)
 
     def add(self, frame_id: int, edges: list) -> NDArray[np.float64]:
         """Add frame ``frame_id`` with its ``data.formats.Edge`` list (edges (i, frame_id),
         i already in the graph; ``edge.extra["source"]`` names the source); return its
         current estimate ``T_world_cam``."""
-        import gtsam
-
-        from ctcvo.posegraph.graph import prior_factor
-
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         if not self.ids:
             T0 = np.eye(4)
-            graph.add(prior_factor(frame_id, T0, self.cfg))
+            graph.add(prior_factor(frame_id, T0))
         else:
             prev = self.ids[-1]
             best = max(edges, key=lambda e: self.pos[e.i], default=None)  # the shortest gap
@@ -111,8 +111,6 @@ class OnlineGraph:
         """Add edges between poses already in the graph (``data.formats.Edge``; e.g.
         ``vo-online``'s longer teacher edges of the newest frame, estimated after its pose
         was written) in one ISAM2 update."""
-        import gtsam
-
         if not edges:
             return
         self._insert(gtsam.NonlinearFactorGraph(), gtsam.Values(), edges)
@@ -139,8 +137,6 @@ class OnlineGraph:
         try:
             return self.isam.update(graph, values, list(remove))
         except RuntimeError as exc:
-            from ctcvo.posegraph.graph import gtsam_error
-
             raise gtsam_error(exc) from None
 
     def poses(self) -> NDArray[np.float64]:
@@ -153,10 +149,6 @@ class OnlineGraph:
         optimize`` does (whitened residual above ``cfg.residual_threshold`` under the new
         scales: removed, or down-weighted where removal would disconnect the graph); swap
         the factors whose scale or status changed. Returns whether anything changed."""
-        import gtsam
-
-        from ctcvo.posegraph.graph import edge_residuals, outlier_masks, source_scale_factors
-
         if not self.edges:
             return False
         names = list(dict.fromkeys(e.extra.get("source", "") for e in self.edges))
@@ -170,13 +162,13 @@ class OnlineGraph:
         if self.cfg.calibrate:
             redundancy = 1.0 - (len(self.ids) - 1) / max(len(self.edges), 1)
             # over every edge, flagged ones included (robust median), as the batch solve does
-            factor, _ = source_scale_factors(res, src, np.ones(len(res), bool), len(names), redundancy, self.cfg)
-            new = np.clip(scale * factor, *self.cfg.calibration_scale_range)
-            moved = np.abs(np.log(new / scale)) > np.log1p(self.cfg.calibration_tolerance)
+            factor, _ = source_scale_factors(res, src, len(names), redundancy)
+            new = np.clip(scale * factor, *CALIBRATION_SCALE_RANGE)
+            moved = np.abs(np.log(new / scale)) > np.log1p(CALIBRATION_TOLERANCE)
             new = np.where(moved, new, scale)
         res = res * np.sqrt(scale / new)[src]  # under the new scales
         flagged = res > self.cfg.residual_threshold
-        drop, weak = outlier_masks(len(self.ids), pos, flagged, np.argsort(res), self.cfg)
+        drop, weak = outlier_masks(len(self.ids), pos, flagged, np.argsort(res))
         status = np.where(drop, 2, np.where(weak, 1, 0))
         changed = np.flatnonzero((status != self.status) | (new != scale)[src])
         if len(changed) == 0:
@@ -200,7 +192,7 @@ class OnlineGraph:
         return True
 
     def final(self, polish: bool = True) -> NDArray[np.float64]:
-        """(N, 4, 4) smoothed poses. A last review and ``cfg.isam2_final_updates`` ISAM2
+        """(N, 4, 4) smoothed poses. A last review and ``ISAM2_FINAL_UPDATES`` ISAM2
         updates give the ISAM2 estimate (kept in ``isam2_poses``); with ``polish`` the
         batch solve of ``posegraph optimize`` (:func:`posegraph.graph.solve`, LM, its
         covariance calibration and outlier pass from scratch) then runs on the same edges,
@@ -214,13 +206,11 @@ class OnlineGraph:
         pass. One solve at the end costs what ``posegraph optimize`` costs (bench/README.md,
         "Online mode")."""
         self._review()
-        for _ in range(self.cfg.isam2_final_updates):
+        for _ in range(ISAM2_FINAL_UPDATES):
             self.isam.update()
         self.isam2_poses = self.poses()
         if not polish or len(self.ids) < 2 or not self.edges:
             return self.isam2_poses
-        from ctcvo.posegraph.graph import GraphError, solve
-
         t0 = time.perf_counter()
         try:
             res = solve(np.array(self.ids, dtype=np.int64), self.edges, self.isam2_poses,

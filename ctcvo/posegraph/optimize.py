@@ -10,7 +10,6 @@ atomically.
 
 from __future__ import annotations
 
-import dataclasses
 import io
 import json
 import logging
@@ -34,10 +33,15 @@ from ctcvo.data.runs import (
     upstream_digest,
     write_fingerprint,
 )
-from ctcvo.posegraph import graph as pg
+from ctcvo.data.scenes import open_scene
+from ctcvo.data.sequence import parse_frame_range
+from ctcvo.posegraph import edges as pe
+from ctcvo.posegraph import fusion
 from ctcvo.posegraph import report as rep
 from ctcvo.posegraph.calibration import GapScales, read_gap_scales
 from ctcvo.posegraph.config import DEFAULT, PoseGraphConfig
+from ctcvo.posegraph.graph import SolveResult, solve
+from ctcvo.posegraph.plots import make_plots
 from ctcvo.posegraph.sources import (
     Frames,
     Source,
@@ -67,6 +71,17 @@ class SequenceOutput:
     marginals: bytes | None
 
 
+@dataclass
+class _Graph:
+    """One solved graph of a sequence: the result, its bridge edges and where its initial values came from."""
+
+    result: SolveResult
+    edges: list
+    """The graph's edges, bridges aside."""
+    bridges: list
+    initial_from: str
+
+
 def default_dirs(scene: str) -> tuple[Path, Path, Path]:
     """(teacher, learner, out) folders of a scene: ``runs/<slug>/{teacher,predict,posegraph}``."""
     return stage_dir(scene, "teacher"), stage_dir(scene, "predict"), stage_dir(scene, "posegraph")
@@ -91,51 +106,8 @@ def optimize(scene: str | None = None, teacher: Path | None = None, learner: Pat
     if teacher_calibration is not None:
         scales = read_gap_scales(Path(teacher_calibration))
         scales.info["path"] = str(teacher_calibration)
-    teacher = Path(teacher) if teacher else None
-    learner = Path(learner) if learner else None
-    if scene and not (teacher or learner or edges):
-        t, l, o = default_dirs(scene)
-        teacher = t if t.is_dir() else None
-        learner = l if l.is_dir() else None
-        if not (teacher or learner):
-            raise DataError(f"neither {t} nor {l} exists; run `teacher generate --scene {scene}` first "
-                            "or pass --teacher/--learner/--edges")
-        out = out or o
-    if scene and out is None:
-        out = default_dirs(scene)[2]
-    if out is None:
-        raise ConfigError("--out is required without --scene")
-    if not (teacher or learner or edges):
-        raise ConfigError("give --scene, --teacher, --learner or --edges")
-    if edges and (teacher or learner):
-        raise ConfigError("--edges replaces --teacher/--learner; give one or the other")
-    out = Path(out)
-
-    jobs: list[tuple[str, dict[str, Source]]] = []
-    if edges:
-        srcs = {}
-        for p in edges:
-            s = load_edges_file(Path(p))
-            name = s.name if s.name not in srcs else f"{s.name}{len(srcs)}"
-            for e in s.edges:
-                e.extra["source"] = name
-            s.name = name
-            srcs[name] = s
-        jobs.append(("", srcs))
-    else:
-        for d, what in ((teacher, "teacher"), (learner, "learner")):
-            if d is not None and not d.is_dir():
-                raise DataError(f"{what} folder {d} does not exist")
-        names = find_sequence_dirs(teacher) if teacher else []
-        if not names and learner:
-            names = find_sequence_dirs(learner)
-        for name in names or [""]:
-            srcs = {}
-            for d, what in ((teacher, "teacher"), (learner, "learner")):
-                if d is not None:
-                    srcs[what] = load_dir(d / name if name else d, what)
-            jobs.append((name, srcs))
-
+    teacher, learner, out = _folders(scene, teacher, learner, edges, out)
+    jobs = _jobs(teacher, learner, edges)
     with output_folder(out):
         results = []
         for name, srcs in jobs:
@@ -157,6 +129,59 @@ def optimize(scene: str | None = None, teacher: Path | None = None, learner: Pat
     return [out / name if name else out for name, _ in jobs]
 
 
+def _folders(scene: str | None, teacher: Path | None, learner: Path | None, edges: Sequence[Path],
+             out: Path | None) -> tuple[Path | None, Path | None, Path]:
+    """The (teacher, learner, out) folders of :func:`optimize`, defaults of ``scene`` filled in."""
+    teacher = Path(teacher) if teacher else None
+    learner = Path(learner) if learner else None
+    if scene and not (teacher or learner or edges):
+        t, l, o = default_dirs(scene)
+        teacher = t if t.is_dir() else None
+        learner = l if l.is_dir() else None
+        if not (teacher or learner):
+            raise DataError(f"neither {t} nor {l} exists; run `teacher generate --scene {scene}` first "
+                            "or pass --teacher/--learner/--edges")
+        out = out or o
+    if scene and out is None:
+        out = default_dirs(scene)[2]
+    if out is None:
+        raise ConfigError("--out is required without --scene")
+    if not (teacher or learner or edges):
+        raise ConfigError("give --scene, --teacher, --learner or --edges")
+    if edges and (teacher or learner):
+        raise ConfigError("--edges replaces --teacher/--learner; give one or the other")
+    return teacher, learner, Path(out)
+
+
+def _jobs(teacher: Path | None, learner: Path | None, edges: Sequence[Path]) -> list[tuple[str, dict[str, Source]]]:
+    """(sequence name, sources by name) of every graph to solve: one for ``edges`` files,
+    else one per sequence folder of the teacher (or learner) folder."""
+    if edges:
+        srcs = {}
+        for p in edges:
+            s = load_edges_file(Path(p))
+            name = s.name if s.name not in srcs else f"{s.name}{len(srcs)}"
+            for e in s.edges:
+                e.extra["source"] = name
+            s.name = name
+            srcs[name] = s
+        return [("", srcs)]
+    for d, what in ((teacher, "teacher"), (learner, "learner")):
+        if d is not None and not d.is_dir():
+            raise DataError(f"{what} folder {d} does not exist")
+    names = find_sequence_dirs(teacher) if teacher else []
+    if not names and learner:
+        names = find_sequence_dirs(learner)
+    jobs = []
+    for name in names or [""]:
+        srcs = {}
+        for d, what in ((teacher, "teacher"), (learner, "learner")):
+            if d is not None:
+                srcs[what] = load_dir(d / name if name else d, what)
+        jobs.append((name, srcs))
+    return jobs
+
+
 def _source_digest(s: Source) -> str:
     """A source folder's fingerprint digest (or its edges' content digest), a bare file's content digest."""
     return upstream_digest(s.path, "edges.g2o") if s.path.is_dir() else file_digest(s.path)
@@ -170,13 +195,9 @@ def _frame_selection(srcs: dict[str, Source], scene: str | None, split: str, seq
     covered = [source_frame_ids(s) for s in srcs.values()]
     if frames:
         if scene:
-            from ctcvo.data.scenes import open_scene
-
             seqs = open_scene(scene, split=split, frames=frames)
             seqs = [s for s in seqs if s.name == seq_name] or seqs
             return {int(k) for k in seqs[0].ids()}
-        from ctcvo.data.sequence import parse_frame_range
-
         a, b, st = parse_frame_range(frames)
         return set(sorted(set().union(*covered))[slice(a, b, st)])
     if len(covered) > 1 and any(c != covered[0] for c in covered[1:]):
@@ -213,8 +234,6 @@ def _span(ids: set[int]) -> str:
 
 
 def _scene_groundtruth(scene: str, split: str, seq_name: str, frames: Frames) -> NDArray[np.float64] | None:
-    from ctcvo.data.scenes import open_scene
-
     seqs = open_scene(scene, split=split)
     if seq_name:
         seqs = [s for s in seqs if s.name == seq_name] or seqs
@@ -230,6 +249,30 @@ def _scene_groundtruth(scene: str, split: str, seq_name: str, frames: Frames) ->
     return None
 
 
+def _groundtruth(srcs: dict[str, Source], frames: Frames, scene: str | None, split: str,
+                 seq_name: str) -> tuple[NDArray[np.float64] | None, str | None]:
+    """(ground-truth poses of the frames, where from): a source's ``groundtruth.tum``, else the scene's."""
+    for s in srcs.values():
+        if s.groundtruth is not None:
+            gt = poses_for_frames(s.groundtruth, frames)
+            if gt is None:
+                raise DataError(f"{s.path}/groundtruth.tum does not cover the {len(frames.ids)} frames of the graph")
+            return gt, str(s.path / "groundtruth.tum")
+    if scene:
+        gt = _scene_groundtruth(scene, split, seq_name, frames)
+        return gt, f"scene {scene}" if gt is not None else None
+    return None, None
+
+
+def _solve_graph(srcs: dict[str, Source], used: list[str], frames: Frames, edges: list, guide, cfg: PoseGraphConfig,
+                 fixed: list[str]) -> _Graph:
+    """Solve the graph of ``edges`` (sources ``used``), bridged where it is disconnected."""
+    bridges = pe.bridge_edges(frames.ids, edges, guide, pe.bridge_cov(frames.ids, edges))
+    initial, init_how = fusion.initial_poses(srcs, used, frames, edges + bridges)
+    result = solve(frames.ids, edges + bridges, initial, cfg, fixed_sources=fixed + ["bridge"])
+    return _Graph(result, edges, bridges, init_how)
+
+
 def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig = DEFAULT,
                       scene: str | None = None, split: str = "all", seq_name: str = "",
                       frames_cut: str | None = None, teacher_scales: GapScales | None = None) -> SequenceOutput:
@@ -238,113 +281,63 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
     ``teacher_scales``: per-gap covariance scales of the teacher's edges fitted on
     validation data (:mod:`posegraph.calibration`); the teacher then keeps them in the
     graph (no per-source rescaling)."""
-    used = _graph_sources(srcs, cfg)
-    frames = resolve_frames(list(srcs.values()), cfg.fps)
-    pos = {int(k): p for p, k in enumerate(frames.ids)}
+    used = fusion.graph_sources(srcs, cfg)
+    frames = resolve_frames(list(srcs.values()))
     for s in srcs.values():
-        pg.validate_edges(frames.ids, s.edges)  # unknown frames, bad covariances
-        if cfg.max_gap is not None:
-            s.edges = [e for e in s.edges if abs(pos[e.j] - pos[e.i]) <= cfg.max_gap]
+        pe.validate_edges(frames.ids, s.edges)  # unknown frames, bad covariances
     raw_teacher = None
     fixed: list[str] = []
     if teacher_scales is not None and "teacher" in srcs:
         raw_teacher = srcs["teacher"].edges
         srcs["teacher"].edges = teacher_scales.apply(frames.ids, raw_teacher)
         fixed.append("teacher")
-    gates = {n: _skill_gate(srcs[n], frames, cfg) for n in used}
-    if cfg.learner_edges == "bridge" and "teacher" in used and len(used) > 1:
-        graph_edges = {n: srcs[n].edges if n == "teacher" else _crossing_edges(srcs[n], frames, gates[n],
-                                                                                srcs["teacher"].edges)
-                       for n in used}
-    else:
-        graph_edges = {n: _gated_edges(srcs[n], frames, gates[n], cfg,
-                                       [e for m in used if m != n and not gates[m] for e in srcs[m].edges])
-                       for n in used}
+    gates = {n: fusion.skill_gate(srcs[n], frames) for n in used}
+    edges = fusion.graph_edges(srcs, used, frames, gates, cfg)
     fixed += [f"{n}:unskilled" for n in used]
-    edges = [e for n in used for e in graph_edges[n]]
-    if not edges:
-        raise DataError("no edges left for the pose graph")
+    gt, gt_from = _groundtruth(srcs, frames, scene, split, seq_name)
 
-    gt = None
-    gt_from = None
-    for s in srcs.values():
-        if s.groundtruth is not None:
-            gt = poses_for_frames(s.groundtruth, frames)
-            if gt is None:
-                raise DataError(f"{s.path}/groundtruth.tum does not cover the {len(frames.ids)} frames of the graph")
-            gt_from = str(s.path / "groundtruth.tum")
-            break
-    if gt is None and scene:
-        gt = _scene_groundtruth(scene, split, seq_name, frames)
-        gt_from = f"scene {scene}" if gt is not None else None
-
-    guide = _guide_poses(srcs, used, frames)
-    bridges = pg.bridge_edges(frames.ids, edges, guide, _bridge_cov(edges, frames, cfg))
-    if bridges:
-        log.warning("the graph's edges leave it disconnected: %d bridge edge(s) from %s (%s)", len(bridges),
+    guide = fusion.guide_poses(srcs, used, frames)
+    fused = _solve_graph(srcs, used, frames, edges, guide, cfg, fixed)
+    if fused.bridges:
+        log.warning("the graph's edges leave it disconnected: %d bridge edge(s) from %s (%s)", len(fused.bridges),
                     "the chained trajectory" if guide is not None else "zero motion",
-                    ", ".join(f"{b.i}->{b.j}" for b in bridges[:5]) + (" ..." if len(bridges) > 5 else ""))
-    initial, init_how = _initial(srcs, used, frames, edges + bridges, cfg)
-    result = pg.solve(frames.ids, edges + bridges, initial, cfg, fixed_sources=fixed + ["bridge"])
-
+                    ", ".join(f"{b.i}->{b.j}" for b in fused.bridges[:5]) + (" ..." if len(fused.bridges) > 5 else ""))
     teacher_graph = None  # the control; with the teacher's edges alone in the graph, the fused row is it
     if "teacher" in srcs and srcs["teacher"].edges and used != ["teacher"]:
-        t_edges = srcs["teacher"].edges
-        t_bridges = pg.bridge_edges(frames.ids, t_edges, guide, _bridge_cov(t_edges, frames, cfg))
-        t_init, _ = _initial(srcs, ["teacher"], frames, t_edges + t_bridges, cfg)
-        teacher_graph = pg.solve(frames.ids, t_edges + t_bridges, t_init, cfg, fixed_sources=fixed + ["bridge"])
-
-    rows: dict[str, NDArray[np.float64]] = {}
-    blocks: dict[str, dict] = {}
-    for n, s in srcs.items():
-        traj = poses_for_frames(s.trajectory, frames)
-        how = f"{s.path}/trajectory.tum"
-        if traj is None:
-            try:
-                traj = pg.chain_poses(frames.ids, s.edges)
-                how = "chained edges (spanning tree, smallest gaps first)"
-            except pg.GraphError as exc:
-                log.warning("no chained %s row: %s", n, exc)
-                continue
-        rows[n] = traj
-        blocks[n] = rep.row_block(n, traj, frames.ids, frames.times, gt, s.edges, s.edges, how)
-        if n == "teacher" and raw_teacher is not None:
-            blocks[n]["calibration_raw"] = rep.calibration(raw_teacher, frames.ids, gt)
-        if n == "teacher" and teacher_graph is not None:
-            rows["teacher_graph"] = teacher_graph.poses
-            blocks["teacher_graph"] = rep.row_block(
-                "teacher_graph", teacher_graph.poses, frames.ids, frames.times, gt, s.edges, None,
-                f"{cfg.solver} over the teacher's edges alone" + (f" and {len(t_bridges)} bridge edge(s)"
-                                                                   if t_bridges else ""))
-    rows["fused"] = result.poses
-    blocks["fused"] = rep.row_block("fused", result.poses, frames.ids, frames.times, gt, edges, None,
-                                    f"{cfg.solver} over {'+'.join(used)} edges"
-                                    + (f" and {len(bridges)} bridge edge(s)" if bridges else ""))
-    blocks.update(rep.baseline_blocks(frames.ids, frames.times, gt))  # absent without ground truth
-
+        teacher_graph = _solve_graph(srcs, ["teacher"], frames, srcs["teacher"].edges, guide, cfg, fixed)
+    rows, blocks = _rows(srcs, used, frames, gt, cfg, fused, teacher_graph, raw_teacher)
     report = {
-        "stage": "posegraph",
-        "scene": scene,
-        "name": seq_name,
-        "git": git_revision(),
-        "config": cfg.to_dict(),
-        "inputs": {n: str(s.path) for n, s in srcs.items()},
-        "graph_sources": used,
-        "frames": len(frames.ids),
-        "frames_listed_by": frames.listed_by,
-        "frames_cut": frames_cut,
-        "synthetic_timestamps": frames.synthetic_times,
-        "has_groundtruth": gt is not None,
-        "groundtruth_from": gt_from,
-        "initial_values": init_how,
-        "edges_total": len(edges),
+        "stage": "posegraph", "scene": scene, "name": seq_name, "git": git_revision(), "config": cfg.to_dict(),
+        "inputs": {n: str(s.path) for n, s in srcs.items()}, "graph_sources": used,
+        "frames": len(frames.ids), "frames_listed_by": frames.listed_by, "frames_cut": frames_cut,
+        "synthetic_timestamps": frames.synthetic_times, "has_groundtruth": gt is not None, "groundtruth_from": gt_from,
+        "initial_values": fused.initial_from, "edges_total": len(edges),
         "edges_per_source": {n: len(srcs[n].edges) for n in used},
-        "bridges": {"fused": len(bridges), "teacher_graph": len(t_bridges) if teacher_graph is not None else None},
+        "bridges": {"fused": len(fused.bridges),
+                    "teacher_graph": len(teacher_graph.bridges) if teacher_graph is not None else None},
         "teacher_calibration": None if teacher_scales is None else {
             "scales": {str(g): v for g, v in sorted(teacher_scales.scales.items())},
             "from": teacher_scales.info.get("path")},
         "skill_gate": {n: g for n, g in gates.items() if g is not None},
         "rows": blocks,
+        **_solver_report(fused.result),
+    }
+    json.dumps(report, allow_nan=False)  # fail here, not half-way through writing
+    result = fused.result
+    pngs = {}
+    if cfg.plots:
+        pngs = make_plots(frames.times, rows, gt, frames.ids, fused.edges + fused.bridges, result.residuals, ~result.used)
+    marg = None
+    if result.marginals is not None:
+        buf = io.BytesIO()
+        np.savez_compressed(buf, frame_ids=frames.ids, timestamps=frames.times, cov=result.marginals)
+        marg = buf.getvalue()
+    return SequenceOutput(out, Trajectory(frames.times, result.poses), report, rep.report_markdown(report), pngs, marg)
+
+
+def _solver_report(result: SolveResult) -> dict:
+    """The report's entries on the fused solve: scales, outliers, residuals, solver figures."""
+    return {
         "covariance_scales": result.source_scales,
         "covariance_calibration": result.calibration,
         "outliers": [o.to_dict() for o in result.outliers],
@@ -352,126 +345,44 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
         "solver": {"name": result.solver, "iterations": result.iterations, "initial_error": result.initial_error,
                    "final_error": result.final_error, "time_s": result.time_s, "cpu_s": result.cpu_s},
     }
-    json.dumps(report, allow_nan=False)  # fail here, not half-way through writing
-    md = rep.report_markdown(report)
-    pngs = {}
-    if cfg.plots:
-        from ctcvo.posegraph.plots import make_plots  # matplotlib only when figures are wanted
-
-        pngs = make_plots(
-            frames.times, rows, gt, frames.ids, edges + bridges, result.residuals, ~result.used)
-    marg = None
-    if result.marginals is not None:
-        buf = io.BytesIO()
-        np.savez_compressed(buf, frame_ids=frames.ids, timestamps=frames.times, cov=result.marginals)
-        marg = buf.getvalue()
-    return SequenceOutput(out, Trajectory(frames.times, result.poses), report, md, pngs, marg)
 
 
-def _skill_gate(src: Source, frames: Frames, cfg: PoseGraphConfig) -> dict | None:
-    """Which gaps of ``src`` weigh as nothing: those whose validation skill ratio (per gap
-    when the skill has ``by_gap``, else overall) is 1 or more. ``None`` without a skill."""
-    if src.skill is None:
-        if src.name != "teacher":
-            log.warning("%s: no validation skill (no calibration.json with validation.skill); its edges are used "
-                        "as given", src.name)
-        return None
-    pos = {int(k): p for p, k in enumerate(frames.ids)}
-    by_gap = src.skill.get("by_gap") or {}
-    gaps = sorted({abs(pos[e.j] - pos[e.i]) for e in src.edges})
-    ratio = {g: float((by_gap.get(str(g)) or src.skill)["ratio"]) for g in gaps}
-    gated = [g for g in gaps if ratio[g] >= 1.0]
-    ratio_cv = {g: (by_gap.get(str(g)) or src.skill).get("ratio_cv") for g in gaps}
-    no_cv = [g for g in gaps if ratio_cv[g] is not None and ratio_cv[g] >= 1.0 and g not in gated]
-    if gated:
-        log.warning("%s: no better than zero motion on its validation pairs at gap(s) %s (se(3) L2 ratio %s); "
-                    "those edges weigh %.0e times less", src.name, gated,
-                    ", ".join(f"{ratio[g]:.2f}" for g in gated), cfg.unskilled_scale)
-    return {"ratio": src.skill["ratio"], "ratio_by_gap": {str(g): ratio[g] for g in gaps}, "gated_gaps": gated,
-            "ratio_cv_by_gap": {str(g): ratio_cv[g] for g in gaps}, "no_better_than_cv": no_cv,
-            "scale": cfg.unskilled_scale, "reference": src.skill.get("reference"), "from": src.skill.get("from")}
-
-
-def _gated_edges(src: Source, frames: Frames, gate: dict | None, cfg: PoseGraphConfig,
-                 others: Sequence = ()) -> list:
-    """``src``'s edges for the graph. Edges at gated gaps (no better than zero motion on
-    validation) weigh as nothing: they are left out, except those that join components the
-    graph's other edges (``others`` and the source's ungated edges) leave apart - a stretch
-    where the teacher failed - which stay, smallest gap first, with covariance times
-    ``cfg.unskilled_scale`` and the source name ``<name>:unskilled``. So where the teacher
-    graph is connected, the fused graph is exactly the teacher graph."""
-    if not gate or not gate["gated_gaps"]:
-        return src.edges
-    pos = {int(k): p for p, k in enumerate(frames.ids)}
-    gated = set(gate["gated_gaps"])
-    kept = [e for e in src.edges if abs(pos[e.j] - pos[e.i]) not in gated]
-    weak = sorted((e for e in src.edges if abs(pos[e.j] - pos[e.i]) in gated), key=lambda e: abs(pos[e.j] - pos[e.i]))
-    joined = pg.joining_edges(frames.ids, list(others) + kept, weak)
-    gate["bridging_edges"] = len(joined)
-    return kept + [dataclasses.replace(e, cov=np.asarray(e.cov) * cfg.unskilled_scale,
-                                       extra={**e.extra, "source": f"{src.name}:unskilled"}) for e in joined]
-
-
-def _crossing_edges(src: Source, frames: Frames, gate: dict | None, teacher_edges: Sequence) -> list:
-    """``learner_edges = "bridge"``: the edges of ``src`` between frames that the teacher's
-    edges leave in different components (the only relative poses the teacher lacks); none
-    at gaps the skill gate found no better than zero motion (there the teacher's constant-
-    velocity bridge is used instead), nor at gaps whose validation ``ratio_cv`` (against the
-    constant-velocity guess from the teacher's previous step) is 1 or more: the teacher's
-    bridge is the better guess there."""
-    pos = {int(k): p for p, k in enumerate(frames.ids)}
-    labels = pg.component_labels(frames.ids, teacher_edges)
-    gated = set(gate["gated_gaps"] + gate["no_better_than_cv"]) if gate else set()
-    out = [e for e in src.edges
-           if labels[pos[e.i]] != labels[pos[e.j]] and abs(pos[e.j] - pos[e.i]) not in gated]
-    if gate is not None:
-        gate["bridging_edges"] = len(out)
-    log.info("%s: %d of %d edges join frames the teacher's edges leave apart (learner_edges = bridge)", src.name,
-             len(out), len(src.edges))
-    return out
-
-
-def _bridge_cov(edges: Sequence, frames: Frames, cfg: PoseGraphConfig) -> NDArray[np.float64]:
-    """(6, 6) covariance of a bridge edge: ``cfg.bridge_sigma_factor`` squared times the
-    median diagonal of the smallest-gap edges of ``edges``."""
-    return pg.bridge_cov(frames.ids, edges, cfg.bridge_sigma_factor)
-
-
-def _guide_poses(srcs: dict[str, Source], used: list[str], frames: Frames) -> NDArray[np.float64] | None:
-    """Poses whose steps bridge a disconnected graph: the teacher's chained trajectory
-    (constant velocity over its failed stretches) if it covers every frame, else the first
-    used source's that does, else ``None`` (zero-motion bridges)."""
-    for n in ["teacher"] + used:
-        if n in srcs:
-            traj = poses_for_frames(srcs[n].trajectory, frames)
-            if traj is not None:
-                return traj
-    return None
-
-
-def _graph_sources(srcs: dict[str, Source], cfg: PoseGraphConfig) -> list[str]:
-    if cfg.sources == "auto":
-        return list(srcs)
-    need = ["teacher", "learner"] if cfg.sources == "fused" else [cfg.sources]
-    missing = [n for n in need if n not in srcs]
-    if missing:
-        raise ConfigError(f"--use {cfg.sources} needs the {' and '.join(missing)} folder")
-    return need
-
-
-def _initial(srcs: dict[str, Source], used: list[str], frames: Frames, edges, cfg: PoseGraphConfig):
-    if cfg.init in ("teacher", "learner"):
-        s = srcs.get(cfg.init)
-        traj = poses_for_frames(s.trajectory, frames) if s else None
+def _rows(srcs: dict[str, Source], used: list[str], frames: Frames, gt: NDArray[np.float64] | None,
+          cfg: PoseGraphConfig, fused: _Graph, teacher_graph: _Graph | None,
+          raw_teacher: list | None) -> tuple[dict[str, NDArray[np.float64]], dict[str, dict]]:
+    """(poses, report block) of every row: each source's trajectory, the teacher graph, the
+    fused graph and the baselines (those only with ground truth)."""
+    rows: dict[str, NDArray[np.float64]] = {}
+    blocks: dict[str, dict] = {}
+    for n, s in srcs.items():
+        traj = poses_for_frames(s.trajectory, frames)
+        how = f"{s.path}/trajectory.tum"
         if traj is None:
-            raise DataError(f"--init {cfg.init}: no {cfg.init} trajectory.tum covering every frame")
-        return traj, f"{s.path}/trajectory.tum"
-    if cfg.init == "auto":
-        for n in used:
-            traj = poses_for_frames(srcs[n].trajectory, frames)
-            if traj is not None:
-                return traj, f"{srcs[n].path}/trajectory.tum"
-    return pg.chain_poses(frames.ids, edges), "chained edges"
+            try:
+                traj = pe.chain_poses(frames.ids, s.edges)
+                how = "chained edges (spanning tree, smallest gaps first)"
+            except pe.GraphError as exc:
+                log.warning("no chained %s row: %s", n, exc)
+                continue
+        rows[n] = traj
+        blocks[n] = rep.row_block(n, traj, frames.ids, frames.times, gt, s.edges, s.edges, how)
+        if n == "teacher" and raw_teacher is not None:
+            blocks[n]["calibration_raw"] = rep.calibration(raw_teacher, frames.ids, gt)
+        if n == "teacher" and teacher_graph is not None:
+            t_bridges = teacher_graph.bridges
+            rows["teacher_graph"] = teacher_graph.result.poses
+            blocks["teacher_graph"] = rep.row_block(
+                "teacher_graph", teacher_graph.result.poses, frames.ids, frames.times, gt, s.edges, None,
+                f"{cfg.solver} over the teacher's edges alone" + (f" and {len(t_bridges)} bridge edge(s)"
+                                                                   if t_bridges else ""))
+    bridges = fused.bridges
+    rows["fused"] = fused.result.poses
+    blocks["fused"] = rep.row_block("fused", fused.result.poses, frames.ids, frames.times, gt,
+                                    fused.edges, None,
+                                    f"{cfg.solver} over {'+'.join(used)} edges"
+                                    + (f" and {len(bridges)} bridge edge(s)" if bridges else ""))
+    blocks.update(rep.baseline_blocks(frames.ids, frames.times, gt))  # absent without ground truth
+    return rows, blocks
 
 
 def write_outputs(r: SequenceOutput, cfg: PoseGraphConfig, fp: Fingerprint | None = None) -> None:

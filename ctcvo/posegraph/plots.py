@@ -88,7 +88,16 @@ def make_plots(times: NDArray[np.float64], rows: dict[str, NDArray[np.float64]],
     """
     t = np.asarray(times, dtype=np.float64)  # the sequence's own time
     aligned = {n: (align_to(gt, p, times) if gt is not None else p) for n, p in rows.items()}
-    out = {}
+    gt_rel = _rel_log(gt) if gt is not None else None
+    pos = {int(k): p for p, k in enumerate(frame_ids)}
+    return {"trajectories.png": _trajectories(gt, aligned),
+            "relative_se3.png": _relative_se3(t, rows, gt_rel),
+            "outliers.png": _outliers(t, pos, gt_rel, edges, rejected),
+            "error_over_time.png": _error_over_time(t, pos, gt, aligned, edges, residuals, rejected)}
+
+
+def _trajectories(gt: NDArray[np.float64] | None, aligned: dict[str, NDArray[np.float64]]) -> bytes:
+    """3-D trajectories and their XZ projection."""
     from matplotlib.ticker import MaxNLocator
 
     fig = _figure(12, 5.5)
@@ -102,16 +111,24 @@ def make_plots(times: NDArray[np.float64], rows: dict[str, NDArray[np.float64]],
     ax3.set_aspect("equal")  # metres alike on x, y and z
     for axis in (ax3.xaxis, ax3.yaxis, ax3.zaxis):
         axis.set_major_locator(MaxNLocator(4))  # a short axis keeps legible ticks
-    ax3.set_xlabel("x [m]"); ax3.set_ylabel("y [m]"); ax3.set_zlabel("z [m]")
+    ax3.set_xlabel("x [m]")
+    ax3.set_ylabel("y [m]")
+    ax3.set_zlabel("z [m]")
     ax3.set_title("3-D trajectories" + (" (aligned to GT)" if gt is not None else ""))
     ax3.legend(loc="upper left", fontsize=8)
-    ax2.set_xlabel("x [m]"); ax2.set_ylabel("z [m]"); ax2.set_title("XZ projection"); ax2.axis("equal")
+    ax2.set_xlabel("x [m]")
+    ax2.set_ylabel("z [m]")
+    ax2.set_title("XZ projection")
+    ax2.axis("equal")
     ax2.legend(loc="best", fontsize=8)
-    out["trajectories.png"] = _png(fig)
+    return _png(fig)
 
+
+def _relative_se3(t: NDArray[np.float64], rows: dict[str, NDArray[np.float64]],
+                  gt_rel: NDArray[np.float64] | None) -> bytes:
+    """The six se(3) coordinates of every row's gap-1 relative poses over time."""
     fig = _figure(12, 9)
     rels = {n: _rel_log(p) for n, p in rows.items()}
-    gt_rel = _rel_log(gt) if gt is not None else None
     for c in range(6):
         ax = fig.add_subplot(3, 2, c + 1)
         if gt_rel is not None:
@@ -124,12 +141,14 @@ def make_plots(times: NDArray[np.float64], rows: dict[str, NDArray[np.float64]],
         ax.legend(fontsize=7, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=len(rels) + (gt_rel is not None),
                   frameon=False, borderaxespad=0.2)  # above the panel, off the data
     fig.suptitle("gap-1 relative poses in se(3) (v, w)")
-    out["relative_se3.png"] = _png(fig)
+    return _png(fig)
 
-    # outlier plot: forward translation (v_z) of the gap-1 edges of each source
+
+def _outliers(t: NDArray[np.float64], pos: dict[int, int], gt_rel: NDArray[np.float64] | None,
+              edges: Sequence[Edge], rejected: NDArray[np.bool_]) -> bytes:
+    """Forward translation (v_z) of the gap-1 edges of each source, high-variance and rejected edges marked."""
     fig = _figure(12, 4.5)
     ax = fig.add_subplot(1, 1, 1)
-    pos = {int(k): p for p, k in enumerate(frame_ids)}
     if gt_rel is not None:
         ax.plot(t[1:], gt_rel[:, 2], label="gt", **_style("gt", len(gt_rel)))
     sig = np.array([np.sqrt(max(np.linalg.eigvalsh(e.cov[:3, :3]).max(), 0.0)) for e in edges]) if edges else np.array([])
@@ -147,22 +166,31 @@ def make_plots(times: NDArray[np.float64], rows: dict[str, NDArray[np.float64]],
             if mask.any():  # only what appears gets a legend entry
                 label = f"{src}: {kind.pop('label')} ({int(mask.sum())})"
                 ax.plot(tt[mask], vz[mask], ls="none", color=color, label=label, zorder=4, **kind)
-    ax.set_xlabel("time [s]"); ax.set_ylabel("v_z [m]"); ax.legend(fontsize=7, loc="upper right")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("v_z [m]")
+    ax.legend(fontsize=7, loc="upper right")
     ax.set_title("gap-1 edges, forward se(3) coordinate v_z; high-variance and rejected edges marked")
-    out["outliers.png"] = _png(fig)
+    return _png(fig)
 
+
+def _error_over_time(t: NDArray[np.float64], pos: dict[int, int], gt: NDArray[np.float64] | None,
+                     aligned: dict[str, NDArray[np.float64]], edges: Sequence[Edge], residuals: NDArray[np.float64],
+                     rejected: NDArray[np.bool_]) -> bytes:
+    """Each row's aligned translation error over time, or without ground truth the edges' residuals."""
     fig = _figure(12, 4)
     ax = fig.add_subplot(1, 1, 1)
     if gt is not None:
         for n, p in aligned.items():
             ax.plot(t, np.linalg.norm(p[:, :3, 3] - gt[:, :3, 3], axis=1), label=n, **_style(n, len(p)))
-        ax.set_ylabel("translation error [m]"); ax.set_title("absolute error over time (aligned)")
+        ax.set_ylabel("translation error [m]")
+        ax.set_title("absolute error over time (aligned)")
     else:
         te = np.array([t[max(pos[e.i], pos[e.j])] for e in edges])
         ax.semilogy(te, np.maximum(residuals, 1e-6), ".", ms=3, label="edge residual")
         if rejected.any():
             ax.semilogy(te[rejected], np.maximum(residuals[rejected], 1e-6), "x", color="m", label="rejected")
-        ax.set_ylabel("whitened residual"); ax.set_title("edge residuals over time (no ground truth)")
-    ax.set_xlabel("time [s]"); ax.legend(fontsize=8)
-    out["error_over_time.png"] = _png(fig)
-    return out
+        ax.set_ylabel("whitened residual")
+        ax.set_title("edge residuals over time (no ground truth)")
+    ax.set_xlabel("time [s]")
+    ax.legend(fontsize=8)
+    return _png(fig)

@@ -43,6 +43,7 @@ from ctcvo.data import metrics
 from ctcvo.data.formats import Edge, Trajectory
 from ctcvo.data.io import json_safe as _f  # JSON-safe number (NaN -> None)
 from ctcvo.data.uncertainty import mahalanobis2, nees_stats
+from ctcvo.posegraph.edges import BRIDGE_SIGMA_FACTOR
 
 ROW_LABELS = {"teacher": "teacher (chained)", "teacher_graph": "teacher graph (teacher edges only)",
               "learner": "learner (chained)", "fused": "fused (graph)",
@@ -179,17 +180,26 @@ def _cell(v, fmt: str) -> str:
 
 def report_markdown(report: dict) -> str:
     """``report.md``: the table, calibration, outliers and settings."""
-    rows = report["rows"]
     title = report.get("scene") or report.get("name") or " + ".join(report.get("inputs", {}).values()) or "edges"
     lines = [f"# Pose graph: {title}", "",
              f"{report['frames']} frames, {report['edges_total']} edges "
              f"({', '.join(f'{k}: {v}' for k, v in report['edges_per_source'].items())}), "
              f"solver {report['solver']['name']}, kernel {report['config']['kernel']}; "
              f"ground truth: {'yes' if report['has_groundtruth'] else 'no'}.", ""]
+    lines += _md_table(report) + _md_skill(report) + _md_calibration(report) + _md_outliers(report)
+    lines += ["", "## Solver", "", f"- initial error {report['solver']['initial_error']:.6g}, final "
+              f"{report['solver']['final_error']:.6g}, {report['solver']['iterations']} iterations/updates, "
+              f"{report['solver']['time_s']:.2f} s", f"- git {report['git']}", ""]
+    return "\n".join(lines)
+
+
+def _md_table(report: dict) -> list[str]:
+    """The metrics table, its notes, and the notes on baselines, the control row and bridges."""
+    rows = report["rows"]
     g1s = next((b.get("rpe_1s_frames") for b in rows.values() if b.get("rpe_1s_frames")), None)
     head = ["row", "ATE m", "RPE1 m", "RPE1 deg", "RPE2 m", "RPE2 deg", "RPE3 m", "RPE3 deg",
             f"RPE 1s m ({g1s or '?'} fr)", "RPE 1s deg", "se(3) L2", "comp. m", "comp. deg"]
-    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for b in rows.values():
         cells = [b["label"], _cell(b["ate_rmse_m"], ".4f")]
         for g in RPE_GAPS:
@@ -207,8 +217,14 @@ def report_markdown(report: dict) -> str:
     br = report.get("bridges") or {}
     if br.get("fused") or br.get("teacher_graph"):
         lines += ["", f"Bridge edges (where the graph's edges left it disconnected; the chained trajectory's step "
-                  f"or zero motion, sigma {report['config']['bridge_sigma_factor']}x the graph's typical edge): "
+                  f"or zero motion, sigma {BRIDGE_SIGMA_FACTOR}x the graph's typical edge): "
                   f"fused {br.get('fused') or 0}, teacher graph {br.get('teacher_graph') or 0}."]
+    return lines
+
+
+def _md_skill(report: dict) -> list[str]:
+    """The validation skill of each gated source and the teacher's per-gap scales."""
+    lines = []
     gates = report.get("skill_gate") or {}
     if gates:
         lines += ["", "## Validation skill (se(3) L2 over zero motion's, on validation pairs)", "",
@@ -228,6 +244,13 @@ def report_markdown(report: dict) -> str:
         lines += ["", f"Teacher covariances scaled per gap (fitted on validation data, no ground truth: "
                   f"{tc.get('from') or '-'}): " + ", ".join(f"gap {g}: x{v:.3g}" for g, v in tc["scales"].items())
                   + "; the graph keeps them."]
+    return lines
+
+
+def _md_calibration(report: dict) -> list[str]:
+    """Covariance calibration against the ground truth, and the graph's per-source scales."""
+    rows = report["rows"]
+    lines = []
     cal = [(n, b["calibration"]) for n, b in rows.items() if "calibration" in b]
     if cal:
         lines += ["", "## Covariance calibration (edges vs ground truth)", "",
@@ -248,8 +271,13 @@ def report_markdown(report: dict) -> str:
                   "| source | edges | scale | residual factor |", "|---|---|---|---|"]
         lines += [f"| {n} | {c['edges']} | {c['scale']:.4g} | {c['residual_factor']:.3f} |"
                   for n, c in cc["sources"].items()]
+    return lines
+
+
+def _md_outliers(report: dict) -> list[str]:
+    """The outlier edges (the first 200)."""
     out = report["outliers"]
-    lines += ["", f"## Outliers ({len(out)})", ""]
+    lines = ["", f"## Outliers ({len(out)})", ""]
     if out:
         lines += ["| i | j | source | reason | value | action |", "|---|---|---|---|---|---|"]
         lines += [f"| {o['i']} | {o['j']} | {o['source']} | {o['reason']} | {o['value']:.3g} | {o['action']} |"
@@ -258,7 +286,4 @@ def report_markdown(report: dict) -> str:
             lines.append(f"\n... and {len(out) - 200} more in report.json")
     else:
         lines.append("none")
-    lines += ["", "## Solver", "", f"- initial error {report['solver']['initial_error']:.6g}, final "
-              f"{report['solver']['final_error']:.6g}, {report['solver']['iterations']} iterations/updates, "
-              f"{report['solver']['time_s']:.2f} s", f"- git {report['git']}", ""]
-    return "\n".join(lines)
+    return lines

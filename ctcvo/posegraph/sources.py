@@ -30,6 +30,8 @@ GROUNDTRUTH_FILE = "groundtruth.tum"
 REPORT_FILE = "report.json"
 #: Timestamps closer than this (s) are the same frame.
 TIME_TOL = 1e-4
+#: Frame rate (Hz) assumed when no timestamps are known (a bare edges file): the sensors' 30 Hz.
+FALLBACK_FPS = 30.0
 
 
 @dataclass
@@ -65,7 +67,7 @@ class Frames:
     listed_by: str
     """Where the frame list came from (for error messages)."""
     synthetic_times: bool = False
-    """True when no timestamps were known and ``id / fps`` was used."""
+    """True when no timestamps were known and ``id / FALLBACK_FPS`` was used."""
 
 
 def load_dir(path: Path, name: str) -> Source:
@@ -136,9 +138,10 @@ def load_edges_file(path: Path, name: str | None = None) -> Source:
     return Source(name=name, path=path, edges=edges, vertices=vertices)
 
 
-def resolve_frames(sources: Sequence[Source], fps: float = 30.0) -> Frames:
+def resolve_frames(sources: Sequence[Source]) -> Frames:
     """The frame table: ids listed by vertices, ``edges.csv`` or a trajectory whose rows
-    pair with them; with no listing at all, the ids the edges use."""
+    pair with them; with no listing at all, the ids the edges use. Without timestamps,
+    ``id / FALLBACK_FPS``."""
     listed: dict[int, float | None] = {}
     by = []
     for s in sources:
@@ -156,7 +159,7 @@ def resolve_frames(sources: Sequence[Source], fps: float = 30.0) -> Frames:
             for traj in (s.trajectory, s.groundtruth):
                 if traj is not None and len(traj) == len(ids):
                     return Frames(np.array(ids, dtype=np.int64), traj.timestamps.copy(), "edge ids")
-        return Frames(np.array(ids, dtype=np.int64), np.array(ids, dtype=np.float64) / fps, "edge ids",
+        return Frames(np.array(ids, dtype=np.int64), np.array(ids, dtype=np.float64) / FALLBACK_FPS, "edge ids",
                       synthetic_times=True)
     ids = np.array(sorted(listed), dtype=np.int64)
     times = np.array([np.nan if listed[int(k)] is None else listed[int(k)] for k in ids])
@@ -166,7 +169,7 @@ def resolve_frames(sources: Sequence[Source], fps: float = 30.0) -> Frames:
             for traj in (s.trajectory, s.groundtruth):
                 if traj is not None and len(traj) == len(ids):
                     return Frames(ids, traj.timestamps.copy(), ", ".join(by))
-        return Frames(ids, ids.astype(np.float64) / fps, ", ".join(by), synthetic_times=True)
+        return Frames(ids, ids.astype(np.float64) / FALLBACK_FPS, ", ".join(by), synthetic_times=True)
     return Frames(ids, times, ", ".join(by))
 
 
