@@ -26,8 +26,6 @@ For each new frame k:
 
 With ``--pose-after-gap1`` step 1 gives the gap-1 edge only, and the longer teacher edges
 follow step 4 in a second ISAM2 update (the same edges; a frame's pose waits for less).
-``--dense-max-gap N`` runs the teacher's dense step on edges of at most N frames only (a
-cheaper teacher; bench/README.md, "Online mode", measures what it costs in accuracy).
 
 This module only composes them (frame sources, the hand-over thread, outputs, command
 line); it is, with pipeline/demo.py, where every stage is imported.
@@ -845,8 +843,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--drop-late", action="store_true",
                    help="--follow: when frames come faster than they are processed, take the newest and skip "
                    "the ones in between (bounded latency, fewer frames)")
-    p.add_argument("--dense-max-gap", type=int, help="teacher: dense step only on edges of at most this many "
-                   "frames (0: every edge; default: the preset's); less work per frame, see bench/README.md")
     p.add_argument("--samples", type=int, help="MC-dropout passes K (default 10)")
     p.add_argument("--max-gap", type=int, help="learner edges to the last frames (default 5)")
     p.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"], help="learner device")
@@ -868,13 +864,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         scene = scene_with_topics(args.scene, args)
         tcfg = TEACHER_PRESETS[args.preset]
         if args.gaps is not None:
-            if args.gaps < 1:
-                raise ConfigError(f"--gaps must be >= 1, got {args.gaps}")
             tcfg = dataclasses.replace(tcfg, gaps=args.gaps)
-        if args.dense_max_gap is not None:
-            if args.dense_max_gap < 0:
-                raise ConfigError(f"--dense-max-gap must be >= 0 (0: every edge), got {args.dense_max_gap}")
-            tcfg = dataclasses.replace(tcfg, dense_max_gap=args.dense_max_gap)
         pcfg = PredictConfig(**{k: v for k, v in (("samples", args.samples), ("max_gap", args.max_gap)) if v is not None})
         if args.timeout <= 0 or args.poll <= 0:
             raise ConfigError("--timeout and --poll must be positive")

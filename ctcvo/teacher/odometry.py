@@ -21,6 +21,72 @@ from ctcvo.data.open3d_import import o3d
 from ctcvo.data.sequence import Intrinsics
 from ctcvo.teacher.config import TeacherConfig
 
+# ORB features and matching
+FAST_THRESHOLD = 12  # set by hand (fa44eca); kept against 8 and 20 on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+ORB_LEVELS = 6  # set by hand (fa44eca); kept against 4 and 8 on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+RATIO = 0.85  # Lowe ratio test; set by hand (fa44eca); kept against 0.75 and 0.95 on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+SEARCH_RADIUS_PX = 12.0  # guided matching radius; set by hand (fa44eca); kept against 8 and 20 on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+MAX_HAMMING = 64  # of 256 bits; set by hand (fa44eca); kept against 48 and 80 on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+FALLBACK_RADIUS_SCALE = 3.0  # wide matching radius / SEARCH_RADIUS_PX; a priori (b8a2c06): a ~3 deg sudden turn
+# keypoint depth
+DEPTH_MIN = 0.3  # m; the Kinect's range, by hand (fa44eca); 0.2 and 0.5 change no label on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+DEPTH_MAX = 4.5  # m; the Kinect's range, by hand (fa44eca); 3.5 and 6 change no label on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+DEPTH_EDGE_REL = 0.02  # depth-discontinuity test; by hand (fa44eca); 0.01, 0.04 within noise on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+DEPTH_EDGE_ABS = 0.02  # m; by hand (fa44eca); 0.01 and 0.04 level on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session) and redkitchen 200:350
+# PnP-RANSAC and the two-way refinement
+RANSAC_REPROJ_PX = 2.5  # by hand (fa44eca); kept against 1.5 and 4 on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+RANSAC_ITERS = 300  # by hand (fa44eca); 100 and 1000 within noise on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+REFINE_INLIER_PX = 3.0  # chosen on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session) (sixth issue-13 session), with HUBER_PX
+HUBER_PX = 4.0  # chosen on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session) (sixth issue-13 session): 1-3 px worse, 6 and 10 tied
+MIN_SIGMA_PX = 0.29  # residual floor: 1/sqrt(12) px of integer keypoint pixels (c7da6eb), not tuned
+REFINE_MAX_POINTS = 300  # by hand (fa44eca); 75-600 on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session): fewer drift more
+DEPTH_WEIGHT = 1000.0  # 3-D term, px per m at 1 m; a priori, measured on the redkitchen sample (957050c), kept on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+REFINE_ITERS = 6  # by hand (fa44eca); 4 tried on redkitchen 350:450 and not adopted (bench/README.md)
+# failure tests of a keypoint estimate
+MIN_MATCHES = 30  # by hand (fa44eca); 20 within noise, 45 worse on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+MIN_INLIERS = 25  # by hand (fa44eca); 15 and 40 within noise on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+MIN_INLIER_RATIO = 0.25  # by hand (fa44eca); 0.15 and 0.4 change no label on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+MAX_RMSE_PX = 2.25  # 0.75 REFINE_INLIER_PX, derived (seventh session), checked on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+MIN_SPREAD = 0.04  # inlier spread / image size; halved in c7da6eb; 0.02 and 0.08 change no label on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+# the dense point-to-plane step
+DENSE_ITERS = 3  # 3 since 5e42ad4 (redkitchen sample); kept against 2 and 4 on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+DENSE_STOP_M = 2e-3  # stop at a smaller update; chosen on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session) ("Fewer dense iterations")
+DENSE_STOP_DEG = 0.08  # chosen with DENSE_STOP_M
+DENSE_SCALE = 4  # every 4th depth pixel moved; by hand (b8ac45d); 3 better but 1.8x slower, 5 worse on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+DENSE_TARGET_SCALE = 2  # surface sampled every 2nd pixel; by hand (b8ac45d); 3 mixed on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+DENSE_NORMAL_KERNEL = 7  # smoothing before normals; by hand (b8ac45d); 5 worse on redkitchen 350:450
+DENSE_TRUNC_M = 0.07  # Open3D's depth_outlier_trunc default (b8ac45d), not tuned
+DENSE_HUBER_M = 0.05  # Open3D's depth_huber_delta default (b8ac45d), not tuned
+DENSE_MIN_FITNESS = 0.2  # by hand (b8ac45d); 0.1 and 0.4 change no label on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+DENSE_MAX_SHIFT_M = 0.03  # by hand (b8ac45d); 0.015 worse, 0.06 within noise on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+DENSE_MAX_SHIFT_DEG = 1.5  # by hand (b8ac45d); 0.75 and 3 within noise on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+DENSE_COV_SCALE = 5.0  # point-to-plane covariance inflation of the fusion; chosen on synthetic/lab and redkitchen 0:450
+DENSE_BLEND = 0.25  # fraction of the dense step taken when no covariance can weigh it (whole redkitchen sample, issue 14)
+P2P_COV_STRIDE = 4  # point-to-plane covariance from every 4th point; a third of the cost, labels within noise on redkitchen 350:450
+DENSE_COV_STRIDE = 2  # hybrid covariance stride / 2; by hand (12b33f0); 1 and 4 within noise on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+DENSE_MIN_SIGMA_M = 0.0003  # point-to-plane residual floor: 1/sqrt(12) mm depth steps (b8a2c06), not tuned
+# every other dense alignment (hybrid stage, rgbd and dense fallbacks)
+ALIGN_STOP_M = 5e-4  # stop at a smaller update; the dense step's former value (8e2340d, redkitchen sample)
+ALIGN_STOP_DEG = 0.02  # chosen with ALIGN_STOP_M
+# the hybrid (photometric + depth) stage
+HYBRID_ITERS = 3  # stress-far and synthetic/lab 0:100: 2 no better (12b33f0)
+PHOTO_HUBER = 0.1  # grey units; Open3D's default, not tuned
+HYBRID_COV_SCALE = 10.0  # hybrid covariance inflation; chosen on synthetic/lab 0:100 and the stress scenes
+PHOTO_WEIGHT = 0.5  # photometric against depth residual; chosen on the stress scenes, office and lab (issue 13)
+#: the photometric Huber threshold in the units of the grey maps scaled by sqrt(PHOTO_WEIGHT)
+PHOTO_HUBER_SCALED = PHOTO_HUBER * float(np.sqrt(PHOTO_WEIGHT))
+PHOTO_BLUR_PX = 2.0  # grey blur sigma; stress-far and synthetic/lab 0:100 (12b33f0)
+# the rgbd and dense fallbacks
+FALLBACK_LEVELS = ((8, 10), (4, 5))  # (scale, iterations) coarse to fine; a priori after Open3D's schedule
+FALLBACK_FINISH_ITERS = 3  # full-resolution iterations after them; by hand (d8a3094), 2 and 5 change no label on redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
+FALLBACK_CHAINED_ITERS = 3  # longer edges (no coarse levels); stress-lowfreq: same labels as 5 (c57b866)
+DEPTH_LEVELS = ((8, 30), (4, 30), (2, 20))  # depth-alone alignment beside a colour repeat; office, lab, stress-textureless (a33e490)
+DEPTH_FINISH_ITERS = 20  # chosen with DEPTH_LEVELS
+FALLBACK_DENSE_ITERS = 20  # dense-alone fallback; a priori, not tuned
+FALLBACK_MAX_SIGMA_M = 0.01  # dense fallback sanity bound (b8a2c06), not tuned
+FALLBACK_MAX_SIGMA_DEG = 0.5  # dense fallback sanity bound (b8a2c06), not tuned
+FALLBACK_MIN_CONDITIONING = 0.002  # between synthetic/office gap-1 pairs (0.013-0.023) and one noisy plane (0.0005)
+
 
 @dataclass
 class FrameFeatures:
@@ -29,7 +95,7 @@ class FrameFeatures:
     ``uv`` (N, 2) keypoint pixels, ``desc`` (N, 32) ORB descriptors, ``z`` (N,) depth at the
     keypoint (0 where invalid or on a depth edge, see :func:`depth_at`), ``gray`` (H, W)
     uint8 for sub-pixel tracking, ``depth`` (H, W) float32 metres. ``dense`` holds the Open3D
-    vertex and normal maps of the depth subsampled by ``cfg.dense_scale`` (None when the
+    vertex and normal maps of the depth subsampled by ``DENSE_SCALE`` (None when the
     dense step is off). ``keys`` fingerprints the colour and the depth image (to find
     repeated images); ``stale`` is set by the caller when exactly one of the two streams
     repeats the previous frame's image (see :func:`stale_stream`); ``colour_behind`` by
@@ -135,8 +201,8 @@ KINECT_V1_READOUT_S = 0.027
 
 
 def make_orb(cfg: TeacherConfig) -> cv2.ORB:
-    return cv2.ORB_create(nfeatures=cfg.n_features, scaleFactor=1.2, nlevels=cfg.orb_levels,
-                          fastThreshold=cfg.fast_threshold, edgeThreshold=19, patchSize=19)
+    return cv2.ORB_create(nfeatures=cfg.n_features, scaleFactor=1.2, nlevels=ORB_LEVELS,
+                          fastThreshold=FAST_THRESHOLD, edgeThreshold=19, patchSize=19)
 
 
 _OFFS = np.array([(dy, dx) for dy in range(-2, 3) for dx in range(-2, 3)])  # 5x5 window
@@ -162,8 +228,8 @@ def depth_at(depth: NDArray[np.float32], uv: NDArray, cfg: TeacherConfig) -> NDA
     # (M, 25): one flat np.take (the same pixels as 2-D fancy indexing, a few times faster)
     win = np.take(depth.reshape(-1), (v[idx, None] + _OFFS[:, 0]) * w + (u[idx, None] + _OFFS[:, 1]))
     lo, hi, zc = win.min(axis=1), win.max(axis=1), win[:, 12]
-    thr = np.maximum(cfg.depth_edge_abs, cfg.depth_edge_rel * zc)
-    idx = idx[(lo > 0) & (hi - lo <= thr) & (zc >= cfg.depth_min) & (zc <= cfg.depth_max)]
+    thr = np.maximum(DEPTH_EDGE_ABS, DEPTH_EDGE_REL * zc)
+    idx = idx[(lo > 0) & (hi - lo <= thr) & (zc >= DEPTH_MIN) & (zc <= DEPTH_MAX)]
     x, y = uv[idx, 0].astype(np.float64), uv[idx, 1].astype(np.float64)
     x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
     fx, fy = x - x0, y - y0
@@ -176,9 +242,9 @@ def depth_at(depth: NDArray[np.float32], uv: NDArray, cfg: TeacherConfig) -> NDA
 class DenseMaps:
     """Open3D tensors of one frame for the dense depth alignment (float32, NaN where invalid).
 
-    ``points`` (h4, w4, 3): vertex map of every ``cfg.dense_scale``-th pixel, used when the
+    ``points`` (h4, w4, 3): vertex map of every ``DENSE_SCALE``-th pixel, used when the
     frame is the one moved (j); ``vertex`` and ``normal`` (h2, w2, 3): vertex and normal maps
-    of every ``cfg.dense_target_scale``-th pixel, used when the frame is the one aligned to
+    of every ``DENSE_TARGET_SCALE``-th pixel, used when the frame is the one aligned to
     (i), with ``K`` (3x3 float64) their camera matrix.
     """
 
@@ -220,7 +286,7 @@ class PhotoMaps:
     :func:`hybrid_align` (float32, (rows, cols, 1) unless noted, NaN depth where invalid).
 
     As the frame moved (j): ``src_depth`` and ``src_intensity`` at the pixels of
-    ``DenseMaps.points`` (every ``cfg.dense_scale``-th). As the frame aligned to (i), at
+    ``DenseMaps.points`` (every ``DENSE_SCALE``-th). As the frame aligned to (i), at
     full resolution: ``depth``, ``intensity`` (grey in [0, 1], registered to the depth
     camera), their unnormalised 3x3 Sobel derivatives ``depth_dx`` ... ``intensity_dy``, and
     ``K`` (3x3 float64). Full resolution on that side is what makes the alignment precise:
@@ -292,7 +358,7 @@ def _subsampled(depth: NDArray[np.float32], K: NDArray, s: int,
     """Every ``s``-th pixel of ``depth`` (NaN outside ``[depth_min, depth_max]``) as an Open3D
     image, with its camera matrix ``K / s`` (pixel centres stay on the grid)."""
     d = np.array(depth[::s, ::s], dtype=np.float32)
-    d[~((d >= cfg.depth_min) & (d <= cfg.depth_max))] = np.nan
+    d[~((d >= DEPTH_MIN) & (d <= DEPTH_MAX))] = np.nan
     Ks = np.array(K, dtype=np.float64)
     Ks[:2] /= s
     return o3d.t.geometry.Image(o3d.core.Tensor(d)), o3d.core.Tensor(Ks)
@@ -314,9 +380,9 @@ def dense_maps(depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig,
     about two thirds of the time here) to :func:`add_surface`: a frame is i only in the
     edges of the frames after it, so ``vo-online`` builds them after handing the frame over.
     """
-    img, Kt = _subsampled(depth, K, cfg.dense_scale, cfg)
+    img, Kt = _subsampled(depth, K, DENSE_SCALE, cfg)
     points = img.create_vertex_map(Kt, float("nan")).as_tensor()
-    img, Kt = _subsampled(depth, K, cfg.dense_target_scale, cfg)
+    img, Kt = _subsampled(depth, K, DENSE_TARGET_SCALE, cfg)
     maps = DenseMaps(points, None, None, Kt, photo_maps(gray, depth, K, cfg) if gray is not None else None)
     if surface:
         _fill_surface(maps, img, cfg)
@@ -326,11 +392,11 @@ def dense_maps(depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig,
 def add_surface(maps: DenseMaps, depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig) -> None:
     """Fill ``maps.vertex`` and ``maps.normal`` (see :func:`dense_maps`) when they are missing."""
     if maps.vertex is None:
-        _fill_surface(maps, _subsampled(depth, K, cfg.dense_target_scale, cfg)[0], cfg)
+        _fill_surface(maps, _subsampled(depth, K, DENSE_TARGET_SCALE, cfg)[0], cfg)
 
 
 def _fill_surface(maps: DenseMaps, img: o3d.t.geometry.Image, cfg: TeacherConfig) -> None:
-    smooth = img.filter_bilateral(cfg.dense_normal_kernel, 5.0, 10.0)
+    smooth = img.filter_bilateral(DENSE_NORMAL_KERNEL, 5.0, 10.0)
     maps.vertex = img.create_vertex_map(maps.K, float("nan")).as_tensor()
     maps.normal = smooth.create_vertex_map(maps.K, float("nan")).create_normal_map(float("nan")).as_tensor()
 
@@ -339,23 +405,15 @@ def photo_maps(gray: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray, 
     """The maps of :class:`PhotoMaps` for one frame: ``gray`` (H, W) uint8, registered to the
     depth camera (:meth:`ColourCamera.to_depth_image`), ``depth`` (H, W) metres."""
     d = np.array(depth, dtype=np.float32)
-    d[~((d >= cfg.depth_min) & (d <= cfg.depth_max))] = np.nan
+    d[~((d >= DEPTH_MIN) & (d <= DEPTH_MAX))] = np.nan
     inten = gray.astype(np.float32) * np.float32(1 / 255)
-    if cfg.photo_normalise:  # undo the auto-exposure gain; a dark frame's contrast counts as a bright one's
-        inten *= np.float32(0.5 / max(float(inten[::4, ::4].mean()), 1e-3))
-    if cfg.photo_blur_px > 0:
-        inten = cv2.GaussianBlur(inten, (0, 0), cfg.photo_blur_px)
-    if cfg.photo_weight != 1.0:  # the kernel weighs both residuals alike: scale the grey instead
-        inten *= np.float32(np.sqrt(cfg.photo_weight))
-    s = cfg.dense_scale
+    # undo the auto-exposure gain: a dark frame's contrast counts as a bright one's
+    inten *= np.float32(0.5 / max(float(inten[::4, ::4].mean()), 1e-3))
+    inten = cv2.GaussianBlur(inten, (0, 0), PHOTO_BLUR_PX)
+    inten *= np.float32(np.sqrt(PHOTO_WEIGHT))  # the kernel weighs both residuals alike: scale the grey instead
+    s = DENSE_SCALE
     return PhotoMaps(_image_tensor(d[::s, ::s]), _image_tensor(inten[::s, ::s]), *_kernel_maps(d, inten),
                      o3d.core.Tensor(np.asarray(K, dtype=np.float64)))
-
-
-def _photo_huber(cfg: TeacherConfig) -> float:
-    """Huber threshold of the photometric residual in the units of the scaled grey maps of
-    :func:`photo_maps` (``cfg.photo_huber`` times ``sqrt(cfg.photo_weight)``)."""
-    return cfg.photo_huber * float(np.sqrt(cfg.photo_weight))
 
 
 def _photo_pair(di: DenseMaps, dj: DenseMaps, depth_only: bool = False) -> tuple[PhotoMaps, PhotoMaps]:
@@ -372,9 +430,9 @@ def hybrid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConf
                  iters: int, depth_only: bool = False) -> tuple[NDArray, float, int, bool]:
     """Align frame j to frame i with Open3D's hybrid RGB-D odometry kernel (photometric and
     depth residuals, Huber-weighted Gauss-Newton; Park, Zhou & Koltun 2017) at one level:
-    frame j's points of ``dj.points`` (every ``cfg.dense_scale``-th pixel) against frame i's
+    frame j's points of ``dj.points`` (every ``DENSE_SCALE``-th pixel) against frame i's
     full-resolution maps, from ``T_init`` (``T_i_j``), at most ``iters`` iterations,
-    stopping at ``cfg.align_stop_m`` / ``cfg.align_stop_deg`` updates. Returns (T_i_j,
+    stopping at ``ALIGN_STOP_M`` / ``ALIGN_STOP_DEG`` updates. Returns (T_i_j,
     fitness, iterations, converged). Raises RuntimeError when no point pairs up.
     ``depth_only``: the depth term alone (:func:`_photo_pair`)."""
     pi, pj = _photo_pair(di, dj, depth_only)
@@ -386,8 +444,8 @@ def hybrid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConf
 
 def _small_step(delta: NDArray, stop_m: float, stop_deg: float) -> bool:
     """An iteration's update ``delta`` (4x4) moves the pose by less than ``stop_m`` and
-    ``stop_deg``: ``cfg.dense_stop_m`` / ``_deg`` in the point-to-plane refinement of a keypoint
-    estimate, ``cfg.align_stop_m`` / ``_deg`` in every other dense alignment."""
+    ``stop_deg``: ``DENSE_STOP_M`` / ``_deg`` in the point-to-plane refinement of a keypoint
+    estimate, ``ALIGN_STOP_M`` / ``_deg`` in every other dense alignment."""
     return bool(np.linalg.norm(delta[:3, 3]) < stop_m and geo.rotation_angle_deg(delta) < stop_deg)
 
 
@@ -396,16 +454,16 @@ def _hybrid_steps(src_depth: o3d.core.Tensor, src_intensity: o3d.core.Tensor, ta
                   cfg: TeacherConfig) -> tuple[o3d.core.Tensor, float, int, bool]:
     """At most ``iters`` Gauss-Newton iterations of Open3D's hybrid kernel from ``T``
     (``target``: :func:`_kernel_maps` of the frame aligned to), stopping at a small update
-    (:func:`_small_step` at ``cfg.align_stop_m`` / ``_deg``). Returns (T, fitness, iterations,
+    (:func:`_small_step` at ``ALIGN_STOP_M`` / ``_deg``). Returns (T, fitness, iterations,
     converged)."""
     fitness, converged, it = 0.0, False, 0
     for it in range(iters):
         step = o3d.t.pipelines.odometry.compute_odometry_result_hybrid(
-            src_depth, target[0], src_intensity, target[1], *target[2:6], points, K, T, cfg.dense_trunc_m,
-            cfg.dense_huber_m, _photo_huber(cfg))
+            src_depth, target[0], src_intensity, target[1], *target[2:6], points, K, T, DENSE_TRUNC_M,
+            DENSE_HUBER_M, PHOTO_HUBER_SCALED)
         T = step.transformation.matmul(T)
         fitness = float(step.fitness)
-        if _small_step(step.transformation.numpy(), cfg.align_stop_m, cfg.align_stop_deg):
+        if _small_step(step.transformation.numpy(), ALIGN_STOP_M, ALIGN_STOP_DEG):
             converged = True
             break
     return T, fitness, it + 1, converged
@@ -414,25 +472,25 @@ def _hybrid_steps(src_depth: o3d.core.Tensor, src_intensity: o3d.core.Tensor, ta
 def pyramid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
                   coarse: bool = True, depth_only: bool = False) -> tuple[NDArray, float]:
     """Coarse-to-fine hybrid alignment of frame j to frame i from ``T_init`` (``T_i_j``):
-    Open3D's hybrid kernel at the scales and iteration counts of ``cfg.fallback_levels``
+    Open3D's hybrid kernel at the scales and iteration counts of ``FALLBACK_LEVELS``
     (frames at the same scale; the maps of each frame are built once and kept, so the
     frame's other edges reuse them), then :func:`hybrid_align` against frame i at full
-    resolution (``cfg.fallback_finish_iters``). Returns (T_i_j, fitness). Raises
+    resolution (``FALLBACK_FINISH_ITERS``). Returns (T_i_j, fitness). Raises
     RuntimeError when no pixel pairs up. The multi-scale function of Open3D rebuilds both
     frames' pyramids on every call; on synthetic/stress-lowfreq, where this fallback makes
     nearly every edge at every gap, that cost ~4 times the alignment itself.
     ``depth_only``: the depth term alone (:func:`_photo_pair`, which also picks it when
-    either frame's grey is void), at the scales and iteration counts of ``cfg.depth_levels``
-    and ``cfg.depth_finish_iters``."""
+    either frame's grey is void), at the scales and iteration counts of ``DEPTH_LEVELS``
+    and ``DEPTH_FINISH_ITERS``."""
     pi, pj = _photo_pair(di, dj, depth_only)
-    levels, finish = (cfg.depth_levels, cfg.depth_finish_iters) if depth_only else (cfg.fallback_levels,
-                                                                                     cfg.fallback_finish_iters)
+    levels, finish = (DEPTH_LEVELS, DEPTH_FINISH_ITERS) if depth_only else (FALLBACK_LEVELS,
+                                                                                     FALLBACK_FINISH_ITERS)
     T = o3d.core.Tensor(np.asarray(T_init, np.float64))
     for s, iters in levels if coarse else ():
         ti, tj = pi.level(s), pj.level(s)
         T, _, _, _ = _hybrid_steps(tj[0], tj[1], ti[:6], tj[6], ti[7], T, iters, cfg)
     T_h = geo.orthonormalize(T.numpy())
-    T_h, fitness, _, _ = hybrid_align(T_h, di, dj, cfg, max(finish if coarse else cfg.fallback_chained_iters, 1),
+    T_h, fitness, _, _ = hybrid_align(T_h, di, dj, cfg, max(finish if coarse else FALLBACK_CHAINED_ITERS, 1),
                                       depth_only)
     return T_h, fitness
 
@@ -472,14 +530,14 @@ def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConf
             orb: cv2.ORB | None = None, K: NDArray | None = None,
             colour: ColourCamera | None = None, surface: bool = True) -> FrameFeatures:
     """ORB keypoints and descriptors of one frame, with the depth at each keypoint; with the
-    camera matrix ``K`` and ``cfg.dense_iters > 0`` also the maps of the dense step (``surface``
+    camera matrix ``K`` and ``cfg.dense`` also the maps of the dense step (``surface``
     False: without the ones it needs as the older frame of an edge, for :func:`add_surface`
     to add before a later frame's edges). With a ``colour`` camera model (and ``K``),
     keypoints are moved into depth-camera pixels (``uv`` is then in depth-camera pixels;
     None: colour registered to depth)."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     dense = None
-    if K is not None and cfg.dense_iters > 0:
+    if K is not None and cfg.dense:
         photo = None
         if dense_method(cfg, colour) == "hybrid":
             photo = colour.to_depth_image(gray, depth, K) if colour is not None else gray
@@ -502,7 +560,7 @@ def match(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
 
     Only keypoints of frame i with a valid depth take part. With a motion prediction
     ``T_i_j_pred`` (and ``K``), each is compared only with the keypoints of frame j within
-    ``cfg.search_radius_px`` of its predicted position (guided matching, as ORB-SLAM's
+    ``SEARCH_RADIUS_PX`` of its predicted position (guided matching, as ORB-SLAM's
     search by projection); without one, with all of them.
     """
     src = np.flatnonzero(fi.z > 0)
@@ -516,7 +574,7 @@ def match(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
     front = Y[:, 2] > 1e-3
     src = src[front]
     pred = _project(np.compress(front, Y, axis=0), K)
-    near = cKDTree(pred).sparse_distance_matrix(fj.tree(), cfg.search_radius_px, output_type="ndarray")
+    near = cKDTree(pred).sparse_distance_matrix(fj.tree(), SEARCH_RADIUS_PX, output_type="ndarray")
     if len(near) == 0:
         return np.zeros((0, 2), np.int64)
     qi, cj = src[near["i"]], near["j"].astype(np.int64)
@@ -530,7 +588,7 @@ def match(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
     has2 = np.r_[first[1:], len(qi_s)] - first >= 2
     second = np.where(has2, d_s[np.minimum(first + 1, len(d_s) - 1)], 256)
     best_i, best_j, best_d = qi_s[first], cj_s[first], d_s[first]
-    ok = (best_d <= cfg.max_hamming) & (best_d < cfg.ratio * second)
+    ok = (best_d <= MAX_HAMMING) & (best_d < RATIO * second)
     # mutual check: the best i for each j among the compared pairs
     o2 = _stable_argsort((cj << 9) | d)
     cj2, qi2 = cj[o2], qi[o2]
@@ -556,8 +614,8 @@ def _stable_argsort(key: NDArray[np.int64]) -> NDArray[np.int64]:
 def match_wide(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
                T_i_j_pred: NDArray | None = None, K: NDArray | None = None) -> NDArray[np.int64]:
     """Fallback matching (``cfg.fallback_wide``): cross-checked nearest neighbours (each the
-    other's best) within ``cfg.max_hamming``, without the ratio test. With a motion prediction,
-    candidates lie within ``cfg.fallback_radius_scale * cfg.search_radius_px`` of the predicted
+    other's best) within ``MAX_HAMMING``, without the ratio test. With a motion prediction,
+    candidates lie within ``FALLBACK_RADIUS_SCALE * SEARCH_RADIUS_PX`` of the predicted
     position; without one, all keypoints of frame j (OpenCV's brute-force cross-check).
     Repeated or low-contrast texture gives close best and second-best distances, which the
     ratio test discards; RANSAC then sorts the right matches from the wrong ones."""
@@ -566,7 +624,7 @@ def match_wide(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
         return np.zeros((0, 2), np.int64)
     if T_i_j_pred is None:
         ms = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(fi.desc[src], fj.desc)
-        p = np.array([(src[m.queryIdx], m.trainIdx) for m in ms if m.distance <= cfg.max_hamming],
+        p = np.array([(src[m.queryIdx], m.trainIdx) for m in ms if m.distance <= MAX_HAMMING],
                      np.int64).reshape(-1, 2)
         return p
     P = _backproject(fi.uv[src], fi.z[src], K)
@@ -574,7 +632,7 @@ def match_wide(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
     Y = P @ Tji[:3, :3].T + Tji[:3, 3]
     src = src[Y[:, 2] > 1e-3]
     pred = _project(Y[Y[:, 2] > 1e-3], K)
-    near = cKDTree(pred).sparse_distance_matrix(fj.tree(), cfg.fallback_radius_scale * cfg.search_radius_px,
+    near = cKDTree(pred).sparse_distance_matrix(fj.tree(), FALLBACK_RADIUS_SCALE * SEARCH_RADIUS_PX,
                                                 output_type="ndarray")
     if len(near) == 0:
         return np.zeros((0, 2), np.int64)
@@ -587,7 +645,7 @@ def match_wide(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
     first2 = np.flatnonzero(np.r_[True, cj[o2][1:] != cj[o2][:-1]])
     back = np.full(len(fj.desc), -1, np.int64)
     back[cj[o2][first2]] = qi[o2][first2]
-    ok = (best_d <= cfg.max_hamming) & (back[best_j] == best_i)
+    ok = (best_d <= MAX_HAMMING) & (back[best_j] == best_i)
     return np.stack([best_i[ok], best_j[ok]], axis=1)
 
 
@@ -601,7 +659,7 @@ def _match_exhaustive(fi: FrameFeatures, fj: FrameFeatures, src: NDArray[np.int6
     for m in bf.match(fj.desc, di):
         back[m.queryIdx] = m.trainIdx
     pairs = [(a.queryIdx, a.trainIdx) for a, b in (ms for ms in fwd if len(ms) == 2)
-             if a.distance <= cfg.max_hamming and a.distance < cfg.ratio * b.distance
+             if a.distance <= MAX_HAMMING and a.distance < RATIO * b.distance
              and back[a.trainIdx] == a.queryIdx]
     p = np.array(pairs, dtype=np.int64).reshape(-1, 2)
     p[:, 0] = src[p[:, 0]]
@@ -892,10 +950,10 @@ def _rolling_view(f: FrameFeatures, role: str, intr: Intrinsics, cfg: TeacherCon
         uv[ok], z[ok] = _project(X, K), X[:, 2]
         dense, d = None, f.dense
         if d is not None and role == "out" and d.vertex is not None:  # the frame aligned to
-            vertex = map_to_middle_row(d.vertex, cfg.dense_target_scale, h, xi, cfg.rolling_shutter_s)
+            vertex = map_to_middle_row(d.vertex, DENSE_TARGET_SCALE, h, xi, cfg.rolling_shutter_s)
             dense = DenseMaps(d.points, vertex, d.normal, d.K)
         elif d is not None and role == "in":  # the frame moved
-            dense = DenseMaps(map_to_middle_row(d.points, cfg.dense_scale, h, xi, cfg.rolling_shutter_s), d.vertex,
+            dense = DenseMaps(map_to_middle_row(d.points, DENSE_SCALE, h, xi, cfg.rolling_shutter_s), d.vertex,
                               d.normal, d.K)
         f._rolling[role] = ((uv, z), dense)
     return f._rolling[role]
@@ -903,7 +961,7 @@ def _rolling_view(f: FrameFeatures, role: str, intr: Intrinsics, cfg: TeacherCon
 
 def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
                   cfg: TeacherConfig, dt: float, T_pred: NDArray | None = None,
-                  tracks: NDArray[np.int64] | None = None, dense: bool = True,
+                  tracks: NDArray[np.int64] | None = None,
                   T_alt: NDArray | None = None, span: float | None = None) -> EdgeEstimate:
     """Estimate ``T_i_j`` between two frames (ids ``i``, ``j``, ``dt`` seconds apart).
 
@@ -937,17 +995,16 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
     at most 4 % better and its trajectory worse (``depth_time_compensation``).
     """
     span = dt if span is None else span
-    rolling = rolling_shutter_views(fi, fj, intr, cfg) if not cfg.subpixel else None
+    rolling = rolling_shutter_views(fi, fj, intr, cfg)
     attempts = []
-    if tracks is not None and len(tracks) >= cfg.min_matches:
+    if tracks is not None and len(tracks) >= MIN_MATCHES:
         attempts.append(("tracks", tracks, None))
     if T_pred is not None:
         attempts.append(("guided", None, T_pred))
     attempts.append(("exhaustive", None, None))
-    if cfg.fallback_wide:
-        if T_pred is not None:
-            attempts.append(("wide", None, T_pred))
-        attempts.append(("crosscheck", None, None))
+    if T_pred is not None:
+        attempts.append(("wide", None, T_pred))
+    attempts.append(("crosscheck", None, None))
     best: EdgeEstimate | None = None
     for source, pairs, pred in attempts:
         if pairs is None:
@@ -965,7 +1022,7 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
     # the dense alignments' starts, between the depth moments
     T0 = _depth_moments(np.eye(4) if T_pred is None else T_pred, fi, fj, dt)
     alt = None if tracks is not None or T_alt is None else _depth_moments(T_alt, fi, fj, dt)
-    if (tracks is None and cfg.depth_beside_colour_repeat and beside_colour_repeat(fi, fj)
+    if (tracks is None and beside_colour_repeat(fi, fj)
             and fi.dense is not None and fj.dense is not None
             and fi.dense.photo is not None and fj.dense.photo is not None):
         # a gap-1 edge beside a frame whose colour shows an earlier moment than its depth:
@@ -978,20 +1035,19 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
             depth.inlier_pairs = best.inlier_pairs if best.ok else None  # the feature tracks go on
             return depth
         best.info["depth_step"] = depth.status
-    if not best.ok and cfg.fallback_dense and fi.dense is not None and fj.dense is not None:
-        if cfg.fallback_rgbd:
-            rgbd = _to_colour_moments(_rgbd_starts(i, j, fi, fj, intr, cfg, span, T0, alt,
-                                                   chained=tracks is not None and T_pred is not None), fi, fj, dt)
-            rgbd.info["sparse_status"] = best.status
-            if rgbd.ok:
-                return rgbd
-            best.info["rgbd_fallback"] = rgbd.status
+    if not best.ok and fi.dense is not None and fj.dense is not None:
+        rgbd = _to_colour_moments(_rgbd_starts(i, j, fi, fj, intr, cfg, span, T0, alt,
+                                               chained=tracks is not None and T_pred is not None), fi, fj, dt)
+        rgbd.info["sparse_status"] = best.status
+        if rgbd.ok:
+            return rgbd
+        best.info["rgbd_fallback"] = rgbd.status
         depth_only = _to_colour_moments(dense_edge(i, j, fi.dense, fj.dense, cfg, span, T0), fi, fj, dt)
         depth_only.info["sparse_status"] = best.status
         if depth_only.ok:
             return depth_only
         best.info["dense_fallback"] = depth_only.status
-    if dense and best.ok and fi.dense is not None and fj.dense is not None:
+    if best.ok and fi.dense is not None and fj.dense is not None:
         stale = fi.stale or fj.stale
         moved = _moved(fi, fj, dt)
         if moved:  # the dense step aligns the depth maps: between their moments
@@ -1000,12 +1056,12 @@ def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: In
         di, dj = (rolling[2], rolling[3]) if rolling is not None and rolling[2] is not None \
             and rolling[3] is not None else (fi.dense, fj.dense)
         dense_refine(best, di, dj, cfg, blend=1.0 if stale and cfg.dense_on_stale else None,
-                     hybrid=tracks is None or cfg.hybrid_all_gaps)
+                     hybrid=tracks is None)
         if moved:
             _to_colour_moments(best, fi, fj, dt)
         if "dense" in best.info:
             best.info["dense"]["stale_stream"] = stale
-        if (cfg.fallback_rgbd and T_pred is not None and _dense_disagrees(best.info.get("dense", {}), cfg)
+        if (T_pred is not None and _dense_disagrees(best.info.get("dense", {}), cfg)
                 and fi.dense.photo is not None and fj.dense.photo is not None):
             # the depth, started at the keypoints' estimate, moved too far from it: the
             # keypoints may agree on a wrong motion; the rgbd fallback from the prediction
@@ -1035,10 +1091,10 @@ def _rgbd_starts(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Int
 
 def _dense_disagrees(d: dict, cfg: TeacherConfig) -> bool:
     """The depth stage of :func:`dense_refine` (``d`` = ``info["dense"]``) paired enough
-    pixels but was rejected for moving the pose farther than ``cfg.dense_max_shift_m`` /
-    ``cfg.dense_max_shift_deg`` from the sparse estimate."""
-    return (bool(d) and not d.get("accepted", True) and d.get("fitness", 0.0) >= cfg.dense_min_fitness
-            and (d.get("shift_m", 0.0) > cfg.dense_max_shift_m or d.get("shift_deg", 0.0) > cfg.dense_max_shift_deg))
+    pixels but was rejected for moving the pose farther than ``DENSE_MAX_SHIFT_M`` /
+    ``DENSE_MAX_SHIFT_DEG`` from the sparse estimate."""
+    return (bool(d) and not d.get("accepted", True) and d.get("fitness", 0.0) >= DENSE_MIN_FITNESS
+            and (d.get("shift_m", 0.0) > DENSE_MAX_SHIFT_M or d.get("shift_deg", 0.0) > DENSE_MAX_SHIFT_DEG))
 
 
 def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
@@ -1057,7 +1113,7 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     farther from the sparse estimate than ``dense_max_shift_m`` / ``dense_max_shift_deg``
     (a sliding or diverging alignment, e.g. on one plane). ``res.info["dense"]`` records
     the outcome.
-    The edge's pose then moves ``cfg.dense_blend`` of the way from the sparse to the dense
+    The edge's pose then moves ``DENSE_BLEND`` of the way from the sparse to the dense
     estimate: the depth alignment is locally better on real data but drifts (see the
     config field); ``blend`` overrides it (1 for a frame whose colour and depth were taken
     at different times, see ``cfg.dense_on_stale``). The covariance stays the sparse
@@ -1069,21 +1125,20 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     gives a frame whose depth repeats the previous frame's that frame's photometric maps
     (the colour taken with that depth) and a frame whose colour repeats none, so maps that
     exist match their depth; the prior is then the depth stage's own covariance (times
-    ``cfg.dense_cov_scale``), as the sparse estimate was dropped.
+    ``DENSE_COV_SCALE``), as the sparse estimate was dropped.
     """
-    if cfg.dense_iters <= 0:
+    if not cfg.dense:
         return
     # a stale pair's keypoints show another moment than its depth: depth alone there, then
     # the hybrid stage where both frames' photometric maps match their depth (see above)
-    hybrid = (hybrid and di.photo is not None and dj.photo is not None and di.photo.grey and dj.photo.grey
-              and (blend is None or cfg.hybrid_on_stale))
+    hybrid = (hybrid and di.photo is not None and dj.photo is not None and di.photo.grey and dj.photo.grey)
     cov = _dense_stage(res, di, dj, cfg, blend, False, res.cov)
     if hybrid and blend is not None:
         # the sparse estimate was dropped: the depth stage's own covariance is the prior
-        cov, _, _ = point_to_plane_covariance(res.T_i_j, di, dj, cfg, stride=cfg.dense_cov_stride)
+        cov, _, _ = point_to_plane_covariance(res.T_i_j, di, dj, cfg, stride=DENSE_COV_STRIDE)
         if cov is None:
             return
-        cov = cov * cfg.dense_cov_scale
+        cov = cov * DENSE_COV_SCALE
     if hybrid:
         _dense_stage(res, di, dj, cfg, None, True, cov)
 
@@ -1098,14 +1153,14 @@ def _dense_stage(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     fitness, rmse = 0.0, float("nan")
     try:
         if hybrid:
-            T_h, fitness, n_it, _ = hybrid_align(res.T_i_j, di, dj, cfg, cfg.hybrid_iters)
+            T_h, fitness, n_it, _ = hybrid_align(res.T_i_j, di, dj, cfg, HYBRID_ITERS)
             T = o3d.core.Tensor(T_h)
-        for it in range(0 if hybrid else cfg.dense_iters):
+        for it in range(0 if hybrid else DENSE_ITERS):
             step = o3d.t.pipelines.odometry.compute_odometry_result_point_to_plane(
-                dj.points, di.vertex, di.normal, di.K, T, cfg.dense_trunc_m, cfg.dense_huber_m)
+                dj.points, di.vertex, di.normal, di.K, T, DENSE_TRUNC_M, DENSE_HUBER_M)
             T = step.transformation.matmul(T)
             fitness, rmse = float(step.fitness), float(step.inlier_rmse)
-            if _small_step(step.transformation.numpy(), cfg.dense_stop_m, cfg.dense_stop_deg):
+            if _small_step(step.transformation.numpy(), DENSE_STOP_M, DENSE_STOP_DEG):
                 break
     except RuntimeError:  # Open3D raises when no pixel pairs up
         out = {"accepted": False, "fitness": 0.0}
@@ -1119,8 +1174,8 @@ def _dense_stage(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     T_d = T.numpy()
     d = geo.inv_T(res.T_i_j) @ T_d
     shift_m, shift_deg = float(np.linalg.norm(d[:3, 3])), geo.rotation_angle_deg(d)
-    ok = (np.all(np.isfinite(T_d)) and fitness >= cfg.dense_min_fitness
-          and shift_m <= cfg.dense_max_shift_m and shift_deg <= cfg.dense_max_shift_deg)
+    ok = (np.all(np.isfinite(T_d)) and fitness >= DENSE_MIN_FITNESS
+          and shift_m <= DENSE_MAX_SHIFT_M and shift_deg <= DENSE_MAX_SHIFT_DEG)
     out = {"accepted": bool(ok), "iterations": it + 1, "fitness": fitness, "rmse_m": rmse,
            "shift_m": shift_m, "shift_deg": shift_deg}
     if hybrid:
@@ -1130,22 +1185,20 @@ def _dense_stage(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     if not ok:
         return cov_prior
     x = geo.se3_log(d)
-    if blend is None and cfg.dense_fusion == "whole":
-        blend = 1.0
-    if blend is None and cfg.dense_fusion == "information" and cov_prior is not None:
+    if blend is None and cov_prior is not None:
         # weigh the two by their information: (S_s^-1 + S_d^-1)^-1 S_d^-1 x
         if hybrid:
-            cov_d = hybrid_covariance(T_d, di, dj, cfg, stride=2 * cfg.dense_cov_stride)
+            cov_d = hybrid_covariance(T_d, di, dj, cfg, stride=2 * DENSE_COV_STRIDE)
         else:
-            cov_d, _, _ = point_to_plane_covariance(T_d, di, dj, cfg, stride=cfg.p2p_cov_stride)
+            cov_d, _, _ = point_to_plane_covariance(T_d, di, dj, cfg, stride=P2P_COV_STRIDE)
         if cov_d is not None:
-            scale = cfg.hybrid_cov_scale if hybrid else cfg.dense_cov_scale
+            scale = HYBRID_COV_SCALE if hybrid else DENSE_COV_SCALE
             info_s, info_d = np.linalg.inv(cov_prior), np.linalg.inv(cov_d * scale)
             step = np.linalg.solve(info_s + info_d, info_d @ x)
             out["weight"] = float(step @ x / max(x @ x, 1e-30))
             res.T_i_j = res.T_i_j @ geo.se3_exp(step)
             return np.linalg.inv(info_s + info_d)
-    res.T_i_j = res.T_i_j @ geo.se3_exp((cfg.dense_blend if blend is None else blend) * x)
+    res.T_i_j = res.T_i_j @ geo.se3_exp((DENSE_BLEND if blend is None else blend) * x)
     return cov_prior
 
 
@@ -1156,21 +1209,21 @@ def dense_edge(i: int, j: int, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
     ``T_init`` (the motion prediction), ``path`` ``dense``.
 
     The same Open3D projective ICP kernel as :func:`dense_refine`, up to
-    ``cfg.fallback_dense_iters`` iterations. The covariance is ``sigma^2 (J^T W J)^-1`` of
+    ``FALLBACK_DENSE_ITERS`` iterations. The covariance is ``sigma^2 (J^T W J)^-1`` of
     the point-to-plane residuals at the result (:func:`point_to_plane_covariance`). Failed
     (status ``few_matches`` / ``degenerate`` / ``implausible_motion``) when too few pixels
     pair up, when the iteration has not settled, when the covariance leaves a direction
-    undetermined (``cfg.fallback_max_sigma_m`` / ``_deg``: e.g. a single plane in view) or
+    undetermined (``FALLBACK_MAX_SIGMA_M`` / ``_deg``: e.g. a single plane in view) or
     when the motion is implausibly fast."""
     T = o3d.core.Tensor(np.asarray(T_init, np.float64))
     fitness, converged, it = 0.0, False, 0
     try:
-        for it in range(cfg.fallback_dense_iters):
+        for it in range(FALLBACK_DENSE_ITERS):
             step = o3d.t.pipelines.odometry.compute_odometry_result_point_to_plane(
-                dj.points, di.vertex, di.normal, di.K, T, cfg.dense_trunc_m, cfg.dense_huber_m)
+                dj.points, di.vertex, di.normal, di.K, T, DENSE_TRUNC_M, DENSE_HUBER_M)
             T = step.transformation.matmul(T)
             fitness = float(step.fitness)
-            if _small_step(step.transformation.numpy(), cfg.align_stop_m, cfg.align_stop_deg):
+            if _small_step(step.transformation.numpy(), ALIGN_STOP_M, ALIGN_STOP_DEG):
                 converged = True
                 break
     except RuntimeError as exc:  # no pixel pairs up, or a singular system (e.g. an exact plane)
@@ -1180,7 +1233,7 @@ def dense_edge(i: int, j: int, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
     info = {"path": "dense", "dense": {"accepted": True, "iterations": it + 1, "fitness": fitness, "shift_m": 0.0,
                                        "shift_deg": 0.0, "stale_stream": False}}
     res = EdgeEstimate(i, j, "ok", T_i_j=T_d, info=info)
-    if not np.all(np.isfinite(T_d)) or fitness < cfg.dense_min_fitness:
+    if not np.all(np.isfinite(T_d)) or fitness < DENSE_MIN_FITNESS:
         res.status, res.info["path"] = "few_matches", "none"
         return res
     if not converged:  # still sliding after all iterations: what the depth leaves free
@@ -1196,9 +1249,9 @@ def dense_edge(i: int, j: int, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
         return res
     ev = np.linalg.eigvalsh(cov[:3, :3]), np.linalg.eigvalsh(cov[3:, 3:])
     res.info["conditioning"] = _conditioning(cov, dj)
-    if (ev[0].min() <= 0 or np.sqrt(ev[0].max()) > cfg.fallback_max_sigma_m
-            or ev[1].min() <= 0 or np.degrees(np.sqrt(ev[1].max())) > cfg.fallback_max_sigma_deg
-            or res.info["conditioning"] < cfg.fallback_min_conditioning):
+    if (ev[0].min() <= 0 or np.sqrt(ev[0].max()) > FALLBACK_MAX_SIGMA_M
+            or ev[1].min() <= 0 or np.degrees(np.sqrt(ev[1].max())) > FALLBACK_MAX_SIGMA_DEG
+            or res.info["conditioning"] < FALLBACK_MIN_CONDITIONING):
         res.status = "degenerate"
     elif trans > cfg.max_speed * dt or rot > cfg.max_angular_speed_deg * dt:
         res.status = "implausible_motion"
@@ -1210,7 +1263,7 @@ def dense_edge(i: int, j: int, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
 def _conditioning(cov: NDArray, dj: DenseMaps) -> float:
     """Smallest over largest eigenvalue of a dense covariance with rotations scaled by the
     median depth of frame j (a rotation of 1 rad moves the points by ~z metres); small when
-    the depth leaves a direction nearly free (``cfg.fallback_min_conditioning``)."""
+    the depth leaves a direction nearly free (``FALLBACK_MIN_CONDITIONING``)."""
     z = float(np.nanmedian(dj.points.numpy()[..., 2]))
     S = np.diag([1.0, 1.0, 1.0, z, z, z])
     ev = np.linalg.eigvalsh(S @ cov @ S)
@@ -1234,7 +1287,7 @@ def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     :func:`point_to_plane_covariance` at the result: large along what the depth leaves free
     (the colour term that fixed it is not counted, so it errs on the safe side). Failed
     when too few pixels pair up, when that covariance cannot be formed or is as poorly
-    conditioned as one plane's (``cfg.fallback_min_conditioning``: a textured single plane
+    conditioned as one plane's (``FALLBACK_MIN_CONDITIONING``: a textured single plane
     is refused too, conservatively), or when the motion is implausibly fast. With the hybrid
     maps and ``depth_only`` (or a frame whose grey is void, :func:`_photo_pair`) the kernel's
     depth term alone aligns them."""
@@ -1252,7 +1305,7 @@ def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     try:
         out = o3d.t.pipelines.odometry.rgbd_odometry_multi_scale(
             _rgbd_image(fj, s), _rgbd_image(fi, s), o3d.core.Tensor(K), o3d.core.Tensor(np.asarray(T_init, np.float64)),
-            1.0, cfg.depth_max, crit, o3d.t.pipelines.odometry.Method.Hybrid)
+            1.0, DEPTH_MAX, crit, o3d.t.pipelines.odometry.Method.Hybrid)
     except RuntimeError as exc:
         return EdgeEstimate(i, j, "degenerate" if "Singular" in str(exc) else "few_matches",
                             info={"path": "none", "error": str(exc)[-200:]})
@@ -1264,7 +1317,7 @@ def _rgbd_checked(i: int, j: int, T: NDArray, fitness: float, fi: FrameFeatures,
     """The ``rgbd`` edge of a hybrid alignment's result, with its covariance and checks."""
     res = EdgeEstimate(i, j, "ok", T_i_j=T, info={"path": "rgbd", "dense": {
         "accepted": True, "iterations": 0, "fitness": fitness, "shift_m": 0.0, "shift_deg": 0.0, "stale_stream": False}})
-    if not np.all(np.isfinite(T)) or fitness < cfg.dense_min_fitness:
+    if not np.all(np.isfinite(T)) or fitness < DENSE_MIN_FITNESS:
         res.status, res.info["path"] = "few_matches", "none"
         return res
     # every 2nd point on the hybrid path (it runs for every edge of a starved scene); all
@@ -1276,7 +1329,7 @@ def _rgbd_checked(i: int, j: int, T: NDArray, fitness: float, fi: FrameFeatures,
     res.info.update(trans_m=trans, rot_deg=rot, rmse_m=rmse)
     if cov is not None:
         res.info["conditioning"] = _conditioning(cov, fj.dense)
-    if cov is None or np.linalg.eigvalsh(cov).min() <= 0 or res.info["conditioning"] < cfg.fallback_min_conditioning:
+    if cov is None or np.linalg.eigvalsh(cov).min() <= 0 or res.info["conditioning"] < FALLBACK_MIN_CONDITIONING:
         res.status = "degenerate"  # e.g. one plane of one colour: nothing pins the slide along it
     elif trans > cfg.max_speed * dt or rot > cfg.max_angular_speed_deg * dt:
         res.status = "implausible_motion"
@@ -1293,9 +1346,9 @@ def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg:
 
     The pairs are formed as Open3D's projective kernel forms them (j's point moved into i,
     projected with ``di.K``, paired with i's vertex at the rounded pixel, kept within
-    ``cfg.dense_trunc_m``). Residual ``r = n^T (T q - p)``; with ``m = R^T n`` its Jacobian
+    ``DENSE_TRUNC_M``). Residual ``r = n^T (T q - p)``; with ``m = R^T n`` its Jacobian
     is ``[m^T, (q x m)^T]``. ``sigma^2`` is the Huber-weighted residual variance, floored at
-    ``cfg.dense_min_sigma_m`` squared (two images of one repeated depth map agree exactly). The
+    ``DENSE_MIN_SIGMA_M`` squared (two images of one repeated depth map agree exactly). The
     pixels' errors are correlated (smooth depth bias, correlated noise), so this is a lower
     bound of the real uncertainty. None when fewer than 6 pairs or a singular system.
     ``stride``: use every ``stride``-th point of j in both axes (the covariance is then
@@ -1319,7 +1372,7 @@ def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg:
     p, n = np.compress(use, p, axis=0).astype(np.float64), np.compress(use, n, axis=0).astype(np.float64)
     Xs = np.take(X, idx, axis=0)
     d = Xs - p
-    ok = np.sqrt(np.add.reduce(d * d, axis=1)) < cfg.dense_trunc_m  # np.linalg.norm's formula
+    ok = np.sqrt(np.add.reduce(d * d, axis=1)) < DENSE_TRUNC_M  # np.linalg.norm's formula
     q, X = np.take(q, idx[ok], axis=0), np.compress(ok, Xs, axis=0)
     p, n = np.compress(ok, p, axis=0), np.compress(ok, n, axis=0)
     if len(q) < 6:
@@ -1331,9 +1384,9 @@ def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg:
     J[:, 3] = q[:, 1] * m[:, 2] - q[:, 2] * m[:, 1]  # q x m, written out (np.cross's formula)
     J[:, 4] = q[:, 2] * m[:, 0] - q[:, 0] * m[:, 2]
     J[:, 5] = q[:, 0] * m[:, 1] - q[:, 1] * m[:, 0]
-    _, wts, _ = _huber(r, cfg.dense_huber_m)
+    _, wts, _ = _huber(r, DENSE_HUBER_M)
     H = J.T @ (J * wts[:, None])
-    sigma2 = max(float(np.sum(wts * r * r) / max(len(r) - 6, 1)), cfg.dense_min_sigma_m ** 2)
+    sigma2 = max(float(np.sum(wts * r * r) / max(len(r) - 6, 1)), DENSE_MIN_SIGMA_M ** 2)
     try:
         cov = sigma2 * np.linalg.inv(H) / stride ** 2
     except np.linalg.LinAlgError:
@@ -1349,11 +1402,11 @@ def hybrid_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg: Teacher
     alignment of :func:`hybrid_align`: the inverse of the summed information of its two
     residuals at the result, each pixel pair formed as Open3D's kernel forms it (frame j's
     point ``q`` moved into i, the nearest pixel of i's full-resolution maps, kept within
-    ``cfg.dense_trunc_m`` in depth). Photometric ``r_I = I_i(u) - I_j(q)`` and depth
+    ``DENSE_TRUNC_M`` in depth). Photometric ``r_I = I_i(u) - I_j(q)`` and depth
     ``r_D = D_i(u) - z(T q)``, their Jacobians through the Sobel derivatives of frame i
-    (``/ 8``: per pixel) and the projection; each term Huber-weighted (``cfg.photo_huber``,
-    ``cfg.dense_huber_m``) and divided by its own weighted residual variance (floored at
-    ``cfg.dense_min_sigma_m`` squared for depth). Pixel errors are correlated, so, like
+    (``/ 8``: per pixel) and the projection; each term Huber-weighted (``PHOTO_HUBER``,
+    ``DENSE_HUBER_M``) and divided by its own weighted residual variance (floored at
+    ``DENSE_MIN_SIGMA_M`` squared for depth). Pixel errors are correlated, so, like
     :func:`point_to_plane_covariance`, a lower bound. ``stride``: every ``stride``-th point
     of j in both axes (scaled back to all). None without photometric maps, with fewer
     than 12 pairs or a singular system."""
@@ -1379,7 +1432,7 @@ def hybrid_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg: Teacher
     d = Di[v, u].astype(np.float64)
     g = [a.numpy()[..., 0][v, u].astype(np.float64) / 8.0 for a in (pi.depth_dx, pi.depth_dy, pi.intensity_dx, pi.intensity_dy)]
     rD = d - X[:, 2]
-    ok = np.isfinite(d) & (np.abs(rD) <= cfg.dense_trunc_m) & np.all(np.isfinite(np.stack(g)), axis=0)
+    ok = np.isfinite(d) & (np.abs(rD) <= DENSE_TRUNC_M) & np.all(np.isfinite(np.stack(g)), axis=0)
     if ok.sum() < 12:
         return None
     X, q, rD = X[ok], q[ok], rD[ok]
@@ -1393,8 +1446,8 @@ def hybrid_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg: Teacher
     bD = gDx[:, None] * du + gDy[:, None] * dv
     bD[:, 2] -= 1.0
     info = np.zeros((6, 6))
-    a = float(np.sqrt(cfg.photo_weight))  # the grey maps' scale (photo_maps)
-    for b, r, k, floor in ((bI, rI, _photo_huber(cfg), a / 255), (bD, rD, cfg.dense_huber_m, cfg.dense_min_sigma_m)):
+    a = float(np.sqrt(PHOTO_WEIGHT))  # the grey maps' scale (photo_maps)
+    for b, r, k, floor in ((bI, rI, PHOTO_HUBER_SCALED, a / 255), (bD, rD, DENSE_HUBER_M, DENSE_MIN_SIGMA_M)):
         m = b @ R  # R^T b per pixel
         J = np.concatenate([m, np.cross(q, m)], axis=1)
         _, wts, _ = _huber(r, k)
@@ -1417,16 +1470,14 @@ def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     takes (``cfg.subpixel`` off)."""
     K = intr.K
     n_match = len(pairs)
-    if n_match < cfg.min_matches:
+    if n_match < MIN_MATCHES:
         return EdgeEstimate(i, j, "few_matches", matches=n_match)
     (uv_fi, z_fi), (uv_fj, z_fj) = (rolling[0], rolling[1]) if rolling is not None else ((fi.uv, fi.z), (fj.uv, fj.z))
     uv_i = np.take(uv_fi, pairs[:, 0], axis=0).astype(np.float64)
     uv_j = np.take(uv_fj, pairs[:, 1], axis=0).astype(np.float64)
-    if cfg.subpixel:
-        uv_j = _subpixel(fi, fj, uv_i, uv_j, cfg.lk_window)
     P_i = _backproject(uv_i, z_fi[pairs[:, 0]].astype(np.float64), K)
     ok, rvec, tvec, inl = cv2.solvePnPRansac(
-        P_i, uv_j, K, None, iterationsCount=cfg.ransac_iters, reprojectionError=cfg.ransac_reproj_px,
+        P_i, uv_j, K, None, iterationsCount=RANSAC_ITERS, reprojectionError=RANSAC_REPROJ_PX,
         confidence=0.999, flags=cv2.SOLVEPNP_SQPNP)
     if not ok or inl is None or len(inl) < 6:
         return EdgeEstimate(i, j, "few_inliers", matches=n_match, inliers=0 if inl is None else len(inl))
@@ -1436,21 +1487,19 @@ def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     T0 = geo.inv_T(geo.make_T(R_j_i, tvec.ravel()))
 
     # points of frame j with valid depth give the backward term
-    z_j = (depth_at(fj.depth, uv_j, cfg) if cfg.subpixel else z_fj[pairs[:, 1]]).astype(np.float64)
+    z_j = z_fj[pairs[:, 1]].astype(np.float64)
     Q_all = _backproject(uv_j, z_j, K)
-    has_b = (z_j > 0) if cfg.two_way and cfg.refine else np.zeros(len(z_j), bool)
-    iters, w3 = (cfg.refine_iters, cfg.depth_weight) if cfg.refine else (0, 0.0)  # 0: covariance at T0 only
-    T, r, cov = T0, None, None
-    for _ in range(cfg.refine_rounds):  # select inliers with the current pose, refine
-        in_f = _reproj_err(geo.inv_T(T), P_i, uv_j, K) < cfg.refine_inlier_px
-        in_b = has_b & in_f
-        in_b[in_b] = _reproj_err(T, Q_all[in_b], uv_i[in_b], K) < cfg.refine_inlier_px
-        if in_f.sum() < max(6, cfg.min_inliers):
-            return EdgeEstimate(i, j, "few_inliers", matches=n_match, inliers=int(in_f.sum()))
-        sf, sb = _even(np.flatnonzero(in_f), cfg.refine_max_points), _even(np.flatnonzero(in_b), cfg.refine_max_points)
-        P_f, uv_f = np.take(P_i, sf, axis=0), np.take(uv_j, sf, axis=0)
-        Q_b, uv_b, P_b = np.take(Q_all, sb, axis=0), np.take(uv_i, sb, axis=0), np.take(P_i, sb, axis=0)
-        T, cov, r = refine_two_way(T, P_f, uv_f, Q_b, uv_b, K, cfg.huber_px, iters, cfg.min_sigma_px, P_b, w3)
+    has_b = (z_j > 0) if cfg.refine else np.zeros(len(z_j), bool)
+    iters, w3 = (REFINE_ITERS, DEPTH_WEIGHT) if cfg.refine else (0, 0.0)  # 0: covariance at T0 only
+    in_f = _reproj_err(geo.inv_T(T0), P_i, uv_j, K) < REFINE_INLIER_PX
+    in_b = has_b & in_f
+    in_b[in_b] = _reproj_err(T0, Q_all[in_b], uv_i[in_b], K) < REFINE_INLIER_PX
+    if in_f.sum() < max(6, MIN_INLIERS):
+        return EdgeEstimate(i, j, "few_inliers", matches=n_match, inliers=int(in_f.sum()))
+    sf, sb = _even(np.flatnonzero(in_f), REFINE_MAX_POINTS), _even(np.flatnonzero(in_b), REFINE_MAX_POINTS)
+    P_f, uv_f = np.take(P_i, sf, axis=0), np.take(uv_j, sf, axis=0)
+    Q_b, uv_b, P_b = np.take(Q_all, sb, axis=0), np.take(uv_i, sb, axis=0), np.take(P_i, sb, axis=0)
+    T, cov, r = refine_two_way(T0, P_f, uv_f, Q_b, uv_b, K, HUBER_PX, iters, MIN_SIGMA_PX, P_b, w3)
     n_in = int(in_f.sum())
     res = EdgeEstimate(i, j, "ok", matches=n_match, inliers=n_in, inlier_ratio=n_in / n_match,
                        inlier_pairs=pairs[in_f])
@@ -1463,11 +1512,11 @@ def _estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     rot = geo.rotation_angle_deg(T)
     res.info = {"trans_m": trans, "rot_deg": rot}
     spread = np.std(uv_j[in_f], axis=0) / np.array([intr.width, intr.height])
-    if res.inlier_ratio < cfg.min_inlier_ratio:
+    if res.inlier_ratio < MIN_INLIER_RATIO:
         res.status = "low_inlier_ratio"
-    elif res.rmse_px > cfg.max_rmse_px:
+    elif res.rmse_px > MAX_RMSE_PX:
         res.status = "high_rmse"
-    elif spread.min() < cfg.min_spread or not np.all(np.isfinite(cov)) or np.linalg.eigvalsh(cov).min() <= 0:
+    elif spread.min() < MIN_SPREAD or not np.all(np.isfinite(cov)) or np.linalg.eigvalsh(cov).min() <= 0:
         res.status = "degenerate"
     elif trans > cfg.max_speed * dt or rot > cfg.max_angular_speed_deg * dt:
         res.status = "implausible_motion"
@@ -1489,24 +1538,6 @@ def _reproj_err(T_j_i: NDArray, P_i: NDArray, uv_j: NDArray, K: NDArray) -> NDAr
     err = np.full(len(P_i), np.inf)
     err[front] = np.linalg.norm(_project(Y[front], K) - uv_j[front], axis=1)
     return err
-
-
-def _subpixel(fi: FrameFeatures, fj: FrameFeatures, uv_i: NDArray, uv_j: NDArray, win: int = 11) -> NDArray:
-    """Track ``uv_i`` into frame j with pyramidal LK, started at the ORB match ``uv_j``.
-
-    Points the tracker loses, or moves by more than 2 px from the match, keep the ORB position.
-    """
-    p0 = uv_i.astype(np.float32).reshape(-1, 1, 2)
-    p1 = uv_j.astype(np.float32).reshape(-1, 1, 2).copy()
-    p1, st, _ = cv2.calcOpticalFlowPyrLK(
-        fi.gray, fj.gray, p0, p1, winSize=(win, win), maxLevel=1,
-        criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01),
-        flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-    p1 = p1.reshape(-1, 2).astype(np.float64)
-    good = (st.ravel() == 1) & (np.linalg.norm(p1 - uv_j, axis=1) < 2.0)
-    out = uv_j.copy()
-    out[good] = p1[good]
-    return out
 
 
 __all__ = ["ColourCamera", "KINECT_V1_COLOUR", "FrameFeatures", "DenseMaps", "EdgeEstimate", "extract", "dense_maps", "add_surface", "photo_maps", "dense_method", "hybrid_align", "pyramid_align", "hybrid_covariance", "PhotoMaps", "dense_refine", "match",

@@ -159,7 +159,7 @@ class EdgeWindow:
             span = moments[1] - self._moments[1]
             e = estimate_edge(prev.frame_id, frame_id, prev.feats, fk, intr, cfg, dt,
                               T_pred=self._prediction(prev.feats, fk, prev_depth_repeat, cv),
-                              T_alt=self.motion_between(span) if cfg.fallback_span_start else None,
+                              T_alt=self.motion_between(span),
                               span=timestamp - prev.since)
             if self._starts_inside(prev.pos):
                 edges.append(e)
@@ -262,11 +262,8 @@ class EdgeWindow:
                     continue
                 tracks = np.flatnonzero(w.link >= 0)
                 tracks = np.stack([tracks, w.link[tracks]], axis=1)
-                gap = pos - w.pos
                 edges.append(estimate_edge(w.frame_id, frame_id, w.feats, fk, intr, cfg, timestamp - w.timestamp,
-                                           w.T_k_cur.copy(), tracks,
-                                           dense=cfg.dense_max_gap <= 0 or gap <= cfg.dense_max_gap,
-                                           span=timestamp - w.since))
+                                           w.T_k_cur.copy(), tracks, span=timestamp - w.since))
             e.inlier_pairs = None  # only needed for the tracks above
         self.entries.append(_Entry(pos, int(frame_id), timestamp, fk, np.arange(len(fk.uv)), np.eye(4),
                                    min(self._moments)))
