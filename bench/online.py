@@ -16,7 +16,8 @@ For each scene, on the same frames:
 * **accuracy**: ATE of the online run's trajectories - causal (each frame's estimate when
   it arrived), ISAM2 after the last frame, final (ISAM2 then the batch solve warm-started
   from it) - against batch ``posegraph optimize`` on the same edges (the online run's
-  ``teacher/`` folder), as ratios; with a cheaper online teacher (``--gaps``) also against batch ``posegraph optimize`` on the batch teacher's
+  ``teacher/`` folder), as ratios; with a cheaper online teacher (``--gaps``) also against
+  batch ``posegraph optimize`` on the batch teacher's
   own edges (``teacher generate``'s default), the figure the online run stands in for.
 
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.online [--checkpoint CKPT] [--frames 0:300]

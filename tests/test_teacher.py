@@ -21,8 +21,10 @@ from ctcvo.data.open3d_import import openmp_threads
 from ctcvo.data.scenes import open_scene
 from ctcvo.teacher import cli
 from ctcvo.teacher.config import TeacherConfig
+from ctcvo.teacher.features import extract
 from ctcvo.teacher.generate import chain_trajectory, run_sequence
-from ctcvo.teacher.odometry import EdgeEstimate, estimate_edge, extract
+from ctcvo.teacher.odometry import estimate_edge
+from ctcvo.teacher.record import EdgeDiagnostics, EdgeEstimate
 
 
 def _pair_error(seq, a: int, b: int, cfg: TeacherConfig) -> tuple[EdgeEstimate, float, float]:
@@ -52,7 +54,7 @@ def test_known_answer_noise_free_pairs(office_clean):
     for a in range(len(office_clean) - 1):
         e, dt, dr = _pair_error(office_clean, a, a + 1, cfg)
         assert e.ok, e.status
-        assert e.info["dense"]["accepted"], e.info
+        assert e.diag.dense.accepted, e.diag
         assert e.cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(e.cov) > 0)
         errs.append((dt, dr))
     errs = np.array(errs)
@@ -66,7 +68,7 @@ def test_paper_preset_switches_off_refinement_and_dense_step(office_clean, monke
     change its poses, no edge has a dense record, and its noise-free gap-1 poses are further
     from the truth than the default teacher's (measured: median 2.6 against 0.4 mm) but
     within 10 mm / 0.5 deg, with positive-definite covariances."""
-    import ctcvo.teacher.odometry as od
+    from ctcvo.teacher import sparse
     from ctcvo.teacher.config import PAPER
 
     assert not PAPER.refine and not PAPER.dense
@@ -74,11 +76,11 @@ def test_paper_preset_switches_off_refinement_and_dense_step(office_clean, monke
     for a in range(len(office_clean) - 1):
         e, dt, dr = _pair_error(office_clean, a, a + 1, PAPER)
         assert e.ok, e.status
-        assert "dense" not in e.info and np.all(np.linalg.eigvalsh(e.cov) > 0)
+        assert e.diag.dense is None and np.all(np.linalg.eigvalsh(e.cov) > 0)
         assert dt < 10e-3 and dr < 0.5, (a, dt, dr)
         with monkeypatch.context() as m:
             for name, value in (("DEPTH_WEIGHT", 0.0), ("REFINE_ITERS", 20), ("HUBER_PX", 3.0)):
-                m.setattr(od, name, value)
+                m.setattr(sparse, name, value)
             e2 = _pair_error(office_clean, a, a + 1, PAPER)[0]
         np.testing.assert_array_equal(e.T_i_j, e2.T_i_j)
         err_paper.append(dt)
@@ -91,12 +93,13 @@ def test_dense_step_recovers_a_perturbed_pose(office_clean, sparse_only, monkeyp
     """The dense depth alignment started 1 cm / 0.5 deg off the true pose of a noise-free
     pair ends within 1 mm / 0.05 deg of it (taken whole, ``blend = 1``); with a shift
     bound smaller than the perturbation it is rejected and the starting pose is kept."""
-    import ctcvo.teacher.odometry as od
-    from ctcvo.teacher.odometry import dense_maps, dense_refine
+    from ctcvo.teacher import dense
+    from ctcvo.teacher.dense import dense_refine
+    from ctcvo.teacher.maps import dense_maps
 
     seq, cfg = office_clean, TeacherConfig()
     if sparse_only:
-        monkeypatch.setattr(od, "DENSE_MAX_SHIFT_M", 1e-3)
+        monkeypatch.setattr(dense, "DENSE_MAX_SHIFT_M", 1e-3)
     gt = seq.groundtruth()
     T_true = geo.relative_pose(gt[2], gt[4])
     T0 = T_true @ geo.se3_exp([0.006, -0.005, 0.006, 0.005, -0.004, 0.005])
@@ -104,12 +107,12 @@ def test_dense_step_recovers_a_perturbed_pose(office_clean, sparse_only, monkeyp
     res = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy())
     dense_refine(res, dense_maps(seq.depth(2), seq.intrinsics.K, cfg), dense_maps(seq.depth(4), seq.intrinsics.K, cfg), cfg,
                  blend=1.0)
-    d = res.info["dense"]
+    d = res.diag.dense
     if sparse_only:
-        assert not d["accepted"] and d["shift_m"] > 1e-3
+        assert not d.accepted and d.shift_m > 1e-3
         np.testing.assert_array_equal(res.T_i_j, T0)
     else:
-        assert d["accepted"] and d["fitness"] > 0.5, d
+        assert d.accepted and d.fitness > 0.5, d
         dt, dr = relative_pose_error(T_true, res.T_i_j)
         assert dt < 1e-3 and dr < 0.05, (dt, dr)
 
@@ -118,7 +121,8 @@ def test_dense_blend_moves_part_of_the_way(office_clean):
     """``blend = b`` puts the pose at the fraction b of the geodesic from the sparse to the
     dense estimate: its offset from the start is b times the full step's; without a sparse
     covariance to weigh it by, the fraction is ``DENSE_BLEND`` (0.25)."""
-    from ctcvo.teacher.odometry import dense_maps, dense_refine
+    from ctcvo.teacher.dense import dense_refine
+    from ctcvo.teacher.maps import dense_maps
 
     seq = office_clean
     gt = seq.groundtruth()
@@ -129,7 +133,7 @@ def test_dense_blend_moves_part_of_the_way(office_clean):
         res = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy())
         dense_refine(res, dense_maps(seq.depth(2), seq.intrinsics.K, cfg), dense_maps(seq.depth(4), seq.intrinsics.K, cfg), cfg,
                      blend=b)
-        assert res.info["dense"]["accepted"]
+        assert res.diag.dense.accepted
         out[b] = geo.se3_log(geo.inv_T(T0) @ res.T_i_j)
     assert np.linalg.norm(out[1.0]) > 4e-3
     np.testing.assert_allclose(out[None], 0.25 * out[1.0], atol=1e-9)
@@ -137,14 +141,15 @@ def test_dense_blend_moves_part_of_the_way(office_clean):
 
 def test_dense_step_rejects_a_frame_without_depth(office_clean):
     """No valid depth in frame i: nothing pairs up, the sparse estimate stays."""
-    from ctcvo.teacher.odometry import dense_maps, dense_refine
+    from ctcvo.teacher.dense import dense_refine
+    from ctcvo.teacher.maps import dense_maps
 
     seq, cfg = office_clean, TeacherConfig()
     T0 = geo.relative_pose(*seq.groundtruth()[[0, 1]])
     res = EdgeEstimate(0, 1, "ok", T_i_j=T0.copy())
     empty = np.zeros_like(seq.depth(0))
     dense_refine(res, dense_maps(empty, seq.intrinsics.K, cfg), dense_maps(seq.depth(1), seq.intrinsics.K, cfg), cfg)
-    assert not res.info["dense"]["accepted"]
+    assert not res.diag.dense.accepted
     np.testing.assert_array_equal(res.T_i_j, T0)
 
 
@@ -203,10 +208,11 @@ def test_labels_depend_on_the_configured_threads_not_the_environment():
 
 def _dense_step_in_child(threads: int) -> tuple[dict, float]:
     """One dense alignment with ``threads`` OpenMP threads, of a wavy surface to itself
-    from 3 mm off: (its ``info["dense"]``, the translation left)."""
+    from 3 mm off: (its ``diag.dense``, the translation left)."""
     from threadpoolctl import threadpool_limits
 
-    from ctcvo.teacher.odometry import dense_maps, dense_refine
+    from ctcvo.teacher.dense import dense_refine
+    from ctcvo.teacher.maps import dense_maps
 
     cfg = TeacherConfig()
     K = np.array([[585.0, 0, 320], [0, 585, 240], [0, 0, 1]])
@@ -216,7 +222,7 @@ def _dense_step_in_child(threads: int) -> tuple[dict, float]:
         maps = dense_maps(depth, K, cfg)
         res = EdgeEstimate(0, 1, "ok", T_i_j=geo.se3_exp([0.003, 0.0, 0.0, 0.0, 0.0, 0.0]))
         dense_refine(res, maps, maps, cfg, blend=1.0)
-    return res.info["dense"], float(np.linalg.norm(res.T_i_j[:3, 3]))
+    return res.diag.dense, float(np.linalg.norm(res.T_i_j[:3, 3]))
 
 
 @pytest.mark.slow
@@ -238,7 +244,7 @@ def test_workers_run_openmp_with_several_threads():
         pytest.fail("the dense step hung in a worker with 2 OpenMP threads")
     finally:
         ex.shutdown(cancel_futures=True)
-    assert info["accepted"]
+    assert info.accepted
     assert left < 0.5e-3
 
 
@@ -264,7 +270,7 @@ def _two_way_problem(seed: int, outliers: int = 0):
 
 def _numeric_jacobian(T, *args):
     """Central differences of ``_residuals(T @ exp(d), *args)`` w.r.t. d (right perturbation)."""
-    from ctcvo.teacher.odometry import _residuals
+    from ctcvo.teacher.sparse import _residuals
 
     cols = []
     for k in range(6):
@@ -277,7 +283,7 @@ def _numeric_jacobian(T, *args):
 def test_covariance_matches_numeric_jacobian():
     """The refinement's covariance is sigma^2 (J^T J)^-1 with J w.r.t. T @ exp(delta),
     delta in (v, w): checked against finite differences of the residuals."""
-    from ctcvo.teacher.odometry import refine_two_way
+    from ctcvo.teacher.sparse import refine_two_way
 
     K, T_true, P, uv_j, Q, uv_i, _ = _two_way_problem(3)
     T, cov, r = refine_two_way(geo.se3_exp(np.zeros(6)), P, uv_j, Q, uv_i, K, huber=10.0, iters=20)
@@ -291,7 +297,7 @@ def test_covariance_matches_numeric_jacobian():
 def test_jacobian_with_depth_term_matches_finite_differences():
     """The closed-form Jacobian of every residual block (forward, backward, and the
     z^2-weighted 3-D term) against central differences of the residuals."""
-    from ctcvo.teacher.odometry import _residuals
+    from ctcvo.teacher.sparse import _residuals
 
     K, T_true, P, uv_j, Q, uv_i, P_b = _two_way_problem(5)
     T = T_true @ geo.se3_exp([0.003, -0.002, 0.004, 0.002, 0.001, -0.003])
@@ -311,7 +317,9 @@ def test_rmse_check_refuses_nothing_the_inlier_gate_admits():
     estimates of TUM fr1/xyz's longer edges (bench/README.md, "Why TUM frames cost more
     teacher CPU")."""
     from ctcvo.data.sequence import Intrinsics
-    from ctcvo.teacher.odometry import MAX_RMSE_PX, REFINE_INLIER_PX, FrameFeatures, _estimate
+    from ctcvo.teacher.features import FrameFeatures
+    from ctcvo.teacher.sparse import MAX_RMSE_PX, REFINE_INLIER_PX
+    from ctcvo.teacher.sparse import sparse_estimate as _estimate
 
     cfg = TeacherConfig()
     g = REFINE_INLIER_PX
@@ -345,7 +353,8 @@ def test_refinement_converges_to_the_huber_optimum():
     """With 15 % gross outliers, the refinement ends at a stationary point of the Huber
     cost: its gradient J^T psi(r) is ~0 there (the first-order optimality the old
     reweighted iteration did not reach in its 6 steps), and the pose is close to the truth."""
-    from ctcvo.teacher.odometry import _huber, _residuals, refine_two_way
+    from ctcvo.teacher.sparse import _residuals, refine_two_way
+    from ctcvo.teacher.sparse import huber_weights as _huber
 
     K, T_true, P, uv_j, Q, uv_i, P_b = _two_way_problem(7, outliers=30)
     T0 = T_true @ geo.se3_exp([0.01, 0.01, -0.01, 0.005, -0.005, 0.005])
@@ -550,7 +559,7 @@ def test_cli_tiny_preset(tmp_path):
 
 
 def test_stale_stream_needs_exactly_one_repeated_image():
-    from ctcvo.teacher.odometry import image_keys, stale_stream
+    from ctcvo.teacher.features import image_keys, stale_stream
 
     rng = np.random.default_rng(0)
     rgb = [rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(2)]
@@ -582,13 +591,13 @@ def test_edges_at_a_repeated_colour_image_follow_the_depth(tmp_path):
     errs = {}
     for on in (True, False):
         run = run_sequence(seq, dataclasses.replace(TeacherConfig(), workers=1, dense_on_stale=on), progress=False)
-        stale = [e for e in run.edges if e.ok and e.info["dense"]["stale_stream"]]
+        stale = [e for e in run.edges if e.ok and e.diag.dense.stale_stream]
         # flagged: exactly the edges with an end whose colour was repeated
         flagged = {(e.i, e.j) for e in stale}
         expected = {(e.i, e.j) for e in run.edges if e.ok and REPEAT_RGB in (plan[ids.index(e.i)], plan[ids.index(e.j)])}
         assert flagged == expected
         errs[on] = np.array([relative_pose_error(geo.relative_pose(gt[ids.index(e.i)], gt[ids.index(e.j)]), e.T_i_j)
-                             for e in stale if e.info["dense"]["accepted"]])
+                             for e in stale if e.diag.dense.accepted])
     assert len(errs[True]) >= 20
     # measured: 5.2 mm against 7.0 mm RMSE over the 61 flagged edges
     assert np.sqrt(np.mean(errs[True][:, 0] ** 2)) < 0.85 * np.sqrt(np.mean(errs[False][:, 0] ** 2)), errs
@@ -620,9 +629,9 @@ def test_dense_fallback_tracks_a_pair_without_colour(office_clean, monkeypatch):
 
     for path, bound in (("rgbd", (2e-3, 0.1)), ("dense", (1e-3, 0.05))):
         if path == "dense":  # the rgbd fallback fails
-            monkeypatch.setattr(od, "_rgbd_starts", lambda i, j, *a, **k: EdgeEstimate(i, j, "few_matches"))
+            monkeypatch.setattr(od, "rgbd_starts", lambda i, j, *a, **k: EdgeEstimate(i, j, "few_matches"))
         e = estimate_edge(3, 4, fa, fb, seq.intrinsics, cfg, 1 / 30, T_pred=T_pred)
-        assert e.ok and e.info["path"] == path and e.info["sparse_status"] == "few_matches", e.info
+        assert e.ok and e.diag.path == path and e.diag.sparse_status == "few_matches", e.diag
         dt, dr = relative_pose_error(T_true, e.T_i_j)
         assert dt < bound[0] and dr < bound[1], (path, dt, dr)
         assert np.all(np.linalg.eigvalsh(e.cov) > 0)
@@ -639,7 +648,7 @@ def test_dense_fallback_rejects_a_single_plane(office_clean):
     fa = _features(seq, 0, cfg, rgb=grey, depth=plane[0])
     fb = _features(seq, 1, cfg, rgb=grey, depth=plane[1])
     e = estimate_edge(0, 1, fa, fb, seq.intrinsics, cfg, 1 / 30, T_pred=np.eye(4))
-    assert not e.ok and e.info["rgbd_fallback"] == e.info["dense_fallback"] == "degenerate", (e.status, e.info)
+    assert not e.ok and e.diag.rgbd_fallback == e.diag.dense_fallback == "degenerate", (e.status, e.diag)
 
 
 def test_wide_matching_finds_repeated_texture():
@@ -649,8 +658,8 @@ def test_wide_matching_finds_repeated_texture():
     36 px search around the prediction, without the ratio test, finds them."""
     from ctcvo.data.sequence import Intrinsics
     from ctcvo.data.synthetic.textures import tex_repeat
-    import ctcvo.teacher.odometry as od
-    from ctcvo.teacher.odometry import match, match_wide
+    from ctcvo.teacher import sparse
+    from ctcvo.teacher.matching import match, match_wide
 
     rng = np.random.default_rng(3)
     tex = tex_repeat(rng, np.array([0.9, 0.85, 0.7], np.float32), np.array([0.2, 0.3, 0.5], np.float32), size=512)
@@ -668,8 +677,8 @@ def test_wide_matching_finds_repeated_texture():
         d = fj.uv[pairs[:, 1]] - fi.uv[pairs[:, 0]]
         return np.linalg.norm(d - [-shift, 0], axis=1) < 1.5
 
-    assert right(match(fi, fj, cfg, T_pred, K)).sum() < od.MIN_MATCHES
-    assert right(match(fi, fj, cfg)).sum() < od.MIN_MATCHES
+    assert right(match(fi, fj, cfg, T_pred, K)).sum() < sparse.MIN_MATCHES
+    assert right(match(fi, fj, cfg)).sum() < sparse.MIN_MATCHES
     wide = right(match_wide(fi, fj, cfg, T_pred, K))
     assert wide.sum() >= 100 and wide.mean() > 0.8, (wide.sum(), wide.mean())
 
@@ -681,10 +690,10 @@ def test_failed_edges_are_bridged_and_counted(office_clean, tmp_path):
 
     seq = office_clean.select(0, 5)
     step = geo.relative_pose(*seq.groundtruth()[[0, 1]])
-    edges = [EdgeEstimate(0, 1, "ok", T_i_j=step, cov=np.eye(6) * 1e-6, info={"path": "guided"}),
-             EdgeEstimate(1, 2, "ok", T_i_j=step, cov=np.eye(6) * 1e-6, info={"path": "dense"}),
-             EdgeEstimate(2, 3, "few_matches", info={"path": "none"}),
-             EdgeEstimate(3, 4, "ok", T_i_j=step, cov=np.eye(6) * 1e-6, info={"path": "wide"})]
+    edges = [EdgeEstimate(0, 1, "ok", T_i_j=step, cov=np.eye(6) * 1e-6, diag=EdgeDiagnostics("guided")),
+             EdgeEstimate(1, 2, "ok", T_i_j=step, cov=np.eye(6) * 1e-6, diag=EdgeDiagnostics("dense")),
+             EdgeEstimate(2, 3, "few_matches", diag=EdgeDiagnostics("none")),
+             EdgeEstimate(3, 4, "ok", T_i_j=step, cov=np.eye(6) * 1e-6, diag=EdgeDiagnostics("wide"))]
     poses, bridges = chain_trajectory(seq.ids(), edges)
     rep = write_outputs(seq, TeacherRun(edges, poses, bridges, 1.0), TeacherConfig(), tmp_path, {})
     assert rep["edge_paths"] == {"dense": 1, "guided": 1, "none": 1, "wide": 1}
@@ -712,12 +721,12 @@ def test_teacher_tracks_the_stress_scenes(name, tmp_path):
     seq = synthetic_sequence(name, cache_dir=tmp_path, config=dataclasses.replace(PRESETS[name], frames=8))
     run = run_sequence(seq, dataclasses.replace(TeacherConfig(), gaps=2, workers=1), progress=False)
     gap1 = [e for e in run.edges if e.j - e.i == 1]
-    assert len(gap1) == 7 and all(e.ok for e in gap1), [(e.i, e.status, e.info) for e in gap1 if not e.ok]
+    assert len(gap1) == 7 and all(e.ok for e in gap1), [(e.i, e.status, e.diag) for e in gap1 if not e.ok]
     assert not [b for b in run.bridges if b["method"] == "constant velocity"]
     rep = trajectory_report(Trajectory(seq.times(), seq.groundtruth()), Trajectory(seq.times(), run.poses))
     assert rep["rpe_trans_rmse_m"] < 0.01, rep
     if name in ("stress-lowfreq", "stress-textureless"):
-        assert sum(e.info["path"] in ("rgbd", "dense") for e in gap1) >= 4, [e.info["path"] for e in gap1]
+        assert sum(e.diag.path in ("rgbd", "dense") for e in gap1) >= 4, [e.diag.path for e in gap1]
 
 
 def test_stress_presets_render_their_stress():
@@ -739,7 +748,8 @@ def test_information_fusion_weighs_by_covariance(office_clean):
     """Information fusion: a sparse estimate with a huge covariance gives way to
     the dense alignment (as ``blend = 1`` would), one with a tiny covariance stays put,
     and one in between lands in between."""
-    from ctcvo.teacher.odometry import dense_maps, dense_refine
+    from ctcvo.teacher.dense import dense_refine
+    from ctcvo.teacher.maps import dense_maps
 
     seq = office_clean
     gt = seq.groundtruth()
@@ -749,7 +759,8 @@ def test_information_fusion_weighs_by_covariance(office_clean):
     whole = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy())
     dense_refine(whole, *maps, cfg, blend=1.0)
     full = geo.se3_log(geo.inv_T(T0) @ whole.T_i_j)
-    from ctcvo.teacher.odometry import DENSE_COV_SCALE, P2P_COV_STRIDE, point_to_plane_covariance
+    from ctcvo.teacher.covariance import point_to_plane_covariance
+    from ctcvo.teacher.dense import DENSE_COV_SCALE, P2P_COV_STRIDE
 
     equal = DENSE_COV_SCALE * point_to_plane_covariance(whole.T_i_j, *maps, cfg, stride=P2P_COV_STRIDE)[0]
     moved = {}
@@ -770,7 +781,7 @@ def test_colour_registration_inverts_the_colour_camera_model():
     pixels: at the depth pixel :meth:`ColourCamera.to_depth_pixels` gives for a colour pixel,
     the registered image holds that colour pixel's value (a smooth image, a fronto-parallel
     wall at 1.5 m, so the parallax term is the same both ways)."""
-    from ctcvo.teacher.odometry import KINECT_V1_COLOUR
+    from ctcvo.teacher.colour import KINECT_V1_COLOUR
 
     K = np.array([[585.0, 0, 320], [0, 585.0, 240], [0, 0, 1]])
     yy, xx = np.mgrid[0:480, 0:640].astype(np.float32)
@@ -792,7 +803,8 @@ def test_hybrid_step_recovers_a_perturbed_pose(office_clean):
     0.12 deg of it (measured 1.37 mm / 0.093 deg: Open3D's kernel reads frame i at the
     nearest pixel, so even started at the truth it settles 0.2-1.3 mm away on these
     frames); its covariance is positive definite."""
-    from ctcvo.teacher.odometry import hybrid_align, hybrid_covariance
+    from ctcvo.teacher.covariance import hybrid_covariance
+    from ctcvo.teacher.dense import hybrid_align
 
     seq = office_clean
     cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid")
@@ -811,11 +823,11 @@ def test_hybrid_step_recovers_a_perturbed_pose(office_clean):
 
 def test_hybrid_dense_step_only_where_colour_and_depth_agree(office_clean):
     """``dense_method="hybrid"``: a gap-1 edge gets the point-to-plane stage and then the
-    hybrid one (``info["dense"]["hybrid"]``); a longer edge keeps the depth alone; an edge
+    hybrid one (``diag.dense.hybrid``); a longer edge keeps the depth alone; an edge
     with a stale stream (its keypoints of another moment) takes the depth stage whole and
     then (its photometric maps match its depth, see :class:`teacher.window.EdgeWindow`) the
     hybrid stage fused with the depth stage's covariance."""
-    from ctcvo.teacher.odometry import dense_refine
+    from ctcvo.teacher.dense import dense_refine
 
     seq = office_clean
     cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid")
@@ -829,9 +841,9 @@ def test_hybrid_dense_step_only_where_colour_and_depth_agree(office_clean):
         res = EdgeEstimate(2, 3, "ok", T_i_j=T0.copy(), cov=cov)
         dense_refine(res, fa.dense, fb.dense, cfg, **kw)
         runs[name] = res
-    assert runs["gap1"].info["dense"]["hybrid"]["accepted"], runs["gap1"].info
-    assert runs["stale"].info["dense"]["hybrid"]["accepted"], runs["stale"].info
-    assert "hybrid" not in runs["long"].info["dense"]
+    assert runs["gap1"].diag.dense.hybrid.accepted, runs["gap1"].diag
+    assert runs["stale"].diag.dense.hybrid.accepted, runs["stale"].diag
+    assert runs["long"].diag.dense.hybrid is None
     err = {k: relative_pose_error(T_true, r.T_i_j)[0] for k, r in runs.items()}
     assert err["gap1"] < 1e-3 and err["gap1"] < err["long"], err
     assert err["stale"] < 1e-3, err
@@ -841,7 +853,8 @@ def test_photo_weight_scales_the_grey_not_the_covariance(office_clean, monkeypat
     """``PHOTO_WEIGHT`` w scales the grey maps by sqrt(w) (so the kernel weighs the
     photometric residual w times the depth residual, its Huber threshold scaled alike); the
     hybrid covariance, each term divided by its own residual variance, stays the same."""
-    import ctcvo.teacher.odometry as od
+    from ctcvo.teacher import covariance
+    from ctcvo.teacher import maps as maps_module
 
     seq = office_clean
     cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid")
@@ -849,10 +862,11 @@ def test_photo_weight_scales_the_grey_not_the_covariance(office_clean, monkeypat
     maps, covs = {}, []
     for w in (1.0, 0.25):
         with monkeypatch.context() as m:
-            m.setattr(od, "PHOTO_WEIGHT", w)
-            m.setattr(od, "PHOTO_HUBER_SCALED", od.PHOTO_HUBER * float(np.sqrt(w)))
+            for mod in (maps_module, covariance):
+                m.setattr(mod, "PHOTO_WEIGHT", w)
+            m.setattr(covariance, "PHOTO_HUBER_SCALED", covariance.PHOTO_HUBER * float(np.sqrt(w)))
             maps[w] = (_features(seq, 2, cfg), _features(seq, 3, cfg))
-            covs.append(od.hybrid_covariance(T, maps[w][0].dense, maps[w][1].dense, cfg))
+            covs.append(covariance.hybrid_covariance(T, maps[w][0].dense, maps[w][1].dense, cfg))
     a, b = maps[1.0][0].dense.photo, maps[0.25][0].dense.photo
     np.testing.assert_allclose(b.intensity.numpy(), 0.5 * a.intensity.numpy(), rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(b.intensity_dx.numpy(), 0.5 * a.intensity_dx.numpy(), rtol=1e-5, atol=1e-6)
@@ -862,7 +876,7 @@ def test_photo_weight_scales_the_grey_not_the_covariance(office_clean, monkeypat
 def test_keypoints_agreeing_on_a_wrong_motion_give_way_to_the_rgbd_fallback(office_clean, monkeypatch):
     """A sparse estimate 4 cm off the truth (keypoints that agree on a wrong motion, e.g.
     repeated structure): the point-to-plane and the hybrid stage, each started there, move
-    farther than ``dense_max_shift_m`` and are both rejected; the edge is then made by the
+    farther than ``DENSE_MAX_SHIFT_M`` and are both rejected; the edge is then made by the
     rgbd fallback from the motion prediction (``sparse_status`` ``dense_disagrees``), close
     to the truth. With the depth stage alone (``point-to-plane``: real recordings) the
     sparse estimate stays, as before."""
@@ -876,18 +890,18 @@ def test_keypoints_agreeing_on_a_wrong_motion_give_way_to_the_rgbd_fallback(offi
 
     def wrong(i, j, fi, fj, intr, cfg, dt, pairs, rolling=None):
         return EdgeEstimate(i, j, "ok", T_i_j=T_bad.copy(), cov=np.diag([1e-6] * 3 + [3e-6] * 3), matches=100,
-                            inliers=90, inlier_ratio=0.9, info={})
+                            inliers=90, inlier_ratio=0.9)
 
-    monkeypatch.setattr(od, "_estimate", wrong)
+    monkeypatch.setattr(od, "sparse_estimate", wrong)
     out = {}
     for method in ("hybrid", "point-to-plane"):
         cfg = dataclasses.replace(TeacherConfig(), dense_method=method)
         fa, fb = _features(seq, 3, cfg), _features(seq, 4, cfg)
         out[method] = estimate_edge(3, 4, fa, fb, seq.intrinsics, cfg, 1 / 30, T_pred=T_pred)
     e = out["hybrid"]
-    assert e.ok and e.info["path"] == "rgbd" and e.info["sparse_status"] == "dense_disagrees", e.info
+    assert e.ok and e.diag.path == "rgbd" and e.diag.sparse_status == "dense_disagrees", e.diag
     assert relative_pose_error(T_true, e.T_i_j)[0] < 2e-3
-    assert out["point-to-plane"].info["path"] == "guided" and np.array_equal(out["point-to-plane"].T_i_j, T_bad)
+    assert out["point-to-plane"].diag.path == "guided" and np.array_equal(out["point-to-plane"].T_i_j, T_bad)
 
 
 class _DepthRepeats:
@@ -950,8 +964,8 @@ def test_window_gives_a_depth_repeat_the_colour_of_its_depth(office_clean):
     shows, and a chunk that starts at a depth repeat (``prev_photo``,
     :func:`teacher.generate._photo_before`) reads the maps the window would hold back from
     the frames before it."""
+    from ctcvo.teacher.features import make_orb
     from ctcvo.teacher.generate import _photo_before
-    from ctcvo.teacher.odometry import make_orb
     from ctcvo.teacher.window import EdgeWindow
 
     seq = office_clean
@@ -1023,15 +1037,15 @@ def test_rgbd_fallback_with_either_dense_method(office_clean, method, monkeypatc
     gt = seq.groundtruth()
     T_true = geo.relative_pose(gt[3], gt[4])
     T_pred = T_true @ geo.se3_exp([0.006, -0.005, 0.006, 0.006, -0.005, 0.006])
-    import ctcvo.teacher.odometry as od
+    from ctcvo.teacher import fallbacks, sparse
 
-    monkeypatch.setattr(od, "MIN_MATCHES", 10**6)
+    monkeypatch.setattr(sparse, "MIN_MATCHES", 10**6)
     e = estimate_edge(3, 4, fa, fb, seq.intrinsics, cfg, 1 / 30, T_pred=T_pred)
-    assert e.ok and e.info["path"] == "rgbd", e.info
+    assert e.ok and e.diag.path == "rgbd", e.diag
     dt, dr = relative_pose_error(T_true, e.T_i_j)
     assert dt < 2e-3 and dr < 0.1, (dt, dr)
     if method == "hybrid":
-        assert set(fa.dense.photo.levels) == {s for s, _ in od.FALLBACK_LEVELS}
+        assert set(fa.dense.photo.levels) == {s for s, _ in fallbacks.FALLBACK_LEVELS}
 
 
 def test_dense_method_auto_follows_the_sensor(office_clean, tmp_path):
@@ -1073,10 +1087,10 @@ def test_dense_method_auto_follows_the_sensor(office_clean, tmp_path):
 # ---------------------------------------------------------------------------- fast paths
 
 def test_stable_argsort_is_numpys_stable_order():
-    """Guided matching's sort (:func:`teacher.odometry._stable_argsort`): NumPy's stable
+    """Guided matching's sort (:func:`teacher.matching._stable_argsort`): NumPy's stable
     order, ties kept in input order, on keys with many ties; keys too large for the
     position bits take NumPy's stable sort itself."""
-    from ctcvo.teacher.odometry import _stable_argsort
+    from ctcvo.teacher.matching import _stable_argsort
 
     rng = np.random.default_rng(3)
     for n in (0, 1, 7, 9100):
@@ -1087,10 +1101,10 @@ def test_stable_argsort_is_numpys_stable_order():
 
 
 def _reference_point_to_plane_covariance(T, di, dj, cfg, stride):
-    """:func:`teacher.odometry.point_to_plane_covariance` written plainly (its docstring's
+    """:func:`teacher.covariance.point_to_plane_covariance` written plainly (its docstring's
     recipe): j's points moved into i, projected and rounded to i's pixel, paired with i's
     vertex there when finite and within ``DENSE_TRUNC_M``, Huber-weighted J^T W J."""
-    from ctcvo.teacher.odometry import DENSE_HUBER_M, DENSE_MIN_SIGMA_M, DENSE_TRUNC_M
+    from ctcvo.teacher.covariance import DENSE_HUBER_M, DENSE_MIN_SIGMA_M, DENSE_TRUNC_M
 
     q = dj.points.numpy()[::stride, ::stride].reshape(-1, 3).astype(np.float64)
     q = q[np.all(np.isfinite(q), axis=1)]
@@ -1119,7 +1133,8 @@ def test_point_to_plane_covariance_follows_its_definition(office_clean, stride):
     """The vectorised covariance (row gathers of the surface each edge hits, no per-frame
     table) equals the plain per-point recipe, on a pair of office frames at a perturbed pose
     (some points leave the image or the truncation distance)."""
-    from ctcvo.teacher.odometry import dense_maps, point_to_plane_covariance
+    from ctcvo.teacher.covariance import point_to_plane_covariance
+    from ctcvo.teacher.maps import dense_maps
 
     seq, cfg = office_clean, TeacherConfig()
     gt = seq.groundtruth()
@@ -1158,7 +1173,7 @@ def test_gap1_edges_beside_a_colour_repeat_use_the_depth_alone(office_clean):
             truth = {(3, 4): geo.relative_pose(gt[3], gt[4]), (4, 5): np.eye(4), (5, 6): geo.relative_pose(gt[4], gt[6])}
             for ij, T in truth.items():
                 e = edges[ij]
-                assert e.ok and (e.info["path"] == "depth") == (on and ij != (4, 5)), (on, ij, e.info)
+                assert e.ok and (e.diag.path == "depth") == (on and ij != (4, 5)), (on, ij, e.diag)
                 if on:
                     dt, dr = relative_pose_error(T, e.T_i_j)
                     # noise-free frames, but the depth alone pins the pose less well than colour
@@ -1167,7 +1182,7 @@ def test_gap1_edges_beside_a_colour_repeat_use_the_depth_alone(office_clean):
                     bound = (7e-3, 0.3) if ij == (5, 6) else (5e-3, 0.2)
                     assert dt < bound[0] and dr < bound[1], (ij, dt, dr)
                     assert np.all(np.linalg.eigvalsh(e.cov) > 0)
-            assert edges[(2, 4)].ok and edges[(2, 4)].info["source"] == "tracks", edges[(2, 4)].info
+            assert edges[(2, 4)].ok and edges[(2, 4)].diag.source == "tracks", edges[(2, 4)].diag
 
 
 def _render_frames_of(name: str, frames: range, out):
@@ -1226,8 +1241,8 @@ def test_edge_out_of_a_repeat_spans_two_periods_of_a_fast_turn(tmp_path):
         err = relative_pose_error(geo.relative_pose(gt[3], gt[4]), e[(248, 249)].T_i_j)[0] \
             if e[(248, 249)].ok else float("inf")
         if start:
-            assert all(x.ok for x in run.edges) and not run.bridges, [(x.i, x.status, x.info) for x in run.edges]
-            assert e[(248, 249)].info["path"] == "rgbd" and e[(248, 249)].info["start"] == "span"
+            assert all(x.ok for x in run.edges) and not run.bridges, [(x.i, x.status, x.diag) for x in run.edges]
+            assert e[(248, 249)].diag.path == "rgbd" and e[(248, 249)].diag.start == "span"
             assert err < 0.01, err  # measured 5.7 mm
             rep = trajectory_report(Trajectory(seq.times(), seq.groundtruth()), Trajectory(seq.times(), run.poses))
             assert rep["rpe_trans_rmse_m"] < 0.008, rep
@@ -1283,7 +1298,9 @@ def test_motion_between_depth_moments_is_moved_to_the_colour_moments():
     :func:`_to_colour_moments` recovers the latter from the former (its covariance scaled
     by the ratio of the time spans), :func:`_depth_moments` goes the other way, and frames
     without offsets are left alone."""
-    from ctcvo.teacher.odometry import FrameFeatures, _depth_moments, _to_colour_moments
+    from ctcvo.teacher.features import FrameFeatures
+    from ctcvo.teacher.timing import to_colour_moments as _to_colour_moments
+    from ctcvo.teacher.timing import to_depth_moments as _depth_moments
 
     def frame(offset):
         return FrameFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32),
@@ -1348,7 +1365,7 @@ def test_middle_row_moves_a_point_by_its_rows_time_at_the_velocity():
     """``_to_middle_row``: the bottom row is read half the readout after the middle row, so
     a point seen there moves by that time times the velocity (v + w x X); the middle row
     stays; the top row moves the other way."""
-    from ctcvo.teacher.odometry import _to_middle_row
+    from ctcvo.teacher.timing import _to_middle_row
 
     X = np.array([[0.1, 0.2, 2.0]] * 3)
     rows = np.array([0.0, 239.5, 479.0])
@@ -1364,8 +1381,8 @@ def test_rolling_shutter_readout_auto_follows_the_scene(tmp_path):
     """Auto: a synthetic scene's own sensor readout (0 when noise-free), Kinect v1's for
     anything else; a set value wins; a bad one is a ConfigError."""
     from ctcvo.data.errors import ConfigError
+    from ctcvo.teacher.colour import KINECT_V1_READOUT_S
     from ctcvo.teacher.generate import rolling_shutter_for, rolling_shutter_of_folder
-    from ctcvo.teacher.odometry import KINECT_V1_READOUT_S
 
     cfg = TeacherConfig()
     assert rolling_shutter_for(open_scene("synthetic/tiny")[0], cfg) == 0.027

@@ -376,9 +376,9 @@ class OnlineTeacher:
     arrive, and the frame ids and timestamps so far."""
 
     def __init__(self, intr: Intrinsics, cfg, colour=None) -> None:
-        """``colour``: the colour camera model (``teacher.odometry.ColourCamera``; None:
+        """``colour``: the colour camera model (``teacher.colour.ColourCamera``; None:
         colour registered to depth), as :func:`teacher.generate.colour_camera_for` picks it."""
-        from ctcvo.teacher.odometry import make_orb
+        from ctcvo.teacher.features import make_orb
         from ctcvo.teacher.window import EdgeWindow
 
         self.intr, self.cfg, self.colour = intr, cfg, colour
@@ -391,14 +391,14 @@ class OnlineTeacher:
         """Per-frame work (safe to run in one helper thread ahead of :meth:`add`), without
         the maps the frame's dense step needs only as the older frame of a later edge:
         :meth:`finish` adds them, in the same thread, before the next frame's features."""
-        from ctcvo.teacher.odometry import extract
+        from ctcvo.teacher.features import extract
 
         return extract(frame.rgb, frame.depth, self.cfg, self.orb, self.intr.K, self.colour, surface=False)
 
     def finish(self, fk) -> None:
-        """The rest of :meth:`features` (:func:`teacher.odometry.add_surface`): called after
+        """The rest of :meth:`features` (:func:`teacher.maps.add_surface`): called after
         the frame is handed over, so its own edges do not wait for it."""
-        from ctcvo.teacher.odometry import add_surface
+        from ctcvo.teacher.maps import add_surface
 
         if fk.dense is not None:
             add_surface(fk.dense, fk.depth, self.intr.K, self.cfg)
