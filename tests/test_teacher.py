@@ -105,7 +105,7 @@ def test_dense_step_recovers_a_perturbed_pose(office_clean, sparse_only, monkeyp
     T0 = T_true @ geo.se3_exp([0.006, -0.005, 0.006, 0.005, -0.004, 0.005])
     assert relative_pose_error(T_true, T0)[0] > 8e-3
     res = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy())
-    dense_refine(res, dense_maps(seq.depth(2), seq.intrinsics.K, cfg), dense_maps(seq.depth(4), seq.intrinsics.K, cfg), cfg,
+    dense_refine(res, dense_maps(seq.depth(2), seq.intrinsics.K), dense_maps(seq.depth(4), seq.intrinsics.K), cfg,
                  blend=1.0)
     d = res.diag.dense
     if sparse_only:
@@ -131,7 +131,7 @@ def test_dense_blend_moves_part_of_the_way(office_clean):
     cfg = TeacherConfig()
     for b in (1.0, None):
         res = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy())
-        dense_refine(res, dense_maps(seq.depth(2), seq.intrinsics.K, cfg), dense_maps(seq.depth(4), seq.intrinsics.K, cfg), cfg,
+        dense_refine(res, dense_maps(seq.depth(2), seq.intrinsics.K), dense_maps(seq.depth(4), seq.intrinsics.K), cfg,
                      blend=b)
         assert res.diag.dense.accepted
         out[b] = geo.se3_log(geo.inv_T(T0) @ res.T_i_j)
@@ -148,7 +148,7 @@ def test_dense_step_rejects_a_frame_without_depth(office_clean):
     T0 = geo.relative_pose(*seq.groundtruth()[[0, 1]])
     res = EdgeEstimate(0, 1, "ok", T_i_j=T0.copy())
     empty = np.zeros_like(seq.depth(0))
-    dense_refine(res, dense_maps(empty, seq.intrinsics.K, cfg), dense_maps(seq.depth(1), seq.intrinsics.K, cfg), cfg)
+    dense_refine(res, dense_maps(empty, seq.intrinsics.K), dense_maps(seq.depth(1), seq.intrinsics.K), cfg)
     assert not res.diag.dense.accepted
     np.testing.assert_array_equal(res.T_i_j, T0)
 
@@ -219,7 +219,7 @@ def _dense_step_in_child(threads: int) -> tuple[dict, float]:
     v, u = np.mgrid[0:480, 0:640]
     depth = (2.0 + 0.3 * np.sin(u / 40.0) * np.cos(v / 30.0)).astype(np.float32)
     with threadpool_limits(threads):
-        maps = dense_maps(depth, K, cfg)
+        maps = dense_maps(depth, K)
         res = EdgeEstimate(0, 1, "ok", T_i_j=geo.se3_exp([0.003, 0.0, 0.0, 0.0, 0.0, 0.0]))
         dense_refine(res, maps, maps, cfg, blend=1.0)
     return res.diag.dense, float(np.linalg.norm(res.T_i_j[:3, 3]))
@@ -575,9 +575,8 @@ def test_stale_stream_needs_exactly_one_repeated_image():
 def test_edges_at_a_repeated_colour_image_follow_the_depth(tmp_path):
     """Frames whose colour repeats the previous frame's (depth and pose new) are flagged, and
     their edges take the dense depth alignment whole: closer to the ground truth than the
-    colour-keypoint estimate blended a quarter of the way (``dense_on_stale=False``). (The
-    rule of real recordings and of longer edges: the gap-1 edges of synthetic scenes have
-    the depth-alone step, ``depth_beside_colour_repeat``, off here.)"""
+    colour-keypoint estimate fused with it by information (``dense_on_stale=False``). (The
+    gap-1 edges of synthetic scenes beside a colour repeat take the depth-alone step.)"""
     from ctcvo.data.synthetic import REPEAT_RGB, repeat_plan, synthetic_sequence
     from ctcvo.data.synthetic.config import PRESETS
 
@@ -677,9 +676,9 @@ def test_wide_matching_finds_repeated_texture():
         d = fj.uv[pairs[:, 1]] - fi.uv[pairs[:, 0]]
         return np.linalg.norm(d - [-shift, 0], axis=1) < 1.5
 
-    assert right(match(fi, fj, cfg, T_pred, K)).sum() < sparse.MIN_MATCHES
-    assert right(match(fi, fj, cfg)).sum() < sparse.MIN_MATCHES
-    wide = right(match_wide(fi, fj, cfg, T_pred, K))
+    assert right(match(fi, fj, T_pred, K)).sum() < sparse.MIN_MATCHES
+    assert right(match(fi, fj)).sum() < sparse.MIN_MATCHES
+    wide = right(match_wide(fi, fj, T_pred, K))
     assert wide.sum() >= 100 and wide.mean() > 0.8, (wide.sum(), wide.mean())
 
 
@@ -755,14 +754,14 @@ def test_information_fusion_weighs_by_covariance(office_clean):
     gt = seq.groundtruth()
     T0 = geo.relative_pose(gt[2], gt[4]) @ geo.se3_exp([0.004, 0.0, -0.003, 0.0, 0.003, 0.0])
     cfg = TeacherConfig()
-    maps = dense_maps(seq.depth(2), seq.intrinsics.K, cfg), dense_maps(seq.depth(4), seq.intrinsics.K, cfg)
+    maps = dense_maps(seq.depth(2), seq.intrinsics.K), dense_maps(seq.depth(4), seq.intrinsics.K)
     whole = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy())
     dense_refine(whole, *maps, cfg, blend=1.0)
     full = geo.se3_log(geo.inv_T(T0) @ whole.T_i_j)
     from ctcvo.teacher.covariance import point_to_plane_covariance
     from ctcvo.teacher.dense import DENSE_COV_SCALE, P2P_COV_STRIDE
 
-    equal = DENSE_COV_SCALE * point_to_plane_covariance(whole.T_i_j, *maps, cfg, stride=P2P_COV_STRIDE)[0]
+    equal = DENSE_COV_SCALE * point_to_plane_covariance(whole.T_i_j, *maps, stride=P2P_COV_STRIDE)[0]
     moved = {}
     for name, cov in (("huge", np.eye(6) * 1e2), ("tiny", np.eye(6) * 1e-14), ("equal", equal)):
         res = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy(), cov=cov)
@@ -814,10 +813,10 @@ def test_hybrid_step_recovers_a_perturbed_pose(office_clean):
     T_true = geo.relative_pose(gt[2], gt[3])
     T0 = T_true @ geo.se3_exp([0.002, -0.0015, 0.0015, 0.002, -0.002, 0.0015])
     assert relative_pose_error(T_true, T0)[0] > 2.5e-3
-    T, fitness, iters, _ = hybrid_align(T0, fa.dense, fb.dense, cfg, 10)
+    T, fitness, iters, _ = hybrid_align(T0, fa.dense, fb.dense, 10)
     dt, dr = relative_pose_error(T_true, T)
     assert fitness > 0.5 and dt < 2e-3 and dr < 0.12, (dt, dr, fitness, iters)
-    cov = hybrid_covariance(T, fa.dense, fb.dense, cfg)
+    cov = hybrid_covariance(T, fa.dense, fb.dense)
     assert cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(cov) > 0)
 
 
@@ -866,7 +865,7 @@ def test_photo_weight_scales_the_grey_not_the_covariance(office_clean, monkeypat
                 m.setattr(mod, "PHOTO_WEIGHT", w)
             m.setattr(covariance, "PHOTO_HUBER_SCALED", covariance.PHOTO_HUBER * float(np.sqrt(w)))
             maps[w] = (_features(seq, 2, cfg), _features(seq, 3, cfg))
-            covs.append(covariance.hybrid_covariance(T, maps[w][0].dense, maps[w][1].dense, cfg))
+            covs.append(covariance.hybrid_covariance(T, maps[w][0].dense, maps[w][1].dense))
     a, b = maps[1.0][0].dense.photo, maps[0.25][0].dense.photo
     np.testing.assert_allclose(b.intensity.numpy(), 0.5 * a.intensity.numpy(), rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(b.intensity_dx.numpy(), 0.5 * a.intensity_dx.numpy(), rtol=1e-5, atol=1e-6)
@@ -1100,7 +1099,7 @@ def test_stable_argsort_is_numpys_stable_order():
     np.testing.assert_array_equal(_stable_argsort(big), [4, 1, 3, 0, 2])
 
 
-def _reference_point_to_plane_covariance(T, di, dj, cfg, stride):
+def _reference_point_to_plane_covariance(T, di, dj, stride):
     """:func:`teacher.covariance.point_to_plane_covariance` written plainly (its docstring's
     recipe): j's points moved into i, projected and rounded to i's pixel, paired with i's
     vertex there when finite and within ``DENSE_TRUNC_M``, Huber-weighted J^T W J."""
@@ -1136,12 +1135,12 @@ def test_point_to_plane_covariance_follows_its_definition(office_clean, stride):
     from ctcvo.teacher.covariance import point_to_plane_covariance
     from ctcvo.teacher.maps import dense_maps
 
-    seq, cfg = office_clean, TeacherConfig()
+    seq = office_clean
     gt = seq.groundtruth()
     T = geo.relative_pose(gt[3], gt[6]) @ geo.se3_exp([0.02, -0.01, 0.03, 0.01, -0.02, 0.005])
-    di, dj = dense_maps(seq.depth(3), seq.intrinsics.K, cfg), dense_maps(seq.depth(6), seq.intrinsics.K, cfg)
-    cov, n, _ = point_to_plane_covariance(T, di, dj, cfg, stride=stride)
-    ref, n_ref = _reference_point_to_plane_covariance(T, di, dj, cfg, stride)
+    di, dj = dense_maps(seq.depth(3), seq.intrinsics.K), dense_maps(seq.depth(6), seq.intrinsics.K)
+    cov, n, _ = point_to_plane_covariance(T, di, dj, stride=stride)
+    ref, n_ref = _reference_point_to_plane_covariance(T, di, dj, stride)
     assert n == n_ref > 100
     np.testing.assert_allclose(cov, ref, rtol=1e-9, atol=1e-20)
 
@@ -1161,28 +1160,26 @@ def test_gap1_edges_beside_a_colour_repeat_use_the_depth_alone(office_clean):
     # depends on the thread count, and on this pair that moves the (3, 4) edge by ~2 mm
     # (2.4 mm / 0.08 deg with 2 threads, 3.8 / 0.15 with 3, 4.2 / 0.17 with 1)
     with openmp_threads(1):
-        for on in (True,):
-            cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid", gaps=2)
-            feats = {2: _features(seq, 2, cfg), 3: _features(seq, 3, cfg),
-                     4: _features(seq, 4, cfg, rgb=seq.rgb(3)),  # colour repeated, depth new
-                     5: _features(seq, 5, cfg, rgb=seq.rgb(3), depth=seq.depth(4)),  # frame 4 again, whole
-                     6: _features(seq, 6, cfg)}
-            w = EdgeWindow(seq.intrinsics, cfg)
-            edges = {(e.i, e.j): e for k, f in feats.items() for e in w.add(k, k / 30, f)}
-            assert [feats[k].colour_behind for k in range(2, 7)] == [False, False, True, True, False]
-            truth = {(3, 4): geo.relative_pose(gt[3], gt[4]), (4, 5): np.eye(4), (5, 6): geo.relative_pose(gt[4], gt[6])}
-            for ij, T in truth.items():
-                e = edges[ij]
-                assert e.ok and (e.diag.path == "depth") == (on and ij != (4, 5)), (on, ij, e.diag)
-                if on:
-                    dt, dr = relative_pose_error(T, e.T_i_j)
-                    # noise-free frames, but the depth alone pins the pose less well than colour
-                    # and depth (measured 4.2 mm / 0.17 deg, one thread); (5, 6) spans two
-                    # frames' motion from the prediction; (4, 5) is the identity
-                    bound = (7e-3, 0.3) if ij == (5, 6) else (5e-3, 0.2)
-                    assert dt < bound[0] and dr < bound[1], (ij, dt, dr)
-                    assert np.all(np.linalg.eigvalsh(e.cov) > 0)
-            assert edges[(2, 4)].ok and edges[(2, 4)].diag.source == "tracks", edges[(2, 4)].diag
+        cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid", gaps=2)
+        feats = {2: _features(seq, 2, cfg), 3: _features(seq, 3, cfg),
+                 4: _features(seq, 4, cfg, rgb=seq.rgb(3)),  # colour repeated, depth new
+                 5: _features(seq, 5, cfg, rgb=seq.rgb(3), depth=seq.depth(4)),  # frame 4 again, whole
+                 6: _features(seq, 6, cfg)}
+        w = EdgeWindow(seq.intrinsics, cfg)
+        edges = {(e.i, e.j): e for k, f in feats.items() for e in w.add(k, k / 30, f)}
+        assert [feats[k].colour_behind for k in range(2, 7)] == [False, False, True, True, False]
+        truth = {(3, 4): geo.relative_pose(gt[3], gt[4]), (4, 5): np.eye(4), (5, 6): geo.relative_pose(gt[4], gt[6])}
+        for ij, T in truth.items():
+            e = edges[ij]
+            assert e.ok and (e.diag.path == "depth") == (ij != (4, 5)), (ij, e.diag)
+            dt, dr = relative_pose_error(T, e.T_i_j)
+            # noise-free frames, but the depth alone pins the pose less well than colour
+            # and depth (measured 4.2 mm / 0.17 deg, one thread); (5, 6) spans two
+            # frames' motion from the prediction; (4, 5) is the identity
+            bound = (7e-3, 0.3) if ij == (5, 6) else (5e-3, 0.2)
+            assert dt < bound[0] and dr < bound[1], (ij, dt, dr)
+            assert np.all(np.linalg.eigvalsh(e.cov) > 0)
+        assert edges[(2, 4)].ok and edges[(2, 4)].diag.source == "tracks", edges[(2, 4)].diag
 
 
 def _render_frames_of(name: str, frames: range, out):
@@ -1234,20 +1231,16 @@ def test_edge_out_of_a_repeat_spans_two_periods_of_a_fast_turn(tmp_path):
     seq, plan = _render_frames_of("stress-fast", range(245, 251), tmp_path / "fast")
     assert plan[248] == REPEAT_FRAME and [int(i) for i in seq.ids()] == list(range(245, 251))
     gt = seq.groundtruth()
-    for start in (True,):
-        cfg = dataclasses.replace(TeacherConfig(), gaps=1, workers=1)
-        run = run_sequence(seq, cfg, progress=False)
-        e = {(x.i, x.j): x for x in run.edges}
-        err = relative_pose_error(geo.relative_pose(gt[3], gt[4]), e[(248, 249)].T_i_j)[0] \
-            if e[(248, 249)].ok else float("inf")
-        if start:
-            assert all(x.ok for x in run.edges) and not run.bridges, [(x.i, x.status, x.diag) for x in run.edges]
-            assert e[(248, 249)].diag.path == "rgbd" and e[(248, 249)].diag.start == "span"
-            assert err < 0.01, err  # measured 5.7 mm
-            rep = trajectory_report(Trajectory(seq.times(), seq.groundtruth()), Trajectory(seq.times(), run.poses))
-            assert rep["rpe_trans_rmse_m"] < 0.008, rep
-        else:
-            assert err > 0.05, err  # the identity's wrong minimum (116 mm)
+    cfg = dataclasses.replace(TeacherConfig(), gaps=1, workers=1)
+    run = run_sequence(seq, cfg, progress=False)
+    e = {(x.i, x.j): x for x in run.edges}
+    err = relative_pose_error(geo.relative_pose(gt[3], gt[4]), e[(248, 249)].T_i_j)[0] \
+        if e[(248, 249)].ok else float("inf")
+    assert all(x.ok for x in run.edges) and not run.bridges, [(x.i, x.status, x.diag) for x in run.edges]
+    assert e[(248, 249)].diag.path == "rgbd" and e[(248, 249)].diag.start == "span"
+    assert err < 0.01, err  # measured 5.7 mm
+    rep = trajectory_report(Trajectory(seq.times(), seq.groundtruth()), Trajectory(seq.times(), run.poses))
+    assert rep["rpe_trans_rmse_m"] < 0.008, rep
 
 
 def test_plausibility_bound_and_second_start_follow_the_depth_moments(office_clean, monkeypatch):

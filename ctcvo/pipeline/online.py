@@ -401,7 +401,7 @@ class OnlineTeacher:
         from ctcvo.teacher.maps import add_surface
 
         if fk.dense is not None:
-            add_surface(fk.dense, fk.depth, self.intr.K, self.cfg)
+            add_surface(fk.dense, fk.depth, self.intr.K)
 
     def add(self, frame: Frame, fk) -> list:
         """The edges ending at ``frame`` (``EdgeEstimate``; failed ones included)."""

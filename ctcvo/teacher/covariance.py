@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from ctcvo.teacher.config import TeacherConfig
 from ctcvo.teacher.maps import PHOTO_WEIGHT, DenseMaps
 from ctcvo.teacher.sparse import huber_weights
 
@@ -15,7 +14,7 @@ PHOTO_HUBER = 0.1  # grey units; Open3D's default, not tuned
 PHOTO_HUBER_SCALED = PHOTO_HUBER * float(np.sqrt(PHOTO_WEIGHT))
 DENSE_MIN_SIGMA_M = 0.0003  # point-to-plane residual floor: 1/sqrt(12) mm depth steps (b8a2c06), not tuned
 
-def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
+def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps,
                               stride: int = 1) -> tuple[NDArray | None, int, float]:
     """Covariance (6, 6), (v, w) order, right perturbation at ``T_i_j``, of the dense
     point-to-plane alignment of frame j's points to frame i's surface; also the number of
@@ -73,7 +72,7 @@ def point_to_plane_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg:
     return 0.5 * (cov + cov.T), len(q), float(np.sqrt(np.mean(r * r)))
 
 
-def hybrid_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
+def hybrid_covariance(T_i_j: NDArray, di: DenseMaps, dj: DenseMaps,
                       stride: int = 2) -> NDArray | None:
     """Covariance (6, 6), (v, w) order, right perturbation at ``T_i_j``, of the hybrid
     alignment of :func:`hybrid_align`: the inverse of the summed information of its two

@@ -62,7 +62,7 @@ def iterate(kernel: Callable[[o3d.core.Tensor], object], T: o3d.core.Tensor, ite
     return T, last, max(iters, 1), False
 
 
-def hybrid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
+def hybrid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps,
                  iters: int, depth_only: bool = False) -> tuple[NDArray, float, int, bool]:
     """Align frame j to frame i with Open3D's hybrid RGB-D odometry kernel (photometric and
     depth residuals, Huber-weighted Gauss-Newton; Park, Zhou & Koltun 2017) at one level:
@@ -148,18 +148,18 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     # a stale pair's keypoints show another moment than its depth: depth alone there, then
     # the hybrid stage where both frames' photometric maps match their depth (see above)
     hybrid = (hybrid and di.photo is not None and dj.photo is not None and di.photo.grey and dj.photo.grey)
-    cov = _dense_stage(res, di, dj, cfg, blend, False, res.cov)
+    cov = _dense_stage(res, di, dj, blend, False, res.cov)
     if hybrid and blend is not None:
         # the sparse estimate was dropped: the depth stage's own covariance is the prior
-        cov, _, _ = point_to_plane_covariance(res.T_i_j, di, dj, cfg, stride=DENSE_COV_STRIDE)
+        cov, _, _ = point_to_plane_covariance(res.T_i_j, di, dj, stride=DENSE_COV_STRIDE)
         if cov is None:
             return
         cov = cov * DENSE_COV_SCALE
     if hybrid:
-        _dense_stage(res, di, dj, cfg, None, True, cov)
+        _dense_stage(res, di, dj, None, True, cov)
 
 
-def _dense_stage(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig, blend: float | None,
+def _dense_stage(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, blend: float | None,
                  hybrid: bool, cov_prior: NDArray | None) -> NDArray | None:
     """One dense stage of :func:`dense_refine` (point-to-plane, or ``hybrid``), started at
     ``res.T_i_j``, fused with it (prior covariance ``cov_prior``) in place; records the
@@ -167,7 +167,7 @@ def _dense_stage(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     Returns the covariance of the fused estimate (information fusion; else ``cov_prior``)."""
     try:
         if hybrid:
-            T_h, fitness, n_it, _ = hybrid_align(res.T_i_j, di, dj, cfg, HYBRID_ITERS)
+            T_h, fitness, n_it, _ = hybrid_align(res.T_i_j, di, dj, HYBRID_ITERS)
             rmse = float("nan")
         else:
             T, last, n_it, _ = iterate(point_to_plane_kernel(di, dj), o3d.core.Tensor(res.T_i_j), DENSE_ITERS,
@@ -189,9 +189,9 @@ def _dense_stage(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     if blend is None and cov_prior is not None:
         # weigh the two by their information: (S_s^-1 + S_d^-1)^-1 S_d^-1 x
         if hybrid:
-            cov_d = hybrid_covariance(T_d, di, dj, cfg, stride=2 * DENSE_COV_STRIDE)
+            cov_d = hybrid_covariance(T_d, di, dj, stride=2 * DENSE_COV_STRIDE)
         else:
-            cov_d, _, _ = point_to_plane_covariance(T_d, di, dj, cfg, stride=P2P_COV_STRIDE)
+            cov_d, _, _ = point_to_plane_covariance(T_d, di, dj, stride=P2P_COV_STRIDE)
         if cov_d is not None:
             scale = HYBRID_COV_SCALE if hybrid else DENSE_COV_SCALE
             info_s, info_d = np.linalg.inv(cov_prior), np.linalg.inv(cov_d * scale)

@@ -36,7 +36,7 @@ FALLBACK_MAX_SIGMA_DEG = 0.5  # dense fallback sanity bound (b8a2c06), not tuned
 FALLBACK_MIN_CONDITIONING = 0.002  # between synthetic/office gap-1 pairs (0.013-0.023) and one noisy plane (0.0005)
 
 
-def pyramid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
+def pyramid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps,
                   coarse: bool = True, depth_only: bool = False) -> tuple[NDArray, float]:
     """Coarse-to-fine hybrid alignment of frame j to frame i from ``T_init`` (``T_i_j``):
     Open3D's hybrid kernel at the scales and iteration counts of ``FALLBACK_LEVELS``
@@ -56,7 +56,7 @@ def pyramid_align(T_init: NDArray, di: DenseMaps, dj: DenseMaps, cfg: TeacherCon
         ti, tj = pi.level(s), pj.level(s)
         T, _, _, _ = hybrid_steps(tj[0], tj[1], ti[:6], tj[6], ti[7], T, iters)
     T_h = geo.orthonormalize(T.numpy())
-    T_h, fitness, _, _ = hybrid_align(T_h, di, dj, cfg, max(finish if coarse else FALLBACK_CHAINED_ITERS, 1),
+    T_h, fitness, _, _ = hybrid_align(T_h, di, dj, max(finish if coarse else FALLBACK_CHAINED_ITERS, 1),
                                       depth_only)
     return T_h, fitness
 
@@ -105,7 +105,7 @@ def dense_edge(i: int, j: int, di: DenseMaps, dj: DenseMaps, cfg: TeacherConfig,
     if not converged:  # still sliding after all iterations: what the depth leaves free
         res.status, res.diag.path = "degenerate", "none"
         return res
-    cov, n_pairs, rmse = point_to_plane_covariance(T_d, di, dj, cfg)
+    cov, n_pairs, rmse = point_to_plane_covariance(T_d, di, dj)
     res.cov, res.matches = cov, n_pairs
     res.inliers, res.inlier_ratio = n_pairs, float(fitness)
     trans, rot = float(np.linalg.norm(T_d[:3, 3])), geo.rotation_angle_deg(T_d)
@@ -149,7 +149,7 @@ def rgbd_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrin
     depth term alone aligns them."""
     if fi.dense.photo is not None and fj.dense.photo is not None:
         try:
-            T, fitness = pyramid_align(T_init, fi.dense, fj.dense, cfg, coarse=not chained, depth_only=depth_only)
+            T, fitness = pyramid_align(T_init, fi.dense, fj.dense, coarse=not chained, depth_only=depth_only)
         except RuntimeError as exc:
             return EdgeEstimate(i, j, "degenerate" if "Singular" in str(exc) else "few_matches",
                                 diag=EdgeDiagnostics(error=str(exc)[-200:]))
@@ -178,7 +178,7 @@ def _rgbd_checked(i: int, j: int, T: NDArray, fitness: float, fi: FrameFeatures,
     # every 2nd point on the hybrid path (it runs for every edge of a starved scene); all
     # of them on Open3D's multi-scale path, as before
     stride = 2 if fi.dense.photo is not None else 1
-    cov, n_pairs, rmse = point_to_plane_covariance(T, fi.dense, fj.dense, cfg, stride=stride)
+    cov, n_pairs, rmse = point_to_plane_covariance(T, fi.dense, fj.dense, stride=stride)
     trans, rot = float(np.linalg.norm(T[:3, 3])), geo.rotation_angle_deg(T)
     res.cov, res.matches, res.inliers, res.inlier_ratio = cov, n_pairs, n_pairs, fitness
     res.diag.trans_m, res.diag.rot_deg, res.diag.rmse_m = trans, rot, rmse

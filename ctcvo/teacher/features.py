@@ -26,7 +26,7 @@ class FrameFeatures:
 
     ``uv`` (N, 2) keypoint pixels, ``desc`` (N, 32) ORB descriptors, ``z`` (N,) depth at the
     keypoint (0 where invalid or on a depth edge, see :func:`depth_at`), ``gray`` (H, W)
-    uint8 for sub-pixel tracking, ``depth`` (H, W) float32 metres. ``dense`` holds the Open3D
+    uint8, ``depth`` (H, W) float32 metres. ``dense`` holds the Open3D
     vertex and normal maps of the depth subsampled by ``DENSE_SCALE`` (None when the
     dense step is off). ``keys`` fingerprints the colour and the depth image (to find
     repeated images); ``stale`` is set by the caller when exactly one of the two streams
@@ -78,7 +78,7 @@ def make_orb(cfg: TeacherConfig) -> cv2.ORB:
 _OFFS = np.array([(dy, dx) for dy in range(-2, 3) for dx in range(-2, 3)])  # 5x5 window
 
 
-def depth_at(depth: NDArray[np.float32], uv: NDArray, cfg: TeacherConfig) -> NDArray[np.float32]:
+def depth_at(depth: NDArray[np.float32], uv: NDArray) -> NDArray[np.float32]:
     """Depth (m) at sub-pixel points, 0 where unusable.
 
     A point is usable if its nearest pixel lies 2+ px inside the image, every pixel of its
@@ -146,7 +146,7 @@ def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConf
         photo = None
         if dense_method(cfg, colour) == "hybrid":
             photo = colour.to_depth_image(gray, depth, K) if colour is not None else gray
-        dense = dense_maps(depth, K, cfg, photo, surface)
+        dense = dense_maps(depth, K, photo, surface)
     orb = orb or make_orb(cfg)
     kps, desc = orb.detectAndCompute(gray, None)
     keys = image_keys(rgb, depth)
@@ -156,7 +156,7 @@ def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConf
     uv = np.array([k.pt for k in kps], dtype=np.float32)
     if colour is not None and K is not None:
         uv = colour.to_depth_pixels(uv, depth, K)
-    return FrameFeatures(uv, desc, depth_at(depth, uv, cfg), gray, depth, dense, keys)
+    return FrameFeatures(uv, desc, depth_at(depth, uv), gray, depth, dense, keys)
 
 
 def backproject(uv: NDArray, z: NDArray, K: NDArray) -> NDArray[np.float64]:

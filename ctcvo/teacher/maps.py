@@ -9,7 +9,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ctcvo.data.open3d_import import o3d
-from ctcvo.teacher.config import TeacherConfig
 
 # 'the validation ranges': redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
 DEPTH_MIN = 0.3  # m; the Kinect's range, by hand (fa44eca); 0.2 and 0.5 change no label on the validation ranges
@@ -135,8 +134,7 @@ def _kernel_maps(depth: NDArray[np.float32], inten: NDArray[np.float32]) -> tupl
             *(_image_tensor(cv2.Sobel(a, cv2.CV_32F, dx, 1 - dx, ksize=3)) for a in (depth, inten) for dx in (1, 0)))
 
 
-def _subsampled(depth: NDArray[np.float32], K: NDArray, s: int,
-                cfg: TeacherConfig) -> tuple[o3d.t.geometry.Image, o3d.core.Tensor]:
+def _subsampled(depth: NDArray[np.float32], K: NDArray, s: int) -> tuple[o3d.t.geometry.Image, o3d.core.Tensor]:
     """Every ``s``-th pixel of ``depth`` (NaN outside ``[depth_min, depth_max]``) as an Open3D
     image, with its camera matrix ``K / s`` (pixel centres stay on the grid)."""
     d = np.array(depth[::s, ::s], dtype=np.float32)
@@ -146,7 +144,7 @@ def _subsampled(depth: NDArray[np.float32], K: NDArray, s: int,
     return o3d.t.geometry.Image(o3d.core.Tensor(d)), o3d.core.Tensor(Ks)
 
 
-def dense_maps(depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig,
+def dense_maps(depth: NDArray[np.float32], K: NDArray,
                gray: NDArray[np.uint8] | None = None, surface: bool = True) -> DenseMaps:
     """The maps of :class:`DenseMaps` for one depth image (metres, 0 = invalid).
 
@@ -162,28 +160,28 @@ def dense_maps(depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig,
     about two thirds of the time here) to :func:`add_surface`: a frame is i only in the
     edges of the frames after it, so ``vo-online`` builds them after handing the frame over.
     """
-    img, Kt = _subsampled(depth, K, DENSE_SCALE, cfg)
+    img, Kt = _subsampled(depth, K, DENSE_SCALE)
     points = img.create_vertex_map(Kt, float("nan")).as_tensor()
-    img, Kt = _subsampled(depth, K, DENSE_TARGET_SCALE, cfg)
-    maps = DenseMaps(points, None, None, Kt, photo_maps(gray, depth, K, cfg) if gray is not None else None)
+    img, Kt = _subsampled(depth, K, DENSE_TARGET_SCALE)
+    maps = DenseMaps(points, None, None, Kt, photo_maps(gray, depth, K) if gray is not None else None)
     if surface:
-        _fill_surface(maps, img, cfg)
+        _fill_surface(maps, img)
     return maps
 
 
-def add_surface(maps: DenseMaps, depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig) -> None:
+def add_surface(maps: DenseMaps, depth: NDArray[np.float32], K: NDArray) -> None:
     """Fill ``maps.vertex`` and ``maps.normal`` (see :func:`dense_maps`) when they are missing."""
     if maps.vertex is None:
-        _fill_surface(maps, _subsampled(depth, K, DENSE_TARGET_SCALE, cfg)[0], cfg)
+        _fill_surface(maps, _subsampled(depth, K, DENSE_TARGET_SCALE)[0])
 
 
-def _fill_surface(maps: DenseMaps, img: o3d.t.geometry.Image, cfg: TeacherConfig) -> None:
+def _fill_surface(maps: DenseMaps, img: o3d.t.geometry.Image) -> None:
     smooth = img.filter_bilateral(DENSE_NORMAL_KERNEL, 5.0, 10.0)
     maps.vertex = img.create_vertex_map(maps.K, float("nan")).as_tensor()
     maps.normal = smooth.create_vertex_map(maps.K, float("nan")).create_normal_map(float("nan")).as_tensor()
 
 
-def photo_maps(gray: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray, cfg: TeacherConfig) -> PhotoMaps:
+def photo_maps(gray: NDArray[np.uint8], depth: NDArray[np.float32], K: NDArray) -> PhotoMaps:
     """The maps of :class:`PhotoMaps` for one frame: ``gray`` (H, W) uint8, registered to the
     depth camera (:meth:`ColourCamera.to_depth_image`), ``depth`` (H, W) metres."""
     d = np.array(depth, dtype=np.float32)

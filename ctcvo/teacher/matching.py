@@ -8,7 +8,6 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from ctcvo.data import geometry as geo
-from ctcvo.teacher.config import TeacherConfig
 from ctcvo.teacher.features import FrameFeatures, backproject, project
 
 # 'the validation ranges': redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)
@@ -17,7 +16,7 @@ SEARCH_RADIUS_PX = 12.0  # guided matching radius; set by hand (fa44eca); kept a
 MAX_HAMMING = 64  # of 256 bits; set by hand (fa44eca); kept against 48 and 80 on the validation ranges
 FALLBACK_RADIUS_SCALE = 3.0  # wide matching radius / SEARCH_RADIUS_PX; a priori (b8a2c06): a ~3 deg sudden turn
 
-def match(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
+def match(fi: FrameFeatures, fj: FrameFeatures,
           T_i_j_pred: NDArray | None = None, K: NDArray | None = None) -> NDArray[np.int64]:
     """Mutual-nearest ORB matches passing the ratio test: (M, 2) index pairs (into i, into j).
 
@@ -30,7 +29,7 @@ def match(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
     if len(src) < 2 or len(fj.desc) < 2:
         return np.zeros((0, 2), np.int64)
     if T_i_j_pred is None:
-        return _match_exhaustive(fi, fj, src, cfg)
+        return _match_exhaustive(fi, fj, src)
     P = backproject(np.take(fi.uv, src, axis=0), fi.z[src], K)
     Tji = geo.inv_T(T_i_j_pred)
     Y = P @ Tji[:3, :3].T + Tji[:3, 3]
@@ -74,7 +73,7 @@ def _stable_argsort(key: NDArray[np.int64]) -> NDArray[np.int64]:
     return np.argsort((key << bits) | np.arange(n, dtype=np.int64))
 
 
-def match_wide(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
+def match_wide(fi: FrameFeatures, fj: FrameFeatures,
                T_i_j_pred: NDArray | None = None, K: NDArray | None = None) -> NDArray[np.int64]:
     """Fallback matching (``cfg.fallback_wide``): cross-checked nearest neighbours (each the
     other's best) within ``MAX_HAMMING``, without the ratio test. With a motion prediction,
@@ -112,8 +111,7 @@ def match_wide(fi: FrameFeatures, fj: FrameFeatures, cfg: TeacherConfig,
     return np.stack([best_i[ok], best_j[ok]], axis=1)
 
 
-def _match_exhaustive(fi: FrameFeatures, fj: FrameFeatures, src: NDArray[np.int64],
-                      cfg: TeacherConfig) -> NDArray[np.int64]:
+def _match_exhaustive(fi: FrameFeatures, fj: FrameFeatures, src: NDArray[np.int64]) -> NDArray[np.int64]:
     """Brute-force mutual-nearest + ratio-test matching of keypoints ``src`` of frame i."""
     bf = cv2.BFMatcher(cv2.NORM_HAMMING)
     di = fi.desc[src]

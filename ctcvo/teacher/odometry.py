@@ -92,7 +92,7 @@ def _keypoint_estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, int
     for source, pairs, pred in attempts:
         if pairs is None:
             matcher = match_wide if source in ("wide", "crosscheck") else match
-            pairs = matcher(fi, fj, cfg, pred, intr.K)
+            pairs = matcher(fi, fj, pred, intr.K)
         res = sparse_estimate(i, j, fi, fj, intr, cfg, dt, pairs, rolling)
         res.diag.source = source
         if best is None or res.inliers > best.inliers or res.ok:

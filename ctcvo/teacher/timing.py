@@ -96,9 +96,8 @@ def rolling_shutter_views(fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics
     ``fj.velocity_in`` (:func:`_to_middle_row`; each frame's are built once per role and
     kept). Returns ``((uv_i, z_i), (uv_j, z_j), dense_i, dense_j)``; None without the
     correction (off, or a velocity unknown). Keypoints without depth keep their pixel; the
-    dense maps keep their normals and carry no photometric maps, so with ``hybrid_all_gaps``
-    such an edge skips the hybrid stage (gap-1 edges, the only ones it runs on by default,
-    are never corrected)."""
+    dense maps keep their normals and carry no photometric maps (the hybrid stage runs on
+    gap-1 edges only, which are never corrected)."""
     if not cfg.rolling_shutter_s or fi.velocity_out is None or fj.velocity_in is None:
         return None  # off, auto not resolved (teacher.generate.rolling_shutter_for), or a velocity unknown
     (kp_i, dense_i), (kp_j, dense_j) = _rolling_view(fi, "out", intr, cfg), _rolling_view(fj, "in", intr, cfg)
