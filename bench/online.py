@@ -16,12 +16,12 @@ For each scene, on the same frames:
 * **accuracy**: ATE of the online run's trajectories - causal (each frame's estimate when
   it arrived), ISAM2 after the last frame, final (ISAM2 then the batch solve warm-started
   from it) - against batch ``posegraph optimize`` on the same edges (the online run's
-  ``teacher/`` folder), as ratios; with a cheaper online teacher (``--gaps``,
-  ``--dense-max-gap``) also against batch ``posegraph optimize`` on the batch teacher's
+  ``teacher/`` folder), as ratios; with a cheaper online teacher (``--gaps``) also against
+  batch ``posegraph optimize`` on the batch teacher's
   own edges (``teacher generate``'s default), the figure the online run stands in for.
 
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.online [--checkpoint CKPT] [--frames 0:300]
-    OMP_NUM_THREADS=1 .venv/bin/python -m bench.online --frames 0:150 --gaps 3 --dense-max-gap 2 --pose-after-gap1
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.online --frames 0:150 --gaps 3 --pose-after-gap1
 
 Results go to stdout (a Markdown table) and to ``--json`` if given, with the machine's 1-min
 load average at the start and end of each scene and the cores the online run got (its CPU
@@ -91,7 +91,7 @@ def bench_scene(spec: str, frames: str, checkpoint: Path | None, tmp: Path, tcfg
 
     seq = open_scene(spec, frames=frames)[0]
     row: dict = {"scene": seq.name, "frames": len(seq), "load_avg_1min": [os.getloadavg()[0]],
-                 "online_teacher": {k: getattr(tcfg, k) for k in ("gaps", "dense_max_gap")},
+                 "online_teacher": {k: getattr(tcfg, k) for k in ("gaps",)},
                  "pose_after_gap1": ocfg.pose_after_gap1}
     run = run_sequence(seq, DEFAULT, progress=False)  # batch, 2 processes
     row["batch_fps"] = len(seq) / run.seconds
@@ -167,7 +167,7 @@ def table(rows: list[dict]) -> str:
             + f" | {1000 * a['final']:.1f} / {1000 * a['isam2']:.1f} / "
             f"{1000 * a['causal']:.1f} mm vs {1000 * b:.1f} mm ({a['final'] / b:.2f}x / {a['isam2'] / b:.2f}x / "
             f"{a['causal'] / b:.2f}x) | {lrn} |"
-            + (f" gaps {r['online_teacher']['gaps']}, dense_max_gap {r['online_teacher']['dense_max_gap']}"
+            + (f" gaps {r['online_teacher']['gaps']}"
                f"{', pose after gap 1' if r.get('pose_after_gap1') else ''}; "
                f"{1000 * a['final']:.1f} vs {1000 * r['batch_teacher_posegraph_ate_m']:.1f} mm "
                f"({a['final'] / r['batch_teacher_posegraph_ate_m']:.2f}x) |" if "batch_teacher_posegraph_ate_m" in r
@@ -184,12 +184,10 @@ def main() -> int:
     ap.add_argument("--frames", default="0:300")
     ap.add_argument("--checkpoint", type=Path, help="learner checkpoint for the runs with the learner")
     ap.add_argument("--gaps", type=int, default=DEFAULT.gaps, help="the online teacher's K (batch: the default's)")
-    ap.add_argument("--dense-max-gap", type=int, default=DEFAULT.dense_max_gap,
-                    help="the online teacher's dense_max_gap (batch: the default's, 0)")
     ap.add_argument("--pose-after-gap1", action="store_true", help="vo-online --pose-after-gap1 in the online runs")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
-    tcfg = replace(DEFAULT, gaps=args.gaps, dense_max_gap=args.dense_max_gap)
+    tcfg = replace(DEFAULT, gaps=args.gaps)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for spec in args.scenes:

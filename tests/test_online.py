@@ -102,7 +102,7 @@ def test_pose_after_gap1_solves_the_same_edges(batch, online_run, tmp_path):
 def test_window_halves_give_the_edges_of_add():
     """EdgeWindow.add_gap1 then add_longer gives add's edges; a second add_gap1 before
     add_longer is refused (the tracks of the first frame would be lost)."""
-    from ctcvo.teacher.odometry import extract
+    from ctcvo.teacher.features import extract
     from ctcvo.teacher.window import EdgeWindow
 
     seq = open_scene("synthetic/tiny", frames="0:4")[0]

@@ -21,8 +21,10 @@ from ctcvo.data.open3d_import import openmp_threads
 from ctcvo.data.scenes import open_scene
 from ctcvo.teacher import cli
 from ctcvo.teacher.config import TeacherConfig
+from ctcvo.teacher.features import extract
 from ctcvo.teacher.generate import chain_trajectory, run_sequence
-from ctcvo.teacher.odometry import EdgeEstimate, estimate_edge, extract
+from ctcvo.teacher.odometry import estimate_edge
+from ctcvo.teacher.record import EdgeDiagnostics, EdgeEstimate
 
 
 def _pair_error(seq, a: int, b: int, cfg: TeacherConfig) -> tuple[EdgeEstimate, float, float]:
@@ -52,7 +54,7 @@ def test_known_answer_noise_free_pairs(office_clean):
     for a in range(len(office_clean) - 1):
         e, dt, dr = _pair_error(office_clean, a, a + 1, cfg)
         assert e.ok, e.status
-        assert e.info["dense"]["accepted"], e.info
+        assert e.diag.dense.accepted, e.diag
         assert e.cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(e.cov) > 0)
         errs.append((dt, dr))
     errs = np.array(errs)
@@ -60,23 +62,26 @@ def test_known_answer_noise_free_pairs(office_clean):
     assert errs[:, 1].max() < 0.05, errs
 
 
-def test_paper_preset_switches_off_refinement_and_dense_step(office_clean):
+def test_paper_preset_switches_off_refinement_and_dense_step(office_clean, monkeypatch):
     """The ``paper`` preset (ORB + PnP-RANSAC as ORB-SLAM's tracking) neither refines nor
     aligns depth: the refinement's own settings (two-way, 3-D term, iterations) no longer
     change its poses, no edge has a dense record, and its noise-free gap-1 poses are further
     from the truth than the default teacher's (measured: median 2.6 against 0.4 mm) but
     within 10 mm / 0.5 deg, with positive-definite covariances."""
+    from ctcvo.teacher import sparse
     from ctcvo.teacher.config import PAPER
 
-    assert not PAPER.refine and PAPER.dense_iters == 0
-    other = dataclasses.replace(PAPER, two_way=False, depth_weight=0.0, refine_iters=20, huber_px=3.0)
+    assert not PAPER.refine and not PAPER.dense
     err_paper, err_default = [], []
     for a in range(len(office_clean) - 1):
         e, dt, dr = _pair_error(office_clean, a, a + 1, PAPER)
         assert e.ok, e.status
-        assert "dense" not in e.info and np.all(np.linalg.eigvalsh(e.cov) > 0)
+        assert e.diag.dense is None and np.all(np.linalg.eigvalsh(e.cov) > 0)
         assert dt < 10e-3 and dr < 0.5, (a, dt, dr)
-        e2 = _pair_error(office_clean, a, a + 1, other)[0]
+        with monkeypatch.context() as m:
+            for name, value in (("DEPTH_WEIGHT", 0.0), ("REFINE_ITERS", 20), ("HUBER_PX", 3.0)):
+                m.setattr(sparse, name, value)
+            e2 = _pair_error(office_clean, a, a + 1, PAPER)[0]
         np.testing.assert_array_equal(e.T_i_j, e2.T_i_j)
         err_paper.append(dt)
         err_default.append(_pair_error(office_clean, a, a + 1, TeacherConfig())[1])
@@ -84,60 +89,67 @@ def test_paper_preset_switches_off_refinement_and_dense_step(office_clean):
 
 
 @pytest.mark.parametrize("sparse_only", [False, True])
-def test_dense_step_recovers_a_perturbed_pose(office_clean, sparse_only):
+def test_dense_step_recovers_a_perturbed_pose(office_clean, sparse_only, monkeypatch):
     """The dense depth alignment started 1 cm / 0.5 deg off the true pose of a noise-free
-    pair ends within 1 mm / 0.05 deg of it (taken whole, ``dense_blend = 1``); with a shift
+    pair ends within 1 mm / 0.05 deg of it (taken whole, ``blend = 1``); with a shift
     bound smaller than the perturbation it is rejected and the starting pose is kept."""
-    from ctcvo.teacher.odometry import dense_maps, dense_refine
+    from ctcvo.teacher import dense
+    from ctcvo.teacher.dense import dense_refine
+    from ctcvo.teacher.maps import dense_maps
 
-    seq, cfg = office_clean, dataclasses.replace(TeacherConfig(), dense_blend=1.0)
+    seq, cfg = office_clean, TeacherConfig()
     if sparse_only:
-        cfg = dataclasses.replace(cfg, dense_max_shift_m=1e-3)
+        monkeypatch.setattr(dense, "DENSE_MAX_SHIFT_M", 1e-3)
     gt = seq.groundtruth()
     T_true = geo.relative_pose(gt[2], gt[4])
     T0 = T_true @ geo.se3_exp([0.006, -0.005, 0.006, 0.005, -0.004, 0.005])
     assert relative_pose_error(T_true, T0)[0] > 8e-3
     res = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy())
-    dense_refine(res, dense_maps(seq.depth(2), seq.intrinsics.K, cfg), dense_maps(seq.depth(4), seq.intrinsics.K, cfg), cfg)
-    d = res.info["dense"]
+    dense_refine(res, dense_maps(seq.depth(2), seq.intrinsics.K), dense_maps(seq.depth(4), seq.intrinsics.K), cfg,
+                 blend=1.0)
+    d = res.diag.dense
     if sparse_only:
-        assert not d["accepted"] and d["shift_m"] > 1e-3
+        assert not d.accepted and d.shift_m > 1e-3
         np.testing.assert_array_equal(res.T_i_j, T0)
     else:
-        assert d["accepted"] and d["fitness"] > 0.5, d
+        assert d.accepted and d.fitness > 0.5, d
         dt, dr = relative_pose_error(T_true, res.T_i_j)
         assert dt < 1e-3 and dr < 0.05, (dt, dr)
 
 
 def test_dense_blend_moves_part_of_the_way(office_clean):
-    """``dense_blend = b`` puts the pose at the fraction b of the geodesic from the sparse
-    to the dense estimate: its offset from the start is b times the full step's."""
-    from ctcvo.teacher.odometry import dense_maps, dense_refine
+    """``blend = b`` puts the pose at the fraction b of the geodesic from the sparse to the
+    dense estimate: its offset from the start is b times the full step's; without a sparse
+    covariance to weigh it by, the fraction is ``DENSE_BLEND`` (0.25)."""
+    from ctcvo.teacher.dense import dense_refine
+    from ctcvo.teacher.maps import dense_maps
 
     seq = office_clean
     gt = seq.groundtruth()
     T0 = geo.relative_pose(gt[2], gt[4]) @ geo.se3_exp([0.004, 0.0, -0.003, 0.0, 0.003, 0.0])
     out = {}
-    for b in (1.0, 0.25):
-        cfg = dataclasses.replace(TeacherConfig(), dense_fusion="blend", dense_blend=b)
+    cfg = TeacherConfig()
+    for b in (1.0, None):
         res = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy())
-        dense_refine(res, dense_maps(seq.depth(2), seq.intrinsics.K, cfg), dense_maps(seq.depth(4), seq.intrinsics.K, cfg), cfg)
-        assert res.info["dense"]["accepted"]
+        dense_refine(res, dense_maps(seq.depth(2), seq.intrinsics.K), dense_maps(seq.depth(4), seq.intrinsics.K), cfg,
+                     blend=b)
+        assert res.diag.dense.accepted
         out[b] = geo.se3_log(geo.inv_T(T0) @ res.T_i_j)
     assert np.linalg.norm(out[1.0]) > 4e-3
-    np.testing.assert_allclose(out[0.25], 0.25 * out[1.0], atol=1e-9)
+    np.testing.assert_allclose(out[None], 0.25 * out[1.0], atol=1e-9)
 
 
 def test_dense_step_rejects_a_frame_without_depth(office_clean):
     """No valid depth in frame i: nothing pairs up, the sparse estimate stays."""
-    from ctcvo.teacher.odometry import dense_maps, dense_refine
+    from ctcvo.teacher.dense import dense_refine
+    from ctcvo.teacher.maps import dense_maps
 
     seq, cfg = office_clean, TeacherConfig()
     T0 = geo.relative_pose(*seq.groundtruth()[[0, 1]])
     res = EdgeEstimate(0, 1, "ok", T_i_j=T0.copy())
     empty = np.zeros_like(seq.depth(0))
-    dense_refine(res, dense_maps(empty, seq.intrinsics.K, cfg), dense_maps(seq.depth(1), seq.intrinsics.K, cfg), cfg)
-    assert not res.info["dense"]["accepted"]
+    dense_refine(res, dense_maps(empty, seq.intrinsics.K), dense_maps(seq.depth(1), seq.intrinsics.K), cfg)
+    assert not res.diag.dense.accepted
     np.testing.assert_array_equal(res.T_i_j, T0)
 
 
@@ -196,20 +208,21 @@ def test_labels_depend_on_the_configured_threads_not_the_environment():
 
 def _dense_step_in_child(threads: int) -> tuple[dict, float]:
     """One dense alignment with ``threads`` OpenMP threads, of a wavy surface to itself
-    from 3 mm off: (its ``info["dense"]``, the translation left)."""
+    from 3 mm off: (its ``diag.dense``, the translation left)."""
     from threadpoolctl import threadpool_limits
 
-    from ctcvo.teacher.odometry import dense_maps, dense_refine
+    from ctcvo.teacher.dense import dense_refine
+    from ctcvo.teacher.maps import dense_maps
 
     cfg = TeacherConfig()
     K = np.array([[585.0, 0, 320], [0, 585, 240], [0, 0, 1]])
     v, u = np.mgrid[0:480, 0:640]
     depth = (2.0 + 0.3 * np.sin(u / 40.0) * np.cos(v / 30.0)).astype(np.float32)
     with threadpool_limits(threads):
-        maps = dense_maps(depth, K, cfg)
+        maps = dense_maps(depth, K)
         res = EdgeEstimate(0, 1, "ok", T_i_j=geo.se3_exp([0.003, 0.0, 0.0, 0.0, 0.0, 0.0]))
-        dense_refine(res, maps, maps, dataclasses.replace(cfg, dense_blend=1.0))
-    return res.info["dense"], float(np.linalg.norm(res.T_i_j[:3, 3]))
+        dense_refine(res, maps, maps, cfg, blend=1.0)
+    return res.diag.dense, float(np.linalg.norm(res.T_i_j[:3, 3]))
 
 
 @pytest.mark.slow
@@ -231,7 +244,7 @@ def test_workers_run_openmp_with_several_threads():
         pytest.fail("the dense step hung in a worker with 2 OpenMP threads")
     finally:
         ex.shutdown(cancel_futures=True)
-    assert info["accepted"]
+    assert info.accepted
     assert left < 0.5e-3
 
 
@@ -257,7 +270,7 @@ def _two_way_problem(seed: int, outliers: int = 0):
 
 def _numeric_jacobian(T, *args):
     """Central differences of ``_residuals(T @ exp(d), *args)`` w.r.t. d (right perturbation)."""
-    from ctcvo.teacher.odometry import _residuals
+    from ctcvo.teacher.sparse import _residuals
 
     cols = []
     for k in range(6):
@@ -270,7 +283,7 @@ def _numeric_jacobian(T, *args):
 def test_covariance_matches_numeric_jacobian():
     """The refinement's covariance is sigma^2 (J^T J)^-1 with J w.r.t. T @ exp(delta),
     delta in (v, w): checked against finite differences of the residuals."""
-    from ctcvo.teacher.odometry import refine_two_way
+    from ctcvo.teacher.sparse import refine_two_way
 
     K, T_true, P, uv_j, Q, uv_i, _ = _two_way_problem(3)
     T, cov, r = refine_two_way(geo.se3_exp(np.zeros(6)), P, uv_j, Q, uv_i, K, huber=10.0, iters=20)
@@ -284,7 +297,7 @@ def test_covariance_matches_numeric_jacobian():
 def test_jacobian_with_depth_term_matches_finite_differences():
     """The closed-form Jacobian of every residual block (forward, backward, and the
     z^2-weighted 3-D term) against central differences of the residuals."""
-    from ctcvo.teacher.odometry import _residuals
+    from ctcvo.teacher.sparse import _residuals
 
     K, T_true, P, uv_j, Q, uv_i, P_b = _two_way_problem(5)
     T = T_true @ geo.se3_exp([0.003, -0.002, 0.004, 0.002, 0.001, -0.003])
@@ -304,11 +317,13 @@ def test_rmse_check_refuses_nothing_the_inlier_gate_admits():
     estimates of TUM fr1/xyz's longer edges (bench/README.md, "Why TUM frames cost more
     teacher CPU")."""
     from ctcvo.data.sequence import Intrinsics
-    from ctcvo.teacher.odometry import FrameFeatures, _estimate
+    from ctcvo.teacher.features import FrameFeatures
+    from ctcvo.teacher.sparse import MAX_RMSE_PX, REFINE_INLIER_PX
+    from ctcvo.teacher.sparse import sparse_estimate as _estimate
 
     cfg = TeacherConfig()
-    g = cfg.refine_inlier_px
-    assert cfg.max_rmse_px >= 1.5 * g / 2
+    g = REFINE_INLIER_PX
+    assert MAX_RMSE_PX >= 1.5 * g / 2
     rng = np.random.default_rng(3)
     intr = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
     K = intr.K
@@ -330,7 +345,7 @@ def test_rmse_check_refuses_nothing_the_inlier_gate_admits():
     pairs = np.column_stack([np.arange(n), np.arange(n)])
     e = _estimate(0, 1, feats(uv_i, z_i), feats(uv_j, Y[:, 2]), intr, cfg, 1 / 30, pairs)
     assert e.status == "ok" and e.inlier_ratio > 0.8
-    assert 0.8 * g / 2 < e.rmse_px <= g / 2 < cfg.max_rmse_px
+    assert 0.8 * g / 2 < e.rmse_px <= g / 2 < MAX_RMSE_PX
     assert np.linalg.norm(e.T_i_j[:3, 3] - T_true[:3, 3]) < 0.01
 
 
@@ -338,7 +353,8 @@ def test_refinement_converges_to_the_huber_optimum():
     """With 15 % gross outliers, the refinement ends at a stationary point of the Huber
     cost: its gradient J^T psi(r) is ~0 there (the first-order optimality the old
     reweighted iteration did not reach in its 6 steps), and the pose is close to the truth."""
-    from ctcvo.teacher.odometry import _huber, _residuals, refine_two_way
+    from ctcvo.teacher.sparse import _residuals, refine_two_way
+    from ctcvo.teacher.sparse import huber_weights as _huber
 
     K, T_true, P, uv_j, Q, uv_i, P_b = _two_way_problem(7, outliers=30)
     T0 = T_true @ geo.se3_exp([0.01, 0.01, -0.01, 0.005, -0.005, 0.005])
@@ -528,7 +544,7 @@ def test_cli_paper_preset(tmp_path):
     assert rep["frames"] == 6 and rep["edges"] + rep["failed_edges"] == 5 + 4 + 3 + 2 + 1
     assert rep["dense_rejected_edges"] == 0 and rep["rpe_trans_rmse_m"] < 0.03
     cfg = json.loads((out / "config.json").read_text())["teacher"]
-    assert cfg["refine"] is False and cfg["dense_iters"] == 0
+    assert cfg["refine"] is False and cfg["dense"] is False
     assert not any("dense_fitness" in r for r in read_edges_csv(out / "edges.csv"))  # the dense step never ran
 
 
@@ -543,7 +559,7 @@ def test_cli_tiny_preset(tmp_path):
 
 
 def test_stale_stream_needs_exactly_one_repeated_image():
-    from ctcvo.teacher.odometry import image_keys, stale_stream
+    from ctcvo.teacher.features import image_keys, stale_stream
 
     rng = np.random.default_rng(0)
     rgb = [rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(2)]
@@ -559,9 +575,8 @@ def test_stale_stream_needs_exactly_one_repeated_image():
 def test_edges_at_a_repeated_colour_image_follow_the_depth(tmp_path):
     """Frames whose colour repeats the previous frame's (depth and pose new) are flagged, and
     their edges take the dense depth alignment whole: closer to the ground truth than the
-    colour-keypoint estimate blended a quarter of the way (``dense_on_stale=False``). (The
-    rule of real recordings and of longer edges: the gap-1 edges of synthetic scenes have
-    the depth-alone step, ``depth_beside_colour_repeat``, off here.)"""
+    colour-keypoint estimate fused with it by information (``dense_on_stale=False``). (The
+    gap-1 edges of synthetic scenes beside a colour repeat take the depth-alone step.)"""
     from ctcvo.data.synthetic import REPEAT_RGB, repeat_plan, synthetic_sequence
     from ctcvo.data.synthetic.config import PRESETS
 
@@ -574,15 +589,14 @@ def test_edges_at_a_repeated_colour_image_follow_the_depth(tmp_path):
     gt, ids = seq.groundtruth(), list(seq.ids())
     errs = {}
     for on in (True, False):
-        run = run_sequence(seq, dataclasses.replace(TeacherConfig(), workers=1, dense_on_stale=on, dense_fusion="blend",
-                                                    depth_beside_colour_repeat=False), progress=False)
-        stale = [e for e in run.edges if e.ok and e.info["dense"]["stale_stream"]]
+        run = run_sequence(seq, dataclasses.replace(TeacherConfig(), workers=1, dense_on_stale=on), progress=False)
+        stale = [e for e in run.edges if e.ok and e.diag.dense.stale_stream]
         # flagged: exactly the edges with an end whose colour was repeated
         flagged = {(e.i, e.j) for e in stale}
         expected = {(e.i, e.j) for e in run.edges if e.ok and REPEAT_RGB in (plan[ids.index(e.i)], plan[ids.index(e.j)])}
         assert flagged == expected
         errs[on] = np.array([relative_pose_error(geo.relative_pose(gt[ids.index(e.i)], gt[ids.index(e.j)]), e.T_i_j)
-                             for e in stale if e.info["dense"]["accepted"]])
+                             for e in stale if e.diag.dense.accepted])
     assert len(errs[True]) >= 20
     # measured: 5.2 mm against 7.0 mm RMSE over the 61 flagged edges
     assert np.sqrt(np.mean(errs[True][:, 0] ** 2)) < 0.85 * np.sqrt(np.mean(errs[False][:, 0] ** 2)), errs
@@ -596,9 +610,9 @@ def _features(seq, k, cfg, rgb=None, depth=None):
     return extract(rgb, depth, cfg, K=seq.intrinsics.K)
 
 
-def test_dense_fallback_tracks_a_pair_without_colour(office_clean):
+def test_dense_fallback_tracks_a_pair_without_colour(office_clean, monkeypatch):
     """Flat grey colour images (no keypoints): every matching attempt fails; Open3D's hybrid
-    RGB-D odometry (``path`` rgbd), or without it the depth alignment alone (``path`` dense),
+    RGB-D odometry (``path`` rgbd), or where it fails the depth alignment alone (``path`` dense),
     started from a constant-velocity guess 1 cm / 0.6 deg off, recovers the pose with a
     positive-definite covariance."""
     seq, cfg = office_clean, TeacherConfig()
@@ -610,16 +624,16 @@ def test_dense_fallback_tracks_a_pair_without_colour(office_clean):
     T_pred = T_true @ geo.se3_exp([0.006, -0.005, 0.006, 0.006, -0.005, 0.006])
     # bounds: the hybrid runs at half resolution (measured 1.09 mm / 0.074 deg), the depth
     # alignment at the dense step's resolution
-    for path, c, bound in (("rgbd", cfg, (2e-3, 0.1)), ("dense", dataclasses.replace(cfg, fallback_rgbd=False), (1e-3, 0.05))):
-        e = estimate_edge(3, 4, fa, fb, seq.intrinsics, c, 1 / 30, T_pred=T_pred)
-        assert e.ok and e.info["path"] == path and e.info["sparse_status"] == "few_matches", e.info
+    import ctcvo.teacher.odometry as od
+
+    for path, bound in (("rgbd", (2e-3, 0.1)), ("dense", (1e-3, 0.05))):
+        if path == "dense":  # the rgbd fallback fails
+            monkeypatch.setattr(od, "rgbd_starts", lambda i, j, *a, **k: EdgeEstimate(i, j, "few_matches"))
+        e = estimate_edge(3, 4, fa, fb, seq.intrinsics, cfg, 1 / 30, T_pred=T_pred)
+        assert e.ok and e.diag.path == path and e.diag.sparse_status == "few_matches", e.diag
         dt, dr = relative_pose_error(T_true, e.T_i_j)
         assert dt < bound[0] and dr < bound[1], (path, dt, dr)
         assert np.all(np.linalg.eigvalsh(e.cov) > 0)
-    # without the fallbacks the edge fails
-    off = estimate_edge(3, 4, fa, fb, seq.intrinsics, dataclasses.replace(cfg, fallback_dense=False), 1 / 30,
-                        T_pred=T_pred)
-    assert not off.ok and off.info["path"] == "none"
 
 
 def test_dense_fallback_rejects_a_single_plane(office_clean):
@@ -633,7 +647,7 @@ def test_dense_fallback_rejects_a_single_plane(office_clean):
     fa = _features(seq, 0, cfg, rgb=grey, depth=plane[0])
     fb = _features(seq, 1, cfg, rgb=grey, depth=plane[1])
     e = estimate_edge(0, 1, fa, fb, seq.intrinsics, cfg, 1 / 30, T_pred=np.eye(4))
-    assert not e.ok and e.info["rgbd_fallback"] == e.info["dense_fallback"] == "degenerate", (e.status, e.info)
+    assert not e.ok and e.diag.rgbd_fallback == e.diag.dense_fallback == "degenerate", (e.status, e.diag)
 
 
 def test_wide_matching_finds_repeated_texture():
@@ -643,7 +657,8 @@ def test_wide_matching_finds_repeated_texture():
     36 px search around the prediction, without the ratio test, finds them."""
     from ctcvo.data.sequence import Intrinsics
     from ctcvo.data.synthetic.textures import tex_repeat
-    from ctcvo.teacher.odometry import match, match_wide
+    from ctcvo.teacher import sparse
+    from ctcvo.teacher.matching import match, match_wide
 
     rng = np.random.default_rng(3)
     tex = tex_repeat(rng, np.array([0.9, 0.85, 0.7], np.float32), np.array([0.2, 0.3, 0.5], np.float32), size=512)
@@ -661,9 +676,9 @@ def test_wide_matching_finds_repeated_texture():
         d = fj.uv[pairs[:, 1]] - fi.uv[pairs[:, 0]]
         return np.linalg.norm(d - [-shift, 0], axis=1) < 1.5
 
-    assert right(match(fi, fj, cfg, T_pred, K)).sum() < cfg.min_matches
-    assert right(match(fi, fj, cfg)).sum() < cfg.min_matches
-    wide = right(match_wide(fi, fj, cfg, T_pred, K))
+    assert right(match(fi, fj, T_pred, K)).sum() < sparse.MIN_MATCHES
+    assert right(match(fi, fj)).sum() < sparse.MIN_MATCHES
+    wide = right(match_wide(fi, fj, T_pred, K))
     assert wide.sum() >= 100 and wide.mean() > 0.8, (wide.sum(), wide.mean())
 
 
@@ -674,10 +689,10 @@ def test_failed_edges_are_bridged_and_counted(office_clean, tmp_path):
 
     seq = office_clean.select(0, 5)
     step = geo.relative_pose(*seq.groundtruth()[[0, 1]])
-    edges = [EdgeEstimate(0, 1, "ok", T_i_j=step, cov=np.eye(6) * 1e-6, info={"path": "guided"}),
-             EdgeEstimate(1, 2, "ok", T_i_j=step, cov=np.eye(6) * 1e-6, info={"path": "dense"}),
-             EdgeEstimate(2, 3, "few_matches", info={"path": "none"}),
-             EdgeEstimate(3, 4, "ok", T_i_j=step, cov=np.eye(6) * 1e-6, info={"path": "wide"})]
+    edges = [EdgeEstimate(0, 1, "ok", T_i_j=step, cov=np.eye(6) * 1e-6, diag=EdgeDiagnostics("guided")),
+             EdgeEstimate(1, 2, "ok", T_i_j=step, cov=np.eye(6) * 1e-6, diag=EdgeDiagnostics("dense")),
+             EdgeEstimate(2, 3, "few_matches", diag=EdgeDiagnostics("none")),
+             EdgeEstimate(3, 4, "ok", T_i_j=step, cov=np.eye(6) * 1e-6, diag=EdgeDiagnostics("wide"))]
     poses, bridges = chain_trajectory(seq.ids(), edges)
     rep = write_outputs(seq, TeacherRun(edges, poses, bridges, 1.0), TeacherConfig(), tmp_path, {})
     assert rep["edge_paths"] == {"dense": 1, "guided": 1, "none": 1, "wide": 1}
@@ -705,12 +720,12 @@ def test_teacher_tracks_the_stress_scenes(name, tmp_path):
     seq = synthetic_sequence(name, cache_dir=tmp_path, config=dataclasses.replace(PRESETS[name], frames=8))
     run = run_sequence(seq, dataclasses.replace(TeacherConfig(), gaps=2, workers=1), progress=False)
     gap1 = [e for e in run.edges if e.j - e.i == 1]
-    assert len(gap1) == 7 and all(e.ok for e in gap1), [(e.i, e.status, e.info) for e in gap1 if not e.ok]
+    assert len(gap1) == 7 and all(e.ok for e in gap1), [(e.i, e.status, e.diag) for e in gap1 if not e.ok]
     assert not [b for b in run.bridges if b["method"] == "constant velocity"]
     rep = trajectory_report(Trajectory(seq.times(), seq.groundtruth()), Trajectory(seq.times(), run.poses))
     assert rep["rpe_trans_rmse_m"] < 0.01, rep
     if name in ("stress-lowfreq", "stress-textureless"):
-        assert sum(e.info["path"] in ("rgbd", "dense") for e in gap1) >= 4, [e.info["path"] for e in gap1]
+        assert sum(e.diag.path in ("rgbd", "dense") for e in gap1) >= 4, [e.diag.path for e in gap1]
 
 
 def test_stress_presets_render_their_stress():
@@ -729,22 +744,24 @@ def test_stress_presets_render_their_stress():
 
 
 def test_information_fusion_weighs_by_covariance(office_clean):
-    """``dense_fusion = "information"``: a sparse estimate with a huge covariance gives way to
-    the dense alignment (as ``dense_blend = 1`` would), one with a tiny covariance stays put,
+    """Information fusion: a sparse estimate with a huge covariance gives way to
+    the dense alignment (as ``blend = 1`` would), one with a tiny covariance stays put,
     and one in between lands in between."""
-    from ctcvo.teacher.odometry import dense_maps, dense_refine
+    from ctcvo.teacher.dense import dense_refine
+    from ctcvo.teacher.maps import dense_maps
 
     seq = office_clean
     gt = seq.groundtruth()
     T0 = geo.relative_pose(gt[2], gt[4]) @ geo.se3_exp([0.004, 0.0, -0.003, 0.0, 0.003, 0.0])
-    cfg = dataclasses.replace(TeacherConfig(), dense_fusion="information")
-    maps = dense_maps(seq.depth(2), seq.intrinsics.K, cfg), dense_maps(seq.depth(4), seq.intrinsics.K, cfg)
+    cfg = TeacherConfig()
+    maps = dense_maps(seq.depth(2), seq.intrinsics.K), dense_maps(seq.depth(4), seq.intrinsics.K)
     whole = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy())
     dense_refine(whole, *maps, cfg, blend=1.0)
     full = geo.se3_log(geo.inv_T(T0) @ whole.T_i_j)
-    from ctcvo.teacher.odometry import point_to_plane_covariance
+    from ctcvo.teacher.covariance import point_to_plane_covariance
+    from ctcvo.teacher.dense import DENSE_COV_SCALE, P2P_COV_STRIDE
 
-    equal = cfg.dense_cov_scale * point_to_plane_covariance(whole.T_i_j, *maps, cfg, stride=cfg.p2p_cov_stride)[0]
+    equal = DENSE_COV_SCALE * point_to_plane_covariance(whole.T_i_j, *maps, stride=P2P_COV_STRIDE)[0]
     moved = {}
     for name, cov in (("huge", np.eye(6) * 1e2), ("tiny", np.eye(6) * 1e-14), ("equal", equal)):
         res = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy(), cov=cov)
@@ -763,7 +780,7 @@ def test_colour_registration_inverts_the_colour_camera_model():
     pixels: at the depth pixel :meth:`ColourCamera.to_depth_pixels` gives for a colour pixel,
     the registered image holds that colour pixel's value (a smooth image, a fronto-parallel
     wall at 1.5 m, so the parallax term is the same both ways)."""
-    from ctcvo.teacher.odometry import KINECT_V1_COLOUR
+    from ctcvo.teacher.colour import KINECT_V1_COLOUR
 
     K = np.array([[585.0, 0, 320], [0, 585.0, 240], [0, 0, 1]])
     yy, xx = np.mgrid[0:480, 0:640].astype(np.float32)
@@ -785,7 +802,8 @@ def test_hybrid_step_recovers_a_perturbed_pose(office_clean):
     0.12 deg of it (measured 1.37 mm / 0.093 deg: Open3D's kernel reads frame i at the
     nearest pixel, so even started at the truth it settles 0.2-1.3 mm away on these
     frames); its covariance is positive definite."""
-    from ctcvo.teacher.odometry import hybrid_align, hybrid_covariance
+    from ctcvo.teacher.covariance import hybrid_covariance
+    from ctcvo.teacher.dense import hybrid_align
 
     seq = office_clean
     cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid")
@@ -795,67 +813,69 @@ def test_hybrid_step_recovers_a_perturbed_pose(office_clean):
     T_true = geo.relative_pose(gt[2], gt[3])
     T0 = T_true @ geo.se3_exp([0.002, -0.0015, 0.0015, 0.002, -0.002, 0.0015])
     assert relative_pose_error(T_true, T0)[0] > 2.5e-3
-    T, fitness, iters, _ = hybrid_align(T0, fa.dense, fb.dense, cfg, 10)
+    T, fitness, iters, _ = hybrid_align(T0, fa.dense, fb.dense, 10)
     dt, dr = relative_pose_error(T_true, T)
     assert fitness > 0.5 and dt < 2e-3 and dr < 0.12, (dt, dr, fitness, iters)
-    cov = hybrid_covariance(T, fa.dense, fb.dense, cfg)
+    cov = hybrid_covariance(T, fa.dense, fb.dense)
     assert cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(cov) > 0)
 
 
 def test_hybrid_dense_step_only_where_colour_and_depth_agree(office_clean):
     """``dense_method="hybrid"``: a gap-1 edge gets the point-to-plane stage and then the
-    hybrid one (``info["dense"]["hybrid"]``); a longer edge (unless ``hybrid_all_gaps``)
-    keeps the depth alone; an edge with a stale stream (its keypoints of another moment)
-    takes the depth stage whole and then, with ``hybrid_on_stale`` (its photometric maps
-    match its depth, see :class:`teacher.window.EdgeWindow`), the hybrid stage fused with
-    the depth stage's covariance; without it the depth alone."""
-    from ctcvo.teacher.odometry import dense_refine
+    hybrid one (``diag.dense.hybrid``); a longer edge keeps the depth alone; an edge
+    with a stale stream (its keypoints of another moment) takes the depth stage whole and
+    then (its photometric maps match its depth, see :class:`teacher.window.EdgeWindow`) the
+    hybrid stage fused with the depth stage's covariance."""
+    from ctcvo.teacher.dense import dense_refine
 
     seq = office_clean
     cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid")
-    assert cfg.hybrid_on_stale
     fa, fb = _features(seq, 2, cfg), _features(seq, 3, cfg)
     gt = seq.groundtruth()
     T_true = geo.relative_pose(gt[2], gt[3])
     T0 = T_true @ geo.se3_exp([0.002, -0.0015, 0.0015, 0.002, -0.002, 0.0015])
     cov = np.diag([1e-6] * 3 + [3e-6] * 3)
     runs = {}
-    for name, kw, c in (("gap1", {}, cfg), ("stale", {"blend": 1.0}, cfg), ("long", {"hybrid": False}, cfg),
-                        ("stale_off", {"blend": 1.0}, dataclasses.replace(cfg, hybrid_on_stale=False))):
+    for name, kw in (("gap1", {}), ("stale", {"blend": 1.0}), ("long", {"hybrid": False})):
         res = EdgeEstimate(2, 3, "ok", T_i_j=T0.copy(), cov=cov)
-        dense_refine(res, fa.dense, fb.dense, c, **kw)
+        dense_refine(res, fa.dense, fb.dense, cfg, **kw)
         runs[name] = res
-    assert runs["gap1"].info["dense"]["hybrid"]["accepted"], runs["gap1"].info
-    assert runs["stale"].info["dense"]["hybrid"]["accepted"], runs["stale"].info
-    assert "hybrid" not in runs["stale_off"].info["dense"] and "hybrid" not in runs["long"].info["dense"]
+    assert runs["gap1"].diag.dense.hybrid.accepted, runs["gap1"].diag
+    assert runs["stale"].diag.dense.hybrid.accepted, runs["stale"].diag
+    assert runs["long"].diag.dense.hybrid is None
     err = {k: relative_pose_error(T_true, r.T_i_j)[0] for k, r in runs.items()}
     assert err["gap1"] < 1e-3 and err["gap1"] < err["long"], err
     assert err["stale"] < 1e-3, err
 
 
-def test_photo_weight_scales_the_grey_not_the_covariance(office_clean):
-    """``photo_weight`` w scales the grey maps by sqrt(w) (so the kernel weighs the
+def test_photo_weight_scales_the_grey_not_the_covariance(office_clean, monkeypatch):
+    """``PHOTO_WEIGHT`` w scales the grey maps by sqrt(w) (so the kernel weighs the
     photometric residual w times the depth residual, its Huber threshold scaled alike); the
     hybrid covariance, each term divided by its own residual variance, stays the same."""
-    from ctcvo.teacher.odometry import hybrid_covariance
+    from ctcvo.teacher import covariance
+    from ctcvo.teacher import maps as maps_module
 
     seq = office_clean
-    maps = {}
+    cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid")
+    T = geo.relative_pose(seq.groundtruth()[2], seq.groundtruth()[3])
+    maps, covs = {}, []
     for w in (1.0, 0.25):
-        cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid", photo_weight=w)
-        maps[w] = (cfg, _features(seq, 2, cfg), _features(seq, 3, cfg))
-    a, b = maps[1.0][1].dense.photo, maps[0.25][1].dense.photo
+        with monkeypatch.context() as m:
+            for mod in (maps_module, covariance):
+                m.setattr(mod, "PHOTO_WEIGHT", w)
+            m.setattr(covariance, "PHOTO_HUBER_SCALED", covariance.PHOTO_HUBER * float(np.sqrt(w)))
+            maps[w] = (_features(seq, 2, cfg), _features(seq, 3, cfg))
+            covs.append(covariance.hybrid_covariance(T, maps[w][0].dense, maps[w][1].dense))
+    a, b = maps[1.0][0].dense.photo, maps[0.25][0].dense.photo
     np.testing.assert_allclose(b.intensity.numpy(), 0.5 * a.intensity.numpy(), rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(b.intensity_dx.numpy(), 0.5 * a.intensity_dx.numpy(), rtol=1e-5, atol=1e-6)
-    T = geo.relative_pose(seq.groundtruth()[2], seq.groundtruth()[3])
-    covs = [hybrid_covariance(T, fi.dense, fj.dense, cfg) for cfg, fi, fj in maps.values()]
     np.testing.assert_allclose(covs[1], covs[0], rtol=1e-3, atol=1e-14)
 
 
 def test_keypoints_agreeing_on_a_wrong_motion_give_way_to_the_rgbd_fallback(office_clean, monkeypatch):
     """A sparse estimate 4 cm off the truth (keypoints that agree on a wrong motion, e.g.
     repeated structure): the point-to-plane and the hybrid stage, each started there, move
-    farther than ``dense_max_shift_m`` and are both rejected; the edge is then made by the
+    farther than ``DENSE_MAX_SHIFT_M`` and are both rejected; the edge is then made by the
     rgbd fallback from the motion prediction (``sparse_status`` ``dense_disagrees``), close
     to the truth. With the depth stage alone (``point-to-plane``: real recordings) the
     sparse estimate stays, as before."""
@@ -869,18 +889,18 @@ def test_keypoints_agreeing_on_a_wrong_motion_give_way_to_the_rgbd_fallback(offi
 
     def wrong(i, j, fi, fj, intr, cfg, dt, pairs, rolling=None):
         return EdgeEstimate(i, j, "ok", T_i_j=T_bad.copy(), cov=np.diag([1e-6] * 3 + [3e-6] * 3), matches=100,
-                            inliers=90, inlier_ratio=0.9, info={})
+                            inliers=90, inlier_ratio=0.9)
 
-    monkeypatch.setattr(od, "_estimate", wrong)
+    monkeypatch.setattr(od, "sparse_estimate", wrong)
     out = {}
     for method in ("hybrid", "point-to-plane"):
         cfg = dataclasses.replace(TeacherConfig(), dense_method=method)
         fa, fb = _features(seq, 3, cfg), _features(seq, 4, cfg)
         out[method] = estimate_edge(3, 4, fa, fb, seq.intrinsics, cfg, 1 / 30, T_pred=T_pred)
     e = out["hybrid"]
-    assert e.ok and e.info["path"] == "rgbd" and e.info["sparse_status"] == "dense_disagrees", e.info
+    assert e.ok and e.diag.path == "rgbd" and e.diag.sparse_status == "dense_disagrees", e.diag
     assert relative_pose_error(T_true, e.T_i_j)[0] < 2e-3
-    assert out["point-to-plane"].info["path"] == "guided" and np.array_equal(out["point-to-plane"].T_i_j, T_bad)
+    assert out["point-to-plane"].diag.path == "guided" and np.array_equal(out["point-to-plane"].T_i_j, T_bad)
 
 
 class _DepthRepeats:
@@ -943,8 +963,8 @@ def test_window_gives_a_depth_repeat_the_colour_of_its_depth(office_clean):
     shows, and a chunk that starts at a depth repeat (``prev_photo``,
     :func:`teacher.generate._photo_before`) reads the maps the window would hold back from
     the frames before it."""
+    from ctcvo.teacher.features import make_orb
     from ctcvo.teacher.generate import _photo_before
-    from ctcvo.teacher.odometry import make_orb
     from ctcvo.teacher.window import EdgeWindow
 
     seq = office_clean
@@ -1003,7 +1023,7 @@ def test_constant_velocity_spans_a_dropped_frame(office_clean, monkeypatch):
 
 
 @pytest.mark.parametrize("method", ["point-to-plane", "hybrid"])
-def test_rgbd_fallback_with_either_dense_method(office_clean, method):
+def test_rgbd_fallback_with_either_dense_method(office_clean, method, monkeypatch):
     """The rgbd fallback on a pair with keypoints removed (colour blurred flat except for its
     coarse shading): with the hybrid method's maps it aligns coarse to fine on per-frame
     pyramids (kept for the frame's other edges) and finishes at full resolution; with the
@@ -1016,13 +1036,15 @@ def test_rgbd_fallback_with_either_dense_method(office_clean, method):
     gt = seq.groundtruth()
     T_true = geo.relative_pose(gt[3], gt[4])
     T_pred = T_true @ geo.se3_exp([0.006, -0.005, 0.006, 0.006, -0.005, 0.006])
-    e = estimate_edge(3, 4, fa, fb, seq.intrinsics, dataclasses.replace(cfg, fallback_wide=False, min_matches=10**6),
-                      1 / 30, T_pred=T_pred)
-    assert e.ok and e.info["path"] == "rgbd", e.info
+    from ctcvo.teacher import fallbacks, sparse
+
+    monkeypatch.setattr(sparse, "MIN_MATCHES", 10**6)
+    e = estimate_edge(3, 4, fa, fb, seq.intrinsics, cfg, 1 / 30, T_pred=T_pred)
+    assert e.ok and e.diag.path == "rgbd", e.diag
     dt, dr = relative_pose_error(T_true, e.T_i_j)
     assert dt < 2e-3 and dr < 0.1, (dt, dr)
     if method == "hybrid":
-        assert set(fa.dense.photo.levels) == {s for s, _ in cfg.fallback_levels}
+        assert set(fa.dense.photo.levels) == {s for s, _ in fallbacks.FALLBACK_LEVELS}
 
 
 def test_dense_method_auto_follows_the_sensor(office_clean, tmp_path):
@@ -1061,47 +1083,13 @@ def test_dense_method_auto_follows_the_sensor(office_clean, tmp_path):
         dense_method_for(office_clean, dataclasses.replace(cfg, dense_method="photometric"))
 
 
-@pytest.mark.slow
-def test_dense_max_gap_keeps_the_dense_step_to_short_edges(tmp_path, capsys):
-    """``--dense-max-gap 1``: the gap-1 edges are the default teacher's, bit for bit; the
-    gap-2 edges keep their sparse estimate (no dense outcome in edges.csv, other poses);
-    a negative value is a one-line error."""
-    out1, out0 = tmp_path / "d1", tmp_path / "d0"
-    args = ["generate", "--scene", "synthetic/tiny", "--preset", "tiny", "--frames", "0:6", "--workers", "1"]
-    assert cli.main([*args, "--out", str(out0)]) == 0
-    assert cli.main([*args, "--out", str(out1), "--dense-max-gap", "1"]) == 0
-    assert json.loads((out1 / "config.json").read_text())["teacher"]["dense_max_gap"] == 1
-    rows0, rows1 = read_edges_csv(out0 / "edges.csv"), read_edges_csv(out1 / "edges.csv")
-    e0, e1 = read_g2o(out0 / "edges.g2o")[0], read_g2o(out1 / "edges.g2o")[0]
-    by_pair0 = {(e.i, e.j): e for e in e0}
-    gap1 = [e for e in e1 if e.j - e.i == 1]
-    assert len(gap1) == 5 and all(np.array_equal(e.T_i_j, by_pair0[e.i, e.j].T_i_j) for e in gap1)
-    assert all("dense_fitness" in r for r in rows1 if int(r["j"]) - int(r["i"]) == 1 and r["status"] == "ok")
-    long1 = [r for r in rows1 if int(r["j"]) - int(r["i"]) == 2 and r["status"] == "ok"]
-    assert len(long1) == 4 and not any("dense_fitness" in r for r in long1)
-    assert all("dense_fitness" in r for r in rows0 if int(r["j"]) - int(r["i"]) == 2 and r["status"] == "ok")
-    # the gap-2 labels are not the dense-refined ones; an edge asked for without the dense step has none
-    long0 = {(e.i, e.j): e for e in e0 if e.j - e.i == 2}
-    assert not any(np.allclose(e.T_i_j, long0[e.i, e.j].T_i_j, atol=1e-9) for e in e1 if e.j - e.i == 2)
-    seq = open_scene("synthetic/tiny", frames="0:2")[0]
-    from ctcvo.teacher.config import TINY
-
-    fa, fb = (extract(seq.rgb(k), seq.depth(k), TINY, K=seq.intrinsics.K) for k in range(2))
-    sparse = estimate_edge(0, 1, fa, fb, seq.intrinsics, TINY, 1 / 30, np.eye(4), dense=False)
-    dense = estimate_edge(0, 1, fa, fb, seq.intrinsics, TINY, 1 / 30, np.eye(4))
-    assert sparse.ok and "dense" not in sparse.info and "dense" in dense.info
-    assert cli.main([*args, "--out", str(tmp_path / "bad"), "--dense-max-gap", "-1"]) == 1
-    err = capsys.readouterr().err.strip().splitlines()[-1]
-    assert err.startswith("error: ") and "--dense-max-gap" in err
-
-
 # ---------------------------------------------------------------------------- fast paths
 
 def test_stable_argsort_is_numpys_stable_order():
-    """Guided matching's sort (:func:`teacher.odometry._stable_argsort`): NumPy's stable
+    """Guided matching's sort (:func:`teacher.matching._stable_argsort`): NumPy's stable
     order, ties kept in input order, on keys with many ties; keys too large for the
     position bits take NumPy's stable sort itself."""
-    from ctcvo.teacher.odometry import _stable_argsort
+    from ctcvo.teacher.matching import _stable_argsort
 
     rng = np.random.default_rng(3)
     for n in (0, 1, 7, 9100):
@@ -1111,10 +1099,12 @@ def test_stable_argsort_is_numpys_stable_order():
     np.testing.assert_array_equal(_stable_argsort(big), [4, 1, 3, 0, 2])
 
 
-def _reference_point_to_plane_covariance(T, di, dj, cfg, stride):
-    """:func:`teacher.odometry.point_to_plane_covariance` written plainly (its docstring's
+def _reference_point_to_plane_covariance(T, di, dj, stride):
+    """:func:`teacher.covariance.point_to_plane_covariance` written plainly (its docstring's
     recipe): j's points moved into i, projected and rounded to i's pixel, paired with i's
-    vertex there when finite and within ``dense_trunc_m``, Huber-weighted J^T W J."""
+    vertex there when finite and within ``DENSE_TRUNC_M``, Huber-weighted J^T W J."""
+    from ctcvo.teacher.covariance import DENSE_HUBER_M, DENSE_MIN_SIGMA_M, DENSE_TRUNC_M
+
     q = dj.points.numpy()[::stride, ::stride].reshape(-1, 3).astype(np.float64)
     q = q[np.all(np.isfinite(q), axis=1)]
     vert, nrm = di.vertex.numpy().astype(np.float64), di.normal.numpy().astype(np.float64)
@@ -1126,14 +1116,14 @@ def _reference_point_to_plane_covariance(T, di, dj, cfg, stride):
             continue
         u, v = int(np.rint(K[0, 0] * x[0] / x[2] + K[0, 2])), int(np.rint(K[1, 1] * x[1] / x[2] + K[1, 2]))
         if 0 <= u < w and 0 <= v < h and np.all(np.isfinite(vert[v, u])) and np.all(np.isfinite(nrm[v, u])) \
-                and np.linalg.norm(x - vert[v, u]) < cfg.dense_trunc_m:
+                and np.linalg.norm(x - vert[v, u]) < DENSE_TRUNC_M:
             n = nrm[v, u]
             m = T[:3, :3].T @ n
             rows.append((n @ (x - vert[v, u]), *m, *np.cross(qk, m)))
     a = np.array(rows)
     r, J = a[:, 0], a[:, 1:]
-    wts = np.where(np.abs(r) <= cfg.dense_huber_m, 1.0, cfg.dense_huber_m / np.abs(r))
-    sigma2 = max(np.sum(wts * r * r) / (len(r) - 6), cfg.dense_min_sigma_m ** 2)
+    wts = np.where(np.abs(r) <= DENSE_HUBER_M, 1.0, DENSE_HUBER_M / np.abs(r))
+    sigma2 = max(np.sum(wts * r * r) / (len(r) - 6), DENSE_MIN_SIGMA_M ** 2)
     return sigma2 * np.linalg.inv(J.T @ (J * wts[:, None])) / stride ** 2, len(r)
 
 
@@ -1142,14 +1132,15 @@ def test_point_to_plane_covariance_follows_its_definition(office_clean, stride):
     """The vectorised covariance (row gathers of the surface each edge hits, no per-frame
     table) equals the plain per-point recipe, on a pair of office frames at a perturbed pose
     (some points leave the image or the truncation distance)."""
-    from ctcvo.teacher.odometry import dense_maps, point_to_plane_covariance
+    from ctcvo.teacher.covariance import point_to_plane_covariance
+    from ctcvo.teacher.maps import dense_maps
 
-    seq, cfg = office_clean, TeacherConfig()
+    seq = office_clean
     gt = seq.groundtruth()
     T = geo.relative_pose(gt[3], gt[6]) @ geo.se3_exp([0.02, -0.01, 0.03, 0.01, -0.02, 0.005])
-    di, dj = dense_maps(seq.depth(3), seq.intrinsics.K, cfg), dense_maps(seq.depth(6), seq.intrinsics.K, cfg)
-    cov, n, _ = point_to_plane_covariance(T, di, dj, cfg, stride=stride)
-    ref, n_ref = _reference_point_to_plane_covariance(T, di, dj, cfg, stride)
+    di, dj = dense_maps(seq.depth(3), seq.intrinsics.K), dense_maps(seq.depth(6), seq.intrinsics.K)
+    cov, n, _ = point_to_plane_covariance(T, di, dj, stride=stride)
+    ref, n_ref = _reference_point_to_plane_covariance(T, di, dj, stride)
     assert n == n_ref > 100
     np.testing.assert_allclose(cov, ref, rtol=1e-9, atol=1e-20)
 
@@ -1160,8 +1151,7 @@ def test_gap1_edges_beside_a_colour_repeat_use_the_depth_alone(office_clean):
     so its gap-1 edges are made by the depth term of the hybrid kernel alone (``path``
     ``depth``), from the motion prediction, and match the ground truth, which follows the
     depth; between the two, the same depth map twice, the keypoints give the identity. The
-    feature tracks go on through them (the gap-2 edges keep their tracks). Off
-    (``depth_beside_colour_repeat`` False), the usual chain makes them."""
+    feature tracks go on through them (the gap-2 edges keep their tracks)."""
     from ctcvo.teacher.window import EdgeWindow
 
     seq = office_clean
@@ -1170,28 +1160,26 @@ def test_gap1_edges_beside_a_colour_repeat_use_the_depth_alone(office_clean):
     # depends on the thread count, and on this pair that moves the (3, 4) edge by ~2 mm
     # (2.4 mm / 0.08 deg with 2 threads, 3.8 / 0.15 with 3, 4.2 / 0.17 with 1)
     with openmp_threads(1):
-        for on in (True, False):
-            cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid", gaps=2, depth_beside_colour_repeat=on)
-            feats = {2: _features(seq, 2, cfg), 3: _features(seq, 3, cfg),
-                     4: _features(seq, 4, cfg, rgb=seq.rgb(3)),  # colour repeated, depth new
-                     5: _features(seq, 5, cfg, rgb=seq.rgb(3), depth=seq.depth(4)),  # frame 4 again, whole
-                     6: _features(seq, 6, cfg)}
-            w = EdgeWindow(seq.intrinsics, cfg)
-            edges = {(e.i, e.j): e for k, f in feats.items() for e in w.add(k, k / 30, f)}
-            assert [feats[k].colour_behind for k in range(2, 7)] == [False, False, True, True, False]
-            truth = {(3, 4): geo.relative_pose(gt[3], gt[4]), (4, 5): np.eye(4), (5, 6): geo.relative_pose(gt[4], gt[6])}
-            for ij, T in truth.items():
-                e = edges[ij]
-                assert e.ok and (e.info["path"] == "depth") == (on and ij != (4, 5)), (on, ij, e.info)
-                if on:
-                    dt, dr = relative_pose_error(T, e.T_i_j)
-                    # noise-free frames, but the depth alone pins the pose less well than colour
-                    # and depth (measured 4.2 mm / 0.17 deg, one thread); (5, 6) spans two
-                    # frames' motion from the prediction; (4, 5) is the identity
-                    bound = (7e-3, 0.3) if ij == (5, 6) else (5e-3, 0.2)
-                    assert dt < bound[0] and dr < bound[1], (ij, dt, dr)
-                    assert np.all(np.linalg.eigvalsh(e.cov) > 0)
-            assert edges[(2, 4)].ok and edges[(2, 4)].info["source"] == "tracks", edges[(2, 4)].info
+        cfg = dataclasses.replace(TeacherConfig(), dense_method="hybrid", gaps=2)
+        feats = {2: _features(seq, 2, cfg), 3: _features(seq, 3, cfg),
+                 4: _features(seq, 4, cfg, rgb=seq.rgb(3)),  # colour repeated, depth new
+                 5: _features(seq, 5, cfg, rgb=seq.rgb(3), depth=seq.depth(4)),  # frame 4 again, whole
+                 6: _features(seq, 6, cfg)}
+        w = EdgeWindow(seq.intrinsics, cfg)
+        edges = {(e.i, e.j): e for k, f in feats.items() for e in w.add(k, k / 30, f)}
+        assert [feats[k].colour_behind for k in range(2, 7)] == [False, False, True, True, False]
+        truth = {(3, 4): geo.relative_pose(gt[3], gt[4]), (4, 5): np.eye(4), (5, 6): geo.relative_pose(gt[4], gt[6])}
+        for ij, T in truth.items():
+            e = edges[ij]
+            assert e.ok and (e.diag.path == "depth") == (ij != (4, 5)), (ij, e.diag)
+            dt, dr = relative_pose_error(T, e.T_i_j)
+            # noise-free frames, but the depth alone pins the pose less well than colour
+            # and depth (measured 4.2 mm / 0.17 deg, one thread); (5, 6) spans two
+            # frames' motion from the prediction; (4, 5) is the identity
+            bound = (7e-3, 0.3) if ij == (5, 6) else (5e-3, 0.2)
+            assert dt < bound[0] and dr < bound[1], (ij, dt, dr)
+            assert np.all(np.linalg.eigvalsh(e.cov) > 0)
+        assert edges[(2, 4)].ok and edges[(2, 4)].diag.source == "tracks", edges[(2, 4)].diag
 
 
 def _render_frames_of(name: str, frames: range, out):
@@ -1243,20 +1231,16 @@ def test_edge_out_of_a_repeat_spans_two_periods_of_a_fast_turn(tmp_path):
     seq, plan = _render_frames_of("stress-fast", range(245, 251), tmp_path / "fast")
     assert plan[248] == REPEAT_FRAME and [int(i) for i in seq.ids()] == list(range(245, 251))
     gt = seq.groundtruth()
-    for start in (True, False):
-        cfg = dataclasses.replace(TeacherConfig(), gaps=1, workers=1, fallback_span_start=start)
-        run = run_sequence(seq, cfg, progress=False)
-        e = {(x.i, x.j): x for x in run.edges}
-        err = relative_pose_error(geo.relative_pose(gt[3], gt[4]), e[(248, 249)].T_i_j)[0] \
-            if e[(248, 249)].ok else float("inf")
-        if start:
-            assert all(x.ok for x in run.edges) and not run.bridges, [(x.i, x.status, x.info) for x in run.edges]
-            assert e[(248, 249)].info["path"] == "rgbd" and e[(248, 249)].info["start"] == "span"
-            assert err < 0.01, err  # measured 5.7 mm
-            rep = trajectory_report(Trajectory(seq.times(), seq.groundtruth()), Trajectory(seq.times(), run.poses))
-            assert rep["rpe_trans_rmse_m"] < 0.008, rep
-        else:
-            assert err > 0.05, err  # the identity's wrong minimum (116 mm)
+    cfg = dataclasses.replace(TeacherConfig(), gaps=1, workers=1)
+    run = run_sequence(seq, cfg, progress=False)
+    e = {(x.i, x.j): x for x in run.edges}
+    err = relative_pose_error(geo.relative_pose(gt[3], gt[4]), e[(248, 249)].T_i_j)[0] \
+        if e[(248, 249)].ok else float("inf")
+    assert all(x.ok for x in run.edges) and not run.bridges, [(x.i, x.status, x.diag) for x in run.edges]
+    assert e[(248, 249)].diag.path == "rgbd" and e[(248, 249)].diag.start == "span"
+    assert err < 0.01, err  # measured 5.7 mm
+    rep = trajectory_report(Trajectory(seq.times(), seq.groundtruth()), Trajectory(seq.times(), run.poses))
+    assert rep["rpe_trans_rmse_m"] < 0.008, rep
 
 
 def test_plausibility_bound_and_second_start_follow_the_depth_moments(office_clean, monkeypatch):
@@ -1274,9 +1258,9 @@ def test_plausibility_bound_and_second_start_follow_the_depth_moments(office_cle
     got = {}
     est = wmod.estimate_edge
 
-    def spy(i, j, fi, fj, intr, c, dt, T_pred=None, tracks=None, dense=True, T_alt=None, span=None):
+    def spy(i, j, fi, fj, intr, c, dt, T_pred=None, tracks=None, T_alt=None, span=None):
         got[(i, j)] = (span, T_alt, dt)
-        return est(i, j, fi, fj, intr, c, dt, T_pred, tracks, dense, T_alt, span)
+        return est(i, j, fi, fj, intr, c, dt, T_pred, tracks, T_alt, span)
 
     monkeypatch.setattr(wmod, "estimate_edge", spy)
     feats = {2: _features(seq, 2, cfg), 3: _features(seq, 3, cfg),
@@ -1307,7 +1291,9 @@ def test_motion_between_depth_moments_is_moved_to_the_colour_moments():
     :func:`_to_colour_moments` recovers the latter from the former (its covariance scaled
     by the ratio of the time spans), :func:`_depth_moments` goes the other way, and frames
     without offsets are left alone."""
-    from ctcvo.teacher.odometry import FrameFeatures, _depth_moments, _to_colour_moments
+    from ctcvo.teacher.features import FrameFeatures
+    from ctcvo.teacher.timing import to_colour_moments as _to_colour_moments
+    from ctcvo.teacher.timing import to_depth_moments as _depth_moments
 
     def frame(offset):
         return FrameFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32),
@@ -1372,7 +1358,7 @@ def test_middle_row_moves_a_point_by_its_rows_time_at_the_velocity():
     """``_to_middle_row``: the bottom row is read half the readout after the middle row, so
     a point seen there moves by that time times the velocity (v + w x X); the middle row
     stays; the top row moves the other way."""
-    from ctcvo.teacher.odometry import _to_middle_row
+    from ctcvo.teacher.timing import _to_middle_row
 
     X = np.array([[0.1, 0.2, 2.0]] * 3)
     rows = np.array([0.0, 239.5, 479.0])
@@ -1388,8 +1374,8 @@ def test_rolling_shutter_readout_auto_follows_the_scene(tmp_path):
     """Auto: a synthetic scene's own sensor readout (0 when noise-free), Kinect v1's for
     anything else; a set value wins; a bad one is a ConfigError."""
     from ctcvo.data.errors import ConfigError
+    from ctcvo.teacher.colour import KINECT_V1_READOUT_S
     from ctcvo.teacher.generate import rolling_shutter_for, rolling_shutter_of_folder
-    from ctcvo.teacher.odometry import KINECT_V1_READOUT_S
 
     cfg = TeacherConfig()
     assert rolling_shutter_for(open_scene("synthetic/tiny")[0], cfg) == 0.027

@@ -26,8 +26,6 @@ For each new frame k:
 
 With ``--pose-after-gap1`` step 1 gives the gap-1 edge only, and the longer teacher edges
 follow step 4 in a second ISAM2 update (the same edges; a frame's pose waits for less).
-``--dense-max-gap N`` runs the teacher's dense step on edges of at most N frames only (a
-cheaper teacher; bench/README.md, "Online mode", measures what it costs in accuracy).
 
 This module only composes them (frame sources, the hand-over thread, outputs, command
 line); it is, with pipeline/demo.py, where every stage is imported.
@@ -378,9 +376,9 @@ class OnlineTeacher:
     arrive, and the frame ids and timestamps so far."""
 
     def __init__(self, intr: Intrinsics, cfg, colour=None) -> None:
-        """``colour``: the colour camera model (``teacher.odometry.ColourCamera``; None:
+        """``colour``: the colour camera model (``teacher.colour.ColourCamera``; None:
         colour registered to depth), as :func:`teacher.generate.colour_camera_for` picks it."""
-        from ctcvo.teacher.odometry import make_orb
+        from ctcvo.teacher.features import make_orb
         from ctcvo.teacher.window import EdgeWindow
 
         self.intr, self.cfg, self.colour = intr, cfg, colour
@@ -393,17 +391,17 @@ class OnlineTeacher:
         """Per-frame work (safe to run in one helper thread ahead of :meth:`add`), without
         the maps the frame's dense step needs only as the older frame of a later edge:
         :meth:`finish` adds them, in the same thread, before the next frame's features."""
-        from ctcvo.teacher.odometry import extract
+        from ctcvo.teacher.features import extract
 
         return extract(frame.rgb, frame.depth, self.cfg, self.orb, self.intr.K, self.colour, surface=False)
 
     def finish(self, fk) -> None:
-        """The rest of :meth:`features` (:func:`teacher.odometry.add_surface`): called after
+        """The rest of :meth:`features` (:func:`teacher.maps.add_surface`): called after
         the frame is handed over, so its own edges do not wait for it."""
-        from ctcvo.teacher.odometry import add_surface
+        from ctcvo.teacher.maps import add_surface
 
         if fk.dense is not None:
-            add_surface(fk.dense, fk.depth, self.intr.K, self.cfg)
+            add_surface(fk.dense, fk.depth, self.intr.K)
 
     def add(self, frame: Frame, fk) -> list:
         """The edges ending at ``frame`` (``EdgeEstimate``; failed ones included)."""
@@ -845,8 +843,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--drop-late", action="store_true",
                    help="--follow: when frames come faster than they are processed, take the newest and skip "
                    "the ones in between (bounded latency, fewer frames)")
-    p.add_argument("--dense-max-gap", type=int, help="teacher: dense step only on edges of at most this many "
-                   "frames (0: every edge; default: the preset's); less work per frame, see bench/README.md")
     p.add_argument("--samples", type=int, help="MC-dropout passes K (default 10)")
     p.add_argument("--max-gap", type=int, help="learner edges to the last frames (default 5)")
     p.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"], help="learner device")
@@ -868,13 +864,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         scene = scene_with_topics(args.scene, args)
         tcfg = TEACHER_PRESETS[args.preset]
         if args.gaps is not None:
-            if args.gaps < 1:
-                raise ConfigError(f"--gaps must be >= 1, got {args.gaps}")
             tcfg = dataclasses.replace(tcfg, gaps=args.gaps)
-        if args.dense_max_gap is not None:
-            if args.dense_max_gap < 0:
-                raise ConfigError(f"--dense-max-gap must be >= 0 (0: every edge), got {args.dense_max_gap}")
-            tcfg = dataclasses.replace(tcfg, dense_max_gap=args.dense_max_gap)
         pcfg = PredictConfig(**{k: v for k, v in (("samples", args.samples), ("max_gap", args.max_gap)) if v is not None})
         if args.timeout <= 0 or args.poll <= 0:
             raise ConfigError("--timeout and --poll must be positive")

@@ -32,8 +32,6 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--frames", default=None, help="frame range START:STOP[:STEP] of each sequence (default: all)")
     g.add_argument("--split", default="all", choices=["train", "test", "all"], help="split of a 7-Scenes scene folder")
     g.add_argument("--preset", default="default", choices=sorted(PRESETS), help="teacher preset, see above")
-    g.add_argument("--dense-max-gap", type=int, default=None,
-                   help="dense step only on edges of at most this many frames (0: every edge, the default)")
     g.add_argument("--workers", type=int, default=None,
                    help="worker processes (default: the preset's, 2)")
     g.add_argument("--overwrite", action="store_true",
@@ -48,8 +46,6 @@ def _generate(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, gaps=args.gaps)
     if args.workers is not None:
         cfg = dataclasses.replace(cfg, workers=args.workers)
-    if args.dense_max_gap is not None:
-        cfg = dataclasses.replace(cfg, dense_max_gap=args.dense_max_gap)
     if cfg.workers > 1:
         processes.start()  # the workers import Open3D and the teacher while this process does
     from ctcvo.teacher.generate import generate

@@ -38,6 +38,7 @@ from tqdm import tqdm
 
 from ctcvo.data import geometry as geo
 from ctcvo.data.chain import chain_edges
+from ctcvo.data.errors import ConfigError
 from ctcvo.data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
 from ctcvo.data.io import ensure_dir, git_revision, json_safe, write_json
 from ctcvo.data.metrics import relative_pose_error, trajectory_report
@@ -46,18 +47,11 @@ from ctcvo.data.runs import Fingerprint, claim, frames_id, output_folder, scene_
 from ctcvo.data.scenes import open_scene
 from ctcvo.data.sequence import Sequence
 from ctcvo.teacher import processes
+from ctcvo.teacher.colour import KINECT_V1_COLOUR, KINECT_V1_READOUT_S, ColourCamera
 from ctcvo.teacher.config import TeacherConfig
-from ctcvo.teacher.odometry import (
-    KINECT_V1_COLOUR,
-    KINECT_V1_READOUT_S,
-    ColourCamera,
-    EdgeEstimate,
-    FrameFeatures,
-    PhotoMaps,
-    extract,
-    image_keys,
-    make_orb,
-)
+from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb
+from ctcvo.teacher.maps import PhotoMaps
+from ctcvo.teacher.record import EdgeEstimate
 from ctcvo.teacher.window import EdgeWindow
 
 log = logging.getLogger(__name__)
@@ -89,7 +83,6 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> Te
     """
     n = len(seq)
     t0 = time.perf_counter()
-    dense_method_for(seq, cfg)  # a bad dense_method is a ConfigError before any work
     bounds = _chunks(n, cfg)
     bar = tqdm(total=n, desc=f"teacher {seq.name}", unit="frame", disable=not (progress and sys.stderr.isatty()))
     if len(bounds) == 1:
@@ -208,7 +201,7 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
 
 
 class _KeysOf:
-    """:func:`teacher.odometry.image_keys` of a sequence's frames by position, each frame
+    """:func:`teacher.features.image_keys` of a sequence's frames by position, each frame
     decoded once: the walks back over the frames before a chunk (:func:`_moments_before`,
     :func:`_photo_before`) read the same frames."""
 
@@ -313,13 +306,13 @@ def rolling_shutter_of_folder(seq_dir: Path) -> float:
 
 def dense_method_for(seq: Sequence, cfg: TeacherConfig) -> str:
     """The dense step's method for ``seq``: ``cfg.dense_method``, with ``auto`` resolved by
-    the colour camera model ``colour_camera_for`` picks (:func:`teacher.odometry.dense_method`):
+    the colour camera model ``colour_camera_for`` picks (:func:`teacher.colour.dense_method`):
     ``hybrid`` for a synthetic scene's sensor model (colour and depth exposed at the same
     instant), ``point-to-plane`` otherwise (real Kinect v1 recordings: 7-Scenes, whose
     ground truth follows the depth while the colour is exposed at other times, TUM RGB-D;
     noise-free synthetic scenes, whose colour needs no model)."""
     from ctcvo.data.errors import ConfigError
-    from ctcvo.teacher.odometry import dense_method
+    from ctcvo.teacher.colour import dense_method
 
     if cfg.dense_method not in ("auto", "hybrid", "point-to-plane"):
         raise ConfigError(f"dense_method must be auto, hybrid or point-to-plane, got {cfg.dense_method!r}")
@@ -365,19 +358,18 @@ def _edge_rows(edges: list[EdgeEstimate], ts: dict[int, float]) -> list[dict]:
     return [{
         "i": e.i, "j": e.j, "t_i": f"{ts[e.i]:.6f}", "t_j": f"{ts[e.j]:.6f}", "status": e.status,
         "matches": e.matches, "inliers": e.inliers, "inlier_ratio": float(e.inlier_ratio),
-        "rmse_px": float(e.rmse_px), "trans_m": float(e.info.get("trans_m", float("nan"))),
-        "rot_deg": float(e.info.get("rot_deg", float("nan"))),
-        **_dense_cells(e), "path": e.info.get("path", "none"),
+        "rmse_px": float(e.rmse_px), "trans_m": float(e.diag.trans_m), "rot_deg": float(e.diag.rot_deg),
+        **_dense_cells(e), "path": e.diag.path,
     } for e in edges]
 
 
 def _dense_cells(e: EdgeEstimate) -> dict:
     """``dense_fitness`` and ``dense_shift_m`` (0 when the dense result was rejected); no
     cells when the dense step did not run (failed edge or step disabled)."""
-    d = e.info.get("dense")
+    d = e.diag.dense
     if d is None:
         return {}
-    return {"dense_fitness": float(d["fitness"]), "dense_shift_m": float(d["shift_m"]) if d["accepted"] else 0.0}
+    return {"dense_fitness": float(d.fitness), "dense_shift_m": float(d.shift_m) if d.accepted else 0.0}
 
 
 def _label_errors(edges: list[EdgeEstimate], gt: NDArray, ids: NDArray) -> dict:
@@ -408,14 +400,14 @@ def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
         "failed_edges": int(sum(v for s, v in status.items() if s != "ok")),
         "failed_gap1_edges": len(gap1_failed),
         "failures_by_reason": {s: int(v) for s, v in status.items() if s != "ok"},
-        "dense_rejected_edges": sum(1 for e in run.edges if "dense" in e.info and not e.info["dense"]["accepted"]),
-        "stale_stream_edges": sum(1 for e in run.edges if e.info.get("dense", {}).get("stale_stream")),
+        "dense_rejected_edges": sum(1 for e in run.edges if e.diag.dense is not None and not e.diag.dense.accepted),
+        "stale_stream_edges": sum(1 for e in run.edges if e.diag.dense is not None and e.diag.dense.stale_stream),
         "bridges": run.bridges,
         "constant_velocity_bridges": sum(1 for b in run.bridges if b["method"] == "constant velocity"),
-        "edge_paths": dict(sorted(Counter(e.info.get("path", "none") for e in run.edges).items())),
-        "gap1_edge_paths": dict(sorted(Counter(e.info.get("path", "none") for e in run.edges
+        "edge_paths": dict(sorted(Counter(e.diag.path for e in run.edges).items())),
+        "gap1_edge_paths": dict(sorted(Counter(e.diag.path for e in run.edges
                                                if _gap(seq, e) == 1).items())),
-        "dense_method": dense_method_for(seq, cfg) if cfg.dense_iters > 0 else "none",
+        "dense_method": dense_method_for(seq, cfg) if cfg.dense else "none",
         "fps": n / run.seconds if run.seconds > 0 else float("nan"),
         "seconds": run.seconds,
     }
@@ -472,12 +464,6 @@ def generate(spec: str, out: Path | None = None, split: str = "all", frames: str
     :mod:`data.runs`) is skipped; outputs of other inputs are replaced with ``overwrite``,
     otherwise they are an error that says what differs.
     """
-    from ctcvo.data.errors import ConfigError
-
-    if config.gaps < 1:
-        raise ConfigError(f"--gaps must be >= 1, got {config.gaps}")
-    if config.dense_max_gap < 0:
-        raise ConfigError(f"--dense-max-gap must be >= 0 (0: every edge), got {config.dense_max_gap}")
     if config.workers > 1:
         processes.start()  # the workers import while the scene opens (or renders)
     base = Path(out) if out is not None else stage_dir(spec, "teacher")

@@ -4,7 +4,7 @@ One implementation for ``teacher generate`` (each chunk of a sequence,
 :func:`teacher.generate.run_sequence`) and ``vo-online`` (frame by frame as frames
 arrive, pipeline/online.py), so the two give the same edges bit for bit.
 
-For each new frame k (features from :func:`teacher.odometry.extract`):
+For each new frame k (features from :func:`teacher.features.extract`):
 
 1. the gap-1 edge (k-1, k) is estimated with the constant-velocity prediction (the last
    good gap-1 motion, scaled to the time between the frames when a frame is missing:
@@ -21,17 +21,16 @@ of its own moment. A frame whose depth repeats the previous frame's while its co
 (a dropped depth frame: the depth, and the ground truth that follows it, belong to the
 previous moment) takes the previous frame's photometric maps, the colour taken with that
 depth; a frame whose colour repeats while its depth is new keeps only the depth of its maps
-(:meth:`teacher.odometry.PhotoMaps.depth_only`: nothing shows its colour's moment in depth)
-and is marked ``colour_behind``, so its gap-1 edges are aligned by the depth alone
-(``cfg.depth_beside_colour_repeat``); a whole repeat of a frame takes that frame's maps and
-mark.
+(:meth:`teacher.maps.PhotoMaps.depth_only`: nothing shows its colour's moment in depth)
+and is marked ``colour_behind``, so its gap-1 edges are aligned by the depth alone; a whole
+repeat of a frame takes that frame's maps and mark.
 
 Each frame's colour and depth show a moment: the frame's timestamp, or for an image that
 repeats the previous frame's, the moment it showed there (:meth:`EdgeWindow._moments_of`). The
 dense alignments' plausibility bound spans from the earliest moment of an edge's first frame
 to the timestamp of its last (the keypoint estimates keep the timestamps'), and the gap-1 rgbd
 fallback also starts from the constant velocity between the two depth moments
-(:meth:`EdgeWindow.motion_between`; ``cfg.fallback_span_start``): out of a repeated frame the
+(:meth:`EdgeWindow.motion_between`): out of a repeated frame the
 edge spans two periods of the depth while the prediction is the repeat's identity.
 """
 
@@ -47,14 +46,10 @@ from numpy.typing import NDArray
 from ctcvo.data import geometry as geo
 from ctcvo.data.sequence import Intrinsics
 from ctcvo.teacher.config import TeacherConfig
-from ctcvo.teacher.odometry import (
-    EdgeEstimate,
-    FrameFeatures,
-    PhotoMaps,
-    beside_colour_repeat,
-    estimate_edge,
-    stale_stream,
-)
+from ctcvo.teacher.features import FrameFeatures, beside_colour_repeat, stale_stream
+from ctcvo.teacher.maps import PhotoMaps
+from ctcvo.teacher.odometry import estimate_edge
+from ctcvo.teacher.record import EdgeEstimate
 
 
 @dataclass
@@ -71,7 +66,7 @@ class _Entry:
 class EdgeWindow:
     """The last ``cfg.gaps`` frames of a stream, their feature tracks and chained motions.
 
-    ``prev_keys``: the image keys (:func:`teacher.odometry.image_keys`) of the frame before
+    ``prev_keys``: the image keys (:func:`teacher.features.image_keys`) of the frame before
     the first one added, when there is one (a chunk that starts inside a sequence), so that
     a repeated image at the first frame is caught. ``until``: only edges whose first frame
     is among the first ``until`` frames added are estimated and returned (a chunk reads
@@ -159,7 +154,7 @@ class EdgeWindow:
             span = moments[1] - self._moments[1]
             e = estimate_edge(prev.frame_id, frame_id, prev.feats, fk, intr, cfg, dt,
                               T_pred=self._prediction(prev.feats, fk, prev_depth_repeat, cv),
-                              T_alt=self.motion_between(span) if cfg.fallback_span_start else None,
+                              T_alt=self.motion_between(span),
                               span=timestamp - prev.since)
             if self._starts_inside(prev.pos):
                 edges.append(e)
@@ -238,7 +233,7 @@ class EdgeWindow:
                     cv: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
         """The motion prediction of the gap-1 edge (i, j): ``cv``, the constant-velocity one
         (:meth:`motion_over`); for an edge aligned by the depth alone
-        (:func:`teacher.odometry.beside_colour_repeat`), which converges slowly along plain
+        (:func:`teacher.features.beside_colour_repeat`), which converges slowly along plain
         walls and so leans on its start, the last good motion over one frame period of the
         depth instead, twice when frame i's depth (and pose) repeats the frame's before it (a
         dropped frame: the edge spans two periods). On the office and lab scenes a whole
@@ -262,11 +257,8 @@ class EdgeWindow:
                     continue
                 tracks = np.flatnonzero(w.link >= 0)
                 tracks = np.stack([tracks, w.link[tracks]], axis=1)
-                gap = pos - w.pos
                 edges.append(estimate_edge(w.frame_id, frame_id, w.feats, fk, intr, cfg, timestamp - w.timestamp,
-                                           w.T_k_cur.copy(), tracks,
-                                           dense=cfg.dense_max_gap <= 0 or gap <= cfg.dense_max_gap,
-                                           span=timestamp - w.since))
+                                           w.T_k_cur.copy(), tracks, span=timestamp - w.since))
             e.inlier_pairs = None  # only needed for the tracks above
         self.entries.append(_Entry(pos, int(frame_id), timestamp, fk, np.arange(len(fk.uv)), np.eye(4),
                                    min(self._moments)))
