@@ -20,9 +20,10 @@ from ctcvo.data import geometry as geo
 from ctcvo.data.errors import ConfigError, DataError, VOError
 from ctcvo.data.formats import Edge, read_tum, write_g2o
 from ctcvo.learner import cli
+from ctcvo.learner.checkpoint import load_checkpoint
 from ctcvo.learner.config import VARIANTS, PredictConfig
 from ctcvo.learner.predict import auroc, predict
-from ctcvo.learner.train import fit, load_checkpoint
+from ctcvo.learner.train import fit
 
 REPO = Path(__file__).resolve().parents[1]
 N_FRAMES = 20
@@ -128,13 +129,13 @@ def test_mirrored_labels_are_the_mirrored_motion() -> None:
     lands at the mirrored pixel when the mirrored point is moved by the mirrored label
     (principal point at the image centre); compositions of mirrored labels are the
     mirrored composition, so the CTC still holds."""
-    from ctcvo.learner.train import _MIRROR
+    from ctcvo.learner.augment import MIRROR
 
     rng = np.random.default_rng(0)
     W = 128
     K = np.array([[100.0, 0, (W - 1) / 2], [0, 100.0, 47.5], [0, 0, 1]])
     S = np.diag([-1.0, 1.0, 1.0])
-    mirror = _MIRROR.numpy().astype(np.float64)
+    mirror = MIRROR.numpy().astype(np.float64)
     X = rng.uniform([-1, -1, 1], [1, 1, 3], (20, 3))
     for _ in range(5):
         xi = rng.normal(0, [0.05, 0.05, 0.05, 0.1, 0.1, 0.1])
@@ -153,13 +154,13 @@ def test_mirrored_labels_are_the_mirrored_motion() -> None:
 
 
 def test_mirror_flips_only_the_chosen_samples() -> None:
-    from ctcvo.learner.train import _MIRROR, _mirror
+    from ctcvo.learner.augment import MIRROR, mirror
 
     x = torch.arange(2 * 6 * 2 * 3, dtype=torch.float32).view(2, 6, 2, 3)
     lab = torch.ones(2, 6)
-    xm, lm = _mirror(x, lab, torch.tensor([True, False]))
+    xm, lm = mirror(x, lab, torch.tensor([True, False]))
     assert torch.equal(xm[0], x[0].flip(-1)) and torch.equal(xm[1], x[1])
-    assert torch.equal(lm[0], _MIRROR) and torch.equal(lm[1], lab[1])
+    assert torch.equal(lm[0], MIRROR) and torch.equal(lm[1], lab[1])
     assert torch.equal(x[0, 0, 0], torch.tensor([0.0, 1.0, 2.0]))  # inputs untouched
 
 
@@ -190,9 +191,9 @@ def test_reversed_pairs_and_windows_keep_labels_and_ctc_exact(reverse_prob) -> N
     """Time reversal: with exact labels, a network that returns the true motion between the
     frames it is shown has zero regression and CTC loss, also on pairs and windows played
     backwards (frames swapped and re-ordered, labels negated)."""
+    from ctcvo.learner.batches import pairs_step, windows_step
     from ctcvo.learner.config import TrainConfig
     from ctcvo.learner.dataset import SequenceData
-    from ctcvo.learner.train import pairs_step, windows_step
 
     N, G, W = 30, 3, 6
     gt = _random_walk(np.random.default_rng(1), N)
@@ -224,9 +225,9 @@ def test_scale_augmentation_keeps_labels_and_ctc_exact() -> None:
     (frame indices in the colour, inverse depth 1 / m before scaling) fits the augmented
     pairs and windows exactly (regression and CTC loss zero); one that ignores the depth
     does not."""
+    from ctcvo.learner.batches import pairs_step, windows_step
     from ctcvo.learner.config import TrainConfig
     from ctcvo.learner.dataset import Frames, SequenceData, gt_labels
-    from ctcvo.learner.train import pairs_step, windows_step
 
     N, G, W = 24, 3, 5
     gt = _random_walk(np.random.default_rng(2), N)
@@ -264,8 +265,8 @@ def test_input_pairs_rgb_rgbd_flow_and_flowd() -> None:
     the DIS flow i -> j, which on a texture shifted by (dx, dy) pixels at twice the
     resolution is (dx, dy) / 2 at the network's, negated for the reversed pair and, in
     the horizontal, by a mirror."""
+    from ctcvo.learner.augment import mirror
     from ctcvo.learner.dataset import Frames
-    from ctcvo.learner.train import _mirror
 
     rng = np.random.default_rng(0)
     H, W, N = 24, 32, 3
@@ -286,14 +287,14 @@ def test_input_pairs_rgb_rgbd_flow_and_flowd() -> None:
     # the content of pixel p of frame 0 lies at p - shift in frame 1 (the crop moved by +shift)
     assert torch.allclose(x[0, 6:8][inner].median(-1).values.median(-1).values, torch.tensor([-2.0, 1.0]), atol=0.15)
     assert torch.allclose(x[1, 6:8][inner].median(-1).values.median(-1).values, torch.tensor([2.0, -1.0]), atol=0.15)
-    xm, _ = _mirror(x, torch.zeros(2, 6), torch.tensor([True, False]), "flow")
+    xm, _ = mirror(x, torch.zeros(2, 6), torch.tensor([True, False]), "flow")
     assert torch.equal(xm[0, 6], -x[0, 6].flip(-1)) and torch.equal(xm[0, 7], x[0, 7].flip(-1))
     assert torch.equal(xm[1], x[1])
     # flowd: the same flow and both inverse depths, no colour
     xd = Frames(rgb, inv, grey, mode="flowd").pairs(torch.tensor([0, 1]), torch.tensor([1, 0]))
     assert xd.shape == (2, 4, H, W) and torch.equal(xd[:, :2], x[:, 6:8])
     assert torch.equal(xd[:, 2:3], inv[[0, 1]].float()) and torch.equal(xd[:, 3:], inv[[1, 0]].float())
-    xm, _ = _mirror(xd, torch.zeros(2, 6), torch.tensor([True, False]), "flowd")
+    xm, _ = mirror(xd, torch.zeros(2, 6), torch.tensor([True, False]), "flowd")
     assert torch.equal(xm[0, 0], -xd[0, 0].flip(-1)) and torch.equal(xm[0, 1:], xd[0, 1:].flip(-1))
 
 
@@ -402,8 +403,8 @@ def test_steps_override_keeps_the_preset_proportions(fixture_seq, tmp_path) -> N
     """``--steps`` keeps the preset's phase-1 and warm-up proportions (the cpu preset:
     1000 of 1500 steps in phase 1, 100 of warm-up), an explicit value wins, and the
     learning rate warms up, peaks, then decays to ``lr * lr_final``."""
+    from ctcvo.learner.batches import lr_at
     from ctcvo.learner.config import get_preset
-    from ctcvo.learner.train import lr_at
 
     seq, teacher = fixture_seq
     cpu = get_preset("cpu").train
@@ -462,7 +463,8 @@ def test_nan_loss_is_a_clear_error_and_keeps_checkpoint(fixture_seq, tmp_path, m
 
     before = (tmp_path / "run" / "checkpoint.pt").read_bytes()
     real = L.pair_loss
-    monkeypatch.setattr(L, "pair_loss", lambda *a, **k: (lambda t: L.LossTerms(t.total * float("nan"), t.ctc, t.reg))(real(*a, **k)))
+    monkeypatch.setattr(L, "pair_loss",
+                        lambda *a, **k: (lambda t: L.LossTerms(t.total * float("nan"), t.ctc, t.reg))(real(*a, **k)))
     with pytest.raises(VOError, match=r"non-finite loss at step 3 \(epoch 2"):
         fit([str(seq)], variant="cnn-unsup", preset="tiny", out=tmp_path / "run", teacher_root=teacher,
             steps=4, resume=True)
@@ -673,7 +675,7 @@ def test_tiny_model_overfits_exact_labels_and_only_aligned_ones(labels: str, tmp
 def test_device_choice(monkeypatch) -> None:
     """``--device auto`` takes CUDA when it is there and the CPU otherwise; ``cuda`` without
     a GPU and unknown names are clear errors; a single process never needs torchrun."""
-    from ctcvo.learner.train import _setup_dist, resolve_device
+    from ctcvo.learner.device import resolve_device, setup_dist
 
     monkeypatch.delenv("WORLD_SIZE", raising=False)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
@@ -682,10 +684,10 @@ def test_device_choice(monkeypatch) -> None:
         resolve_device("cuda")
     with pytest.raises(ConfigError, match="auto, cpu or cuda"):
         resolve_device("gpu")
-    assert _setup_dist("auto").device.type == "cpu" and _setup_dist("auto").world == 1
+    assert setup_dist("auto").device.type == "cpu" and setup_dist("auto").world == 1
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert resolve_device("auto").type == "cuda" and resolve_device("cpu").type == "cpu"
-    d = _setup_dist("auto")
+    d = setup_dist("auto")
     assert d.device.type == "cuda" and d.world == 1 and d.rank == 0
 
 
@@ -694,20 +696,20 @@ def test_no_skill_warning(caplog) -> None:
     validation frames (or, without them, its training frames), and quietly otherwise."""
     import logging
 
-    from ctcvo.learner.train import _warn_if_no_skill
+    from ctcvo.learner.evaluate import warn_if_no_skill
 
-    with caplog.at_level(logging.INFO, logger="ctcvo.learner.train"):
-        _warn_if_no_skill({"train_se3_l2": 0.004, "train_zero_motion_se3_l2": 0.01,
+    with caplog.at_level(logging.INFO, logger="ctcvo.learner.evaluate"):
+        warn_if_no_skill({"train_se3_l2": 0.004, "train_zero_motion_se3_l2": 0.01,
                            "val_se3_l2": 0.012, "val_zero_motion_se3_l2": 0.011})
     assert [r.levelname for r in caplog.records] == ["WARNING"] and "validation" in caplog.text
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="ctcvo.learner.train"):
-        _warn_if_no_skill({"train_se3_l2": 0.012, "train_zero_motion_se3_l2": 0.01,
+    with caplog.at_level(logging.INFO, logger="ctcvo.learner.evaluate"):
+        warn_if_no_skill({"train_se3_l2": 0.012, "train_zero_motion_se3_l2": 0.01,
                            "val_se3_l2": 0.008, "val_zero_motion_se3_l2": 0.011})
     assert [r.levelname for r in caplog.records] == ["INFO"] and "0.73x zero motion" in caplog.text
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="ctcvo.learner.train"):
-        _warn_if_no_skill({"train_se3_l2": 0.012, "train_zero_motion_se3_l2": 0.01})
+    with caplog.at_level(logging.INFO, logger="ctcvo.learner.evaluate"):
+        warn_if_no_skill({"train_se3_l2": 0.012, "train_zero_motion_se3_l2": 0.01})
     assert [r.levelname for r in caplog.records] == ["WARNING"] and "training" in caplog.text
 
 

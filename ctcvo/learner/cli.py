@@ -30,6 +30,13 @@ def _parser() -> argparse.ArgumentParser:
     ap, sub = make_parser("ctcvo learner", "Train the CTCNet-style learner on teacher labels, calibrate its covariances "
                                      "and predict edges.\n\n" + PRESET_HELP + ".\n" + VARIANT_HELP + ".")
 
+    _fit_options(sub)
+    _calibrate_options(sub)
+    _predict_options(sub)
+    return ap
+
+
+def _fit_options(sub: argparse._SubParsersAction) -> None:
     f = add_command(sub, "fit", "train on teacher (or ground-truth) labels",
                     "Train on teacher (or ground-truth) labels into a run folder. A rerun with the same inputs keeps "
                     "a finished run and continues an unfinished one; other inputs need --overwrite. Ctrl-C keeps the "
@@ -88,6 +95,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="do not fit calibration.json on the --val-scene sequences after training")
     add_topic_options(f)
 
+
+def _calibrate_options(sub: argparse._SubParsersAction) -> None:
     c = add_command(sub, "calibrate", "fit calibration.json (MC-dropout covariances vs teacher labels) "
                                       "of a checkpoint on a validation scene",
                     "Fit calibration.json (MC-dropout covariances vs teacher labels) of a checkpoint on a validation "
@@ -107,6 +116,8 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help=DEVICE_HELP)
     add_topic_options(c)
 
+
+def _predict_options(sub: argparse._SubParsersAction) -> None:
     p = add_command(sub, "predict", "MC-dropout edges, trajectory and report of a scene",
                     "MC-dropout edges with covariances, a trajectory and a report of a scene. A rerun with the same "
                     "checkpoint, calibration, scene, frames and settings is skipped; other inputs need --overwrite.")
@@ -123,7 +134,6 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-calibration", dest="calibration", action="store_false",
                    help="ignore the calibration.json beside the checkpoint")
     add_topic_options(p)
-    return ap
 
 
 def _mc_options(p: argparse.ArgumentParser) -> None:
