@@ -4,7 +4,7 @@ Each variant is trained with the same preset, schedule and seed on ``--frames`` 
 ``--scene`` scenes (repeatable) and evaluated by ``learner predict`` on ``--test-frames`` of
 ``--test-scene`` (default: the first ``--scene``). Teacher labels come from ``--teacher`` (one
 training scene only) or from each scene's default teacher folder ``runs/<scene-slug>/teacher``
-(made by the teacher when missing). ``--teacher-eval`` adds the teacher itself as a row: a
+(made by ``ctcvo teacher generate`` first). ``--teacher-eval`` adds the teacher itself as a row: a
 teacher output folder whose ``trajectory.tum`` covers the test frames (its poses are matched
 to the test frames by timestamp, so a folder of a longer range works too).
 

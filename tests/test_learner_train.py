@@ -474,10 +474,41 @@ def test_nan_loss_is_a_clear_error_and_keeps_checkpoint(fixture_seq, tmp_path, m
 @pytest.mark.slow
 def test_missing_teacher_labels_is_a_clear_error(fixture_seq, tmp_path) -> None:
     seq, _ = fixture_seq
-    with pytest.raises(DataError, match="has no teacher labels"):
+    with pytest.raises(DataError, match="no teacher labels for"):
         fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=tmp_path / "nothing")
     # ground-truth variants need no teacher
     fit([str(seq)], variant="cnn-gt", preset="tiny", out=tmp_path / "gt", teacher_root=tmp_path / "nothing", steps=2)
+
+
+def test_fit_without_labels_names_the_teacher_command(tmp_path, monkeypatch, capsys) -> None:
+    """The learner never runs the teacher: fit without labels in the default folder stops
+    with one line naming the exact command that writes them, and nothing is trained."""
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["fit", "--scene", "synthetic/tiny", "--frames", "0:6", "--preset", "tiny"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == ("error: no teacher labels for synthetic/tiny at runs/synthetic-tiny/teacher: run "
+                   "`ctcvo teacher generate --scene synthetic/tiny --frames 0:6` first")
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.slow
+def test_the_named_teacher_command_makes_fit_work(tmp_path, monkeypatch, capsys) -> None:
+    """Running the command the error names (labels of frames 0:6; here 0:4 are trained, 4:6
+    validate) is all fit needed."""
+    import shlex
+
+    from ctcvo.cli import main as ctcvo_main
+
+    monkeypatch.chdir(tmp_path)
+    fit_args = ["fit", "--scene", "synthetic/tiny", "--frames", "0:4", "--val-scene", "synthetic/tiny",
+                "--val-frames", "4:6", "--variant", "cnn-unsup", "--preset", "tiny", "--steps", "2", "--no-calibration"]
+    assert cli.main(fit_args) == 1
+    err = capsys.readouterr().err.strip()
+    command = err.split("`")[1]
+    assert command == "ctcvo teacher generate --scene synthetic/tiny --frames 0:6"
+    assert ctcvo_main([*shlex.split(command)[1:], "--workers", "1"]) == 0
+    assert cli.main(fit_args) == 0
+    assert (tmp_path / "runs" / "synthetic-tiny" / "learner" / "checkpoint.pt").is_file()
 
 
 def test_val_scene_must_differ_from_training(fixture_seq, tmp_path) -> None:

@@ -89,8 +89,8 @@ def _fit_options(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--init", type=Path, help="fine-tune: start from the weights of this learner checkpoint "
                    "(same preset shape and --input), with a fresh optimiser and schedule")
     f.add_argument("--teacher", type=Path,
-                   help="teacher output folder to read labels from (never generated); "
-                        "default: runs/<scene>/teacher, generated where labels are missing")
+                   help="teacher output folder to read labels from (`ctcvo teacher generate --out`; "
+                        "default: runs/<scene>/teacher)")
     f.add_argument("--no-calibration", dest="calibrate", action="store_false", default=None,
                    help="do not fit calibration.json on the --val-scene sequences after training")
     add_topic_options(f)
@@ -108,8 +108,8 @@ def _calibrate_options(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--frames", help="frame range START:STOP[:STEP] of every sequence (default: all frames)")
     c.add_argument("--split", default="all", help="7-Scenes split of a scene folder: train, test or all")
     c.add_argument("--teacher", type=Path,
-                   help="teacher output folder to read labels from (never generated); "
-                        "default: runs/<scene>/teacher, generated when missing")
+                   help="teacher output folder to read labels from (`ctcvo teacher generate --out`; "
+                        "default: runs/<scene>/teacher)")
     c.add_argument("--overwrite", action="store_true",
                    help="replace a calibration.json of other inputs instead of stopping with an error")
     _mc_options(c)

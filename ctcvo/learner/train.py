@@ -250,9 +250,9 @@ def _check_resumable(state: dict, ckpt_path: Path, spec: FitSpec) -> None:
 
 def _teacher_labels(spec: FitSpec, opened: list[tuple[str, list]], val_opened: list[tuple[str, list]]
                     ) -> dict[str, str]:
-    """Make sure teacher labels cover every frame range the run uses (training and
-    validation: one teacher run per scene over the hull of its ranges); return the
-    digest of each sequence's labels."""
+    """Check that teacher labels cover every frame range the run uses (training and
+    validation; a missing scene is named with the hull of its ranges, so one teacher run
+    covers them all); return the digest of each sequence's labels."""
     need_train = spec.label_source in ("teacher", "aug")
     need_val = need_train or (spec.calibrate and bool(spec.val_scenes))
     ranges: dict[str, list[str | None]] = {}
