@@ -21,7 +21,8 @@ from ctcvo.data.errors import ConfigError, DataError, VOError
 from ctcvo.data.formats import Edge, read_tum, write_g2o
 from ctcvo.learner import cli
 from ctcvo.learner.checkpoint import load_checkpoint
-from ctcvo.learner.config import VARIANTS, PredictConfig
+from ctcvo.learner.config import TINY, VARIANTS, PredictConfig
+from ctcvo.learner.model import CTCNet
 from ctcvo.learner.predict import auroc, predict
 from ctcvo.learner.train import fit
 
@@ -110,9 +111,16 @@ def test_every_variant_trains_two_steps(variant: str, fixture_seq, tmp_path) -> 
         assert np.isfinite(h["train_se3_l2"])
     cfg = json.loads((tmp_path / "run" / "config.json").read_text())
     assert cfg["variant"] == variant and cfg["preset"] == "tiny" and cfg["git_revision"]
-    # weights moved
-    init = torch.load(res.checkpoint, weights_only=True)["model"]["fc1.weight"]
-    assert torch.isfinite(init).all()
+    # weights moved from the initial ones (rebuilt as fit builds them: seeded, then the
+    # heads' output scale set); the LSTM only trains in the variants that use it
+    torch.manual_seed(TINY.train.seed)
+    init = CTCNet(TINY.model).state_dict()
+    final = torch.load(res.checkpoint, weights_only=True)["model"]
+    assert torch.isfinite(final["fc1.weight"]).all()
+    assert not torch.equal(final["fc1.weight"], init["fc1.weight"])
+    assert not torch.equal(final["features.0.weight"], init["features.0.weight"])
+    lstm_moved = not torch.equal(final["lstm.weight_ih_l0"], init["lstm.weight_ih_l0"])
+    assert lstm_moved == variant.startswith(("lstm", "ctc"))
 
 
 @pytest.mark.slow
@@ -122,6 +130,22 @@ def test_cpu_preset_two_steps(fixture_seq, tmp_path) -> None:
               steps=2, pretrain_steps=1, eval_every=1, batch_pairs=2, batch_windows=2, window_max=4)
     assert ["pairs_loss" in h for h in res.history] == [True, False]
     assert np.isfinite(res.history[0]["pairs_loss"]) and np.isfinite(res.history[1]["windows_loss"])
+
+
+def test_demo_preset_is_the_cpu_preset_with_the_demo_input_and_augmentation() -> None:
+    """``demo`` trains what pipeline/demo.py asked of the cpu preset: input ``flowd``,
+    depth scaling 1.0 and mirroring 0.5 on top of the cpu schedule and reversal."""
+    import dataclasses
+
+    from ctcvo.learner.config import CPU, PRESETS
+    from ctcvo.learner.train import resolve_fit
+
+    demo = PRESETS["demo"]
+    assert demo.model == dataclasses.replace(CPU.model, input="flowd")
+    assert demo.train == dataclasses.replace(CPU.train, scale_aug=1.0, flip_prob=0.5)
+    by_options = resolve_fit(["synthetic/office"], preset="cpu", input="flowd", scale_aug=1.0, flip_prob=0.5)
+    by_name = resolve_fit(["synthetic/office"], preset="demo")
+    assert by_name.preset.model == by_options.preset.model and by_name.preset.train == by_options.preset.train
 
 
 def test_mirrored_labels_are_the_mirrored_motion() -> None:
@@ -300,12 +324,10 @@ def test_input_pairs_rgb_rgbd_flow_and_flowd() -> None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name, good, bad", [("flip_prob", 1.0, 1.5), ("reverse_prob", 0.5, -0.1),
-                                             ("scale_aug", 1.0, -1.0), ("reg_robust", 1.0, float("nan")),
-                                             ("gap_weight", 1.0, 5.0)])
+                                             ("scale_aug", 1.0, -1.0)])
 def test_augmentation_trains(fixture_seq, tmp_path, name, good, bad) -> None:
-    """Mirroring, time reversal, depth scaling and the two label-loss options: a tiny fit
-    with each trains both phases, records its setting in config.json, and a setting out of
-    range is refused."""
+    """Mirroring, time reversal and depth scaling: a tiny fit with each trains both phases,
+    records its setting in config.json, and a setting out of range is refused."""
     seq, teacher = fixture_seq
     extra = {"input": "rgbd"} if name == "scale_aug" else {}  # scaling needs depth
     res = fit([str(seq)], variant="ctc", preset="tiny", out=tmp_path / "run", teacher_root=teacher, **{name: good},
@@ -402,8 +424,8 @@ def _train_one_epoch_then_stop(seq: Path, out: Path, kw: dict) -> None:
 def test_steps_override_keeps_the_preset_proportions(fixture_seq, tmp_path) -> None:
     """``--steps`` keeps the preset's phase-1 and warm-up proportions (the cpu preset:
     1000 of 1500 steps in phase 1, 100 of warm-up), an explicit value wins, and the
-    learning rate warms up, peaks, then decays to ``lr * lr_final``."""
-    from ctcvo.learner.batches import lr_at
+    learning rate warms up, peaks, then decays to ``lr * LR_FINAL``."""
+    from ctcvo.learner.batches import LR_FINAL, lr_at
     from ctcvo.learner.config import get_preset
 
     seq, teacher = fixture_seq
@@ -418,7 +440,7 @@ def test_steps_override_keeps_the_preset_proportions(fixture_seq, tmp_path) -> N
     assert json.loads((tmp_path / "b" / "config.json").read_text())["train"]["pretrain_steps"] == 1
     lrs = [lr_at(cpu, k) for k in range(cpu.steps)]
     assert lrs[0] == pytest.approx(cpu.lr / 100) and max(lrs) == pytest.approx(cpu.lr)
-    assert int(np.argmax(lrs)) == 99 and lrs[-1] == pytest.approx(cpu.lr * cpu.lr_final)
+    assert int(np.argmax(lrs)) == 99 and lrs[-1] == pytest.approx(cpu.lr * LR_FINAL)
     assert all(a >= b for a, b in zip(lrs[99:], lrs[100:]))
 
 

@@ -16,15 +16,19 @@ from ctcvo.learner.augment import augment, draw_labels, reversed_pairs
 from ctcvo.learner.config import TrainConfig
 from ctcvo.learner.dataset import SequenceData
 
+#: the learning rate's end of the cosine, as a fraction of ``lr`` (set with the step schedule of
+#: issue 11, commit 07e1812, in place of the paper's halving every few epochs; not tuned since)
+LR_FINAL = 0.05
+
 
 def lr_at(cfg: TrainConfig, step: int) -> float:
     """Learning rate of optimiser step ``step`` (0-based): linear warm-up, then a cosine
-    from ``lr`` to ``lr * lr_final`` at the last step."""
+    from ``lr`` to ``lr * LR_FINAL`` at the last step."""
     if step < cfg.warmup_steps:
         return cfg.lr * (step + 1) / cfg.warmup_steps
     span = max(cfg.steps - cfg.warmup_steps - 1, 1)
     t = min(max(step - cfg.warmup_steps, 0) / span, 1.0)
-    return cfg.lr * (cfg.lr_final + (1.0 - cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * t)))
+    return cfg.lr * (LR_FINAL + (1.0 - LR_FINAL) * 0.5 * (1.0 + math.cos(math.pi * t)))
 
 
 def window_length(cfg: TrainConfig, epoch: int) -> int:
@@ -100,7 +104,7 @@ def pairs_step(net, data, rows: np.ndarray, cfg: TrainConfig, aug: bool, gen, de
     x, lab = augment(torch.cat(x), torch.cat(labs), cfg, gen, data[0].frames.mode)
     xi_d, _ = net(x.to(device))
     return L.pair_loss(xi_d.float(), lab.to(device), torch.cat(masks).to(device), torch.cat(gaps).to(device),
-                       cfg.beta, scale, cfg.reg_robust, cfg.gap_weight)
+                       cfg.beta, scale)
 
 
 def windows_step(net, data, rows: np.ndarray, W: int, cfg: TrainConfig, aug: bool, gen, device,
@@ -133,6 +137,6 @@ def windows_step(net, data, rows: np.ndarray, W: int, cfg: TrainConfig, aug: boo
     # the LSTM's consecutive pairs share the labels of the direct gap-1 pairs
     with torch.autocast(device.type, enabled=False):  # se(3) maps in float32
         return L.window_loss(xi_s.float(), xi_d, lab[:, :W], mask[:, :W], lab, mask, cfg.max_gap, cfg.alpha,
-                             cfg.beta, scale, cfg.reg_robust, cfg.gap_weight)
+                             cfg.beta, scale)
 
 

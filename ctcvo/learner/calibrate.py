@@ -55,7 +55,7 @@ from ctcvo.data.uncertainty import mahalanobis2, nees_stats
 from ctcvo.learner.checkpoint import load_model
 from ctcvo.learner.config import CalibrationConfig, PredictConfig, check_variant, to_dict
 from ctcvo.learner.dataset import find_teacher_edges, load_frames
-from ctcvo.learner.mcdropout import mc_edges
+from ctcvo.learner.mcdropout import COV_FLOOR, mc_edges
 from ctcvo.learner.model import CTCNet
 
 log = logging.getLogger(__name__)
@@ -398,7 +398,7 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: str | No
         "checkpoint": checkpoint.name, "checkpoint_sha1": file_sha1(checkpoint),
         "checkpoint_epoch": int(state["epoch"]), "preset": state["preset"], "variant": state["variant"],
         "scenes": scenes, "frames": frames, "split": split, "sequences": res.used,
-        "samples": config.samples, "drop": config.drop, "max_gap": config.max_gap, "cov_floor": config.cov_floor,
+        "samples": config.samples, "drop": config.drop, "max_gap": config.max_gap, "cov_floor": COV_FLOOR,
         "config": to_dict(cal_config), "pairs": len(res.r), "order": "v_x v_y v_z w_x w_y w_z",
         "git_revision": git_revision(),
     })

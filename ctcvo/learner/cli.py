@@ -19,7 +19,8 @@ from ctcvo.learner.config import INPUTS, PRESETS, VARIANTS, PredictConfig
 
 PRESET_HELP = ("presets: 'paper' - the paper's network (320x240 VGG-11-BN widths, RGB pair; for a GPU); "
                "'cpu' - a network that trains on a 2-core CPU (128x96, VGG widths / 8, RGB + flow + inverse depth, "
-               "1500 steps); 'tiny' - a toy network for the tests only (it learns nothing useful)")
+               "1500 steps); 'demo' - the cpu network on flow and inverse depth without colour, with depth-scale and "
+               "mirroring augmentation (the demo's); 'tiny' - a toy network for the tests only (it learns nothing useful)")
 VARIANT_HELP = ("variants: cnn-* train the direct head on pairs, lstm-* and ctc also the LSTM on windows; *-gt on "
                 "ground-truth labels, *-unsup on the teacher's, *-aug on teacher labels redrawn from their "
                 "covariances; ctc adds the composite transformation constraints")
@@ -74,11 +75,6 @@ def _fit_options(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--scale-aug", type=float,
                    help="depth-scale augmentation: scale each sample's world by 2**u, u uniform in [-A, A] "
                         "(inputs with depth only; default: the preset's)")
-    f.add_argument("--reg-robust", type=float, metavar="C",
-                   help="Cauchy loss c*log(1+e/c) on each label residual e (normalised); 0 = squared error "
-                        "(default: the preset's)")
-    f.add_argument("--gap-weight", type=float, metavar="P",
-                   help="weigh the label residuals of gap g by g**P (default: the preset's)")
     f.add_argument("--input", choices=list(INPUTS),
                    help="encoder input: rgb (the paper's RGB pair), rgbd (plus inverse depth) or flow (plus optical "
                         "flow and inverse depth), flowd (flow and both inverse depths, no colour) (default: the preset's)")
@@ -154,8 +150,7 @@ def _fit(args: argparse.Namespace) -> int:
                   steps=args.steps, pretrain_steps=args.pretrain_steps, warmup_steps=args.warmup_steps,
                   eval_every=args.eval_every, lr=args.lr, batch_pairs=args.batch_pairs, seed=args.seed,
                   device=args.device, bf16=args.bf16, input=args.input, init=args.init, flip_prob=args.flip_prob,
-                  reverse_prob=args.reverse_prob, scale_aug=args.scale_aug,
-                  reg_robust=args.reg_robust, gap_weight=args.gap_weight, calibrate=args.calibrate)
+                  reverse_prob=args.reverse_prob, scale_aug=args.scale_aug, calibrate=args.calibrate)
     except FitInterrupted as exc:
         print(exc, file=sys.stderr)
         return 130

@@ -17,6 +17,12 @@ from ctcvo.learner.config import PredictConfig
 from ctcvo.learner.dataset import Frames
 from ctcvo.learner.model import CTCNet
 
+#: added to the covariance diagonal before inversion (rad^2 / m^2; set with the first MC-dropout
+#: predict, 07e3e22, not tuned since): a 1-sample or drop-0 covariance stays invertible
+COV_FLOOR = 1e-8
+#: pairs per encoder forward pass (memory, not results)
+ENCODE_BATCH = 64
+
 
 @dataclass
 class EdgeSet:
@@ -53,8 +59,8 @@ def mc_edges(model: CTCNet, frames: Frames | torch.Tensor, *, uses_lstm: bool, w
 
     def latents(g: int) -> torch.Tensor:
         out = []
-        for a in range(0, n - g, cfg.batch_pairs):
-            k = torch.arange(a, min(a + cfg.batch_pairs, n - g))
+        for a in range(0, n - g, ENCODE_BATCH):
+            k = torch.arange(a, min(a + ENCODE_BATCH, n - g))
             out.append(model.encode(frames.pairs(k, k + g).to(device)))
             bar.update(len(k))
         return torch.cat(out)
@@ -71,7 +77,7 @@ def mc_edges(model: CTCNet, frames: Frames | torch.Tensor, *, uses_lstm: bool, w
         mean = s.mean(0)
         dev = s - mean
         cov = np.einsum("kei,kej->eij", dev, dev) / max(cfg.samples - 1, 1)
-        cov = 0.5 * (cov + cov.transpose(0, 2, 1)) + cfg.cov_floor * np.eye(6)
+        cov = 0.5 * (cov + cov.transpose(0, 2, 1)) + COV_FLOOR * np.eye(6)
         k = np.arange(n - g)
         ii.append(k)
         jj.append(k + g)

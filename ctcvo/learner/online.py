@@ -21,6 +21,7 @@ from ctcvo.learner.calibrate import calibration_for
 from ctcvo.learner.checkpoint import load_model
 from ctcvo.learner.config import FLOW_U_CHANNEL, PredictConfig, check_variant
 from ctcvo.learner.dataset import Frames, grey2x_input, invdepth_input, rgb_input
+from ctcvo.learner.mcdropout import COV_FLOOR
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +92,7 @@ class OnlineLearner:
             mean = s.mean(0)
             dev = s - mean
             cov = dev.T @ dev / max(self.cfg.samples - 1, 1)
-            cov = 0.5 * (cov + cov.T) + self.cfg.cov_floor * np.eye(6)
+            cov = 0.5 * (cov + cov.T) + COV_FLOOR * np.eye(6)
             if self.calibration is not None:
                 cov = self.calibration.apply(cov[None], [head], np.array([g]))[0]
             res.append((g, mean, cov, head))

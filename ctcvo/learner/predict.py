@@ -4,7 +4,7 @@ For every sequence of ``--scene`` the encoder runs once per frame pair; only the
 and the layers after it are resampled K times (:meth:`CTCNet.direct_mc`,
 :meth:`CTCNet.sequential_mc`). Per edge the K twists give a mean ``xi`` (the edge is
 ``exp(mean)``) and a 6x6 sample covariance in the project tangent order (v, w), which is
-regularised (``cov_floor`` on the diagonal) and written as information ``inv(cov)``.
+regularised (:data:`learner.mcdropout.COV_FLOOR` on the diagonal) and written as information ``inv(cov)``.
 When the checkpoint's folder holds a ``calibration.json`` (:mod:`learner.calibrate`, fitted
 on a validation scene against teacher labels) the covariances are calibrated with it
 before anything is written or flagged, unless ``use_calibration=False``.
@@ -60,6 +60,9 @@ log = logging.getLogger(__name__)
 MC_CSV_COLUMNS = ["i", "j", "gap", "head", "sigma", "outlier", "error_se3_l2", "mahalanobis2"]
 #: what ``learner predict`` writes per sequence (``--overwrite`` removes them first)
 OUTPUT_FILES = ("edges.g2o", "edges_mc.csv", "trajectory.tum", "groundtruth.tum", "config.json", "report.json")
+#: an edge is flagged an outlier when its sigma exceeds this many times the median sigma of
+#: its gap (set with the first MC-dropout predict, 07e3e22, not tuned since)
+OUTLIER_FACTOR = 3.0
 
 
 @dataclass
@@ -216,7 +219,7 @@ def _write_sequence(seq: Sequence, out_dir: Path, edges: tuple[EdgeSet, EdgeSet]
                     found: tuple[Path, Calibration] | None, config: PredictConfig) -> dict:
     """Write the edges, trajectories and MC csv of one sequence; its report (not written yet)."""
     raw, edges = edges
-    flags = outlier_flags(edges, config.outlier_factor)  # on the calibrated covariances
+    flags = outlier_flags(edges, OUTLIER_FACTOR)  # on the calibrated covariances
     ids, gt = seq.ids(), seq.groundtruth()
     poses = chain(edges, gt[0] if gt is not None else np.eye(4))
     write_g2o(out_dir / "edges.g2o",

@@ -76,6 +76,9 @@ from ctcvo.learner.model import CTCNet, load_pretrained_vgg
 
 log = logging.getLogger(__name__)
 
+#: Adam's (beta1, beta2): PyTorch's defaults, never tuned here
+ADAM_BETAS = (0.9, 0.999)
+
 
 @dataclass
 class FitResult:
@@ -472,7 +475,7 @@ def _build_model(spec: FitSpec, state: dict | None, scale: Tensor, device: torch
         except RuntimeError as exc:
             raise ConfigError(f"{ckpt_path} does not fit preset {p.name!r}: {str(exc).splitlines()[0]}") from None
     model.to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(cfg.beta1, 0.999))
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=ADAM_BETAS)
     if state is not None:
         opt.load_state_dict(state["optimizer"])
     return model, opt
@@ -538,7 +541,7 @@ def _train_epoch(net: torch.nn.Module, model: CTCNet, opt: torch.optim.Optimizer
         step = first + i
         for group in opt.param_groups:
             group["lr"] = lr_at(cfg, step)
-        if phase == "windows" and cfg.freeze_bn_phase2:
+        if phase == "windows":  # since 07e1812 (issue 11); live statistics were never A/B-tested (bench/README.md)
             _freeze_batchnorm(model)
         mine = batch[dd.rank::dd.world]
         with torch.autocast(dd.device.type, dtype=torch.bfloat16, enabled=spec.bf16):
@@ -572,8 +575,9 @@ def _fmt(d: dict) -> str:
 
 
 def _freeze_batchnorm(model: torch.nn.Module) -> None:
-    """Put every BatchNorm layer in eval mode: normalise with the running statistics and
-    leave them as they are (``TrainConfig.freeze_bn_phase2``)."""
+    """Put every BatchNorm layer in eval mode: phase 2 normalises with phase 1's running
+    statistics (a batch of a few windows of correlated pairs has other statistics than test
+    time); the affine parameters still train."""
     for m in model.modules():
         if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
             m.eval()
