@@ -4,7 +4,7 @@ Each variant is trained with the same preset, schedule and seed on ``--frames`` 
 ``--scene`` scenes (repeatable) and evaluated by ``learner predict`` on ``--test-frames`` of
 ``--test-scene`` (default: the first ``--scene``). Teacher labels come from ``--teacher`` (one
 training scene only) or from each scene's default teacher folder ``runs/<scene-slug>/teacher``
-(made by the teacher when missing). ``--teacher-eval`` adds the teacher itself as a row: a
+(made by ``ctcvo teacher generate`` first). ``--teacher-eval`` adds the teacher itself as a row: a
 teacher output folder whose ``trajectory.tum`` covers the test frames (its poses are matched
 to the test frames by timestamp, so a folder of a longer range works too).
 
@@ -121,8 +121,6 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--flip-prob", type=float, help="left-right mirroring augmentation (default: the preset's)")
     ap.add_argument("--reverse-prob", type=float, help="time-reversal augmentation (default: the preset's)")
-    ap.add_argument("--reg-robust", type=float, help="Cauchy label loss scale (learner fit --reg-robust)")
-    ap.add_argument("--gap-weight", type=float, help="per-gap label weight exponent (learner fit --gap-weight)")
     ap.add_argument("--sub-length", type=int, default=30, help="frames per sub-trajectory of the ATE mean +- std")
     ap.add_argument("--sub-stride", type=int, default=15, help="frames between sub-trajectory starts")
     ap.add_argument("--out", type=Path, default=Path("runs/ablation"))
@@ -144,8 +142,7 @@ def main() -> None:
         res = fit(args.scene, variant=v, preset=args.preset, frames=args.frames, out=run,
                   val_scenes=args.val_scene, val_frames=args.val_frames, calibrate=False,
                   teacher_root=args.teacher, steps=args.steps, init=args.init,  # a rerun keeps or continues the run
-                  lr=args.lr, input=args.input, seed=args.seed, flip_prob=args.flip_prob, reverse_prob=args.reverse_prob,
-                  reg_robust=args.reg_robust, gap_weight=args.gap_weight)
+                  lr=args.lr, input=args.input, seed=args.seed, flip_prob=args.flip_prob, reverse_prob=args.reverse_prob)
         t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
         rep = predict(res.checkpoint, test_scene, frames=args.test_frames, out=run / "predict",
                       config=PredictConfig(samples=args.samples)).reports[0]
@@ -156,7 +153,8 @@ def main() -> None:
                 logging.warning("%s: %s %.6g here vs %.6g in report.json", v, k, row[k], rep[k])
         rows[v] = {**row, **{k: rep.get(k) for k in CAL_KEYS}, "fit_s": round(t_fit, 1), "fit_cpu_s": round(c_fit, 1),
                    "epochs": res.epochs_done, "steps": res.history[-1]["steps"] if res.history else 0,
-                   "final_loss": res.history[-1].get("windows_loss", res.history[-1].get("pairs_loss")), "loadavg_1_5_15": [round(x, 2) for x in os.getloadavg()],
+                   "final_loss": res.history[-1].get("windows_loss", res.history[-1].get("pairs_loss")),
+                   "loadavg_1_5_15": [round(x, 2) for x in os.getloadavg()],
                    "finished": time.strftime("%H:%M:%S", time.gmtime())}
         write_json(args.out / "ablation.json", {**meta, "results": rows})
     write_json(args.out / "ablation.json", {**meta, "results": rows})

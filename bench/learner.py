@@ -5,8 +5,8 @@ MC-dropout prediction with K=10 >= 100 pairs/s). Random frames; no data needed.
     .venv/bin/python -m bench.learner --threads 1 --steps 8 --json out.json
     .venv/bin/python -m bench.learner --input flow           # with the optical-flow input
 
-Training runs the real training step of ``learner fit`` (:func:`learner.train.pairs_step`
-/ :func:`learner.train.windows_step`: gathering the cached uint8 frames and labels, the
+Training runs the real training step of ``learner fit`` (:func:`learner.batches.pairs_step`
+/ :func:`learner.batches.windows_step`: gathering the cached uint8 frames and labels, the
 forward pass, the loss, backward and Adam) on a sequence of ``--frames`` random frames with
 teacher-style labels and covariances:
 
@@ -15,7 +15,7 @@ teacher-style labels and covariances:
   each with all its direct pairs of gaps up to G (CTC + regression);
 
 and counts encoder pairs per second. Prediction counts edges per second of
-:func:`learner.predict.mc_edges` (every pair of gaps 1..max_gap encoded once, K dropout
+:func:`learner.mcdropout.mc_edges` (every pair of gaps 1..max_gap encoded once, K dropout
 samples of the heads). Each figure is given per wall-clock second and per CPU second
 of this process (``time.process_time``; on a busy machine the wall figure drops while the
 CPU figure holds, and ``threads x`` the CPU figure bounds what an idle machine gives).
@@ -34,11 +34,11 @@ import numpy as np
 import torch
 
 from ctcvo.learner import loss as L
+from ctcvo.learner.batches import pair_batches, pairs_step, window_batches, windows_step
 from ctcvo.learner.config import FLOW_U_CHANNEL, INPUTS, PRESETS, PredictConfig
 from ctcvo.learner.dataset import Frames, SequenceData
+from ctcvo.learner.mcdropout import mc_edges
 from ctcvo.learner.model import CTCNet
-from ctcvo.learner.predict import mc_edges
-from ctcvo.learner.train import pair_batches, pairs_step, window_batches, windows_step
 
 
 def fake_sequence(n: int, width: int, height: int, max_gap: int, seed: int = 0, mode: str = "rgb") -> SequenceData:

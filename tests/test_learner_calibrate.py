@@ -217,7 +217,7 @@ def test_calibrate_reruns_by_the_rule(run, data_dirs, tmp_path, monkeypatch, cap
     """The same inputs keep calibration.json without predicting again; other inputs are a
     one-line error naming what differs until --overwrite; a run killed while predicting
     leaves the previous file as it was."""
-    import ctcvo.learner.predict as P
+    import ctcvo.learner.calibrate as C
     from ctcvo.data.runs import StaleOutputError
 
     ckpt = _copy_run(run, tmp_path / "run")
@@ -231,7 +231,7 @@ def test_calibrate_reruns_by_the_rule(run, data_dirs, tmp_path, monkeypatch, cap
     def no_prediction(*a, **k):
         raise AssertionError("a calibration of the same inputs was predicted again")
 
-    monkeypatch.setattr(P, "mc_edges", no_prediction)
+    monkeypatch.setattr(C, "mc_edges", no_prediction)
     caplog.set_level("INFO")
     again = calibrate(ckpt, str(data_dirs["val"]), **kw)
     assert "calibration of the same inputs: kept" in caplog.text
@@ -241,7 +241,7 @@ def test_calibrate_reruns_by_the_rule(run, data_dirs, tmp_path, monkeypatch, cap
                                                r"0\.\.19 \(20 frames\) -> 0\.\.17 \(18 frames\)\); pass --overwrite"):
         calibrate(ckpt, str(data_dirs["val"]), frames="0:18", **kw)
     # killed while predicting, with --overwrite: the old calibration is still whole
-    monkeypatch.setattr(P, "mc_edges", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt()))
+    monkeypatch.setattr(C, "mc_edges", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt()))
     with pytest.raises(KeyboardInterrupt):
         calibrate(ckpt, str(data_dirs["val"]), frames="0:18", overwrite=True, **kw)
     assert first.path.read_text() == text
@@ -339,7 +339,7 @@ def test_fit_with_validation_scene_calibrates(data_dirs, tmp_path, caplog) -> No
 
 
 def test_fit_checks_validation_teacher_labels_before_training(data_dirs, tmp_path) -> None:
-    with pytest.raises(DataError, match="has no teacher labels"):
+    with pytest.raises(DataError, match="no teacher labels for"):
         fit([str(data_dirs["train"])], val_scenes=[str(data_dirs["val"])], variant="cnn-gt", preset="tiny",
             out=tmp_path / "run", teacher_root=tmp_path / "nothing", steps=2)
     assert not (tmp_path / "run" / "checkpoint.pt").exists()
@@ -366,7 +366,7 @@ def test_cli_calibrate_then_predict(run, data_dirs, tmp_path, capsys) -> None:
 @pytest.mark.parametrize("args, message", [
     (["calibrate", "--checkpoint", "{tmp}/missing.pt", "--scene", "{val}", "--teacher", "{teacher}"],
      "does not exist"),
-    (["calibrate", "--checkpoint", "{ckpt}", "--scene", "{val}", "--teacher", "{tmp}/none"], "has no teacher labels"),
+    (["calibrate", "--checkpoint", "{ckpt}", "--scene", "{val}", "--teacher", "{tmp}/none"], "no teacher labels for"),
     (["calibrate", "--checkpoint", "{ckpt}", "--scene", "{val}", "--teacher", "{teacher}", "--frames", "0:6"],
      "calibration needs at least 30"),
     (["calibrate", "--checkpoint", "{ckpt}", "--scene", "{tmp}/nowhere"], "not found"),

@@ -131,12 +131,15 @@ def tiny_run(tmp_path, monkeypatch):
 
 
 def test_fit_labels_every_range_reruns_and_predict_keeps_out_of_the_run(tiny_run, caplog) -> None:
-    """No teacher output yet: fit on 0:8 validating on 8:20 of the same sequence runs the
-    teacher once over 0:20 (both ranges labelled). A second identical fit is kept; other
-    inputs are an error until --overwrite. predict writes to runs/<scene>/predict (never
-    the training run, even for the training scene) and is skipped when rerun."""
+    """With teacher labels over 0:20 in the default folder, fit on 0:8 validating on 8:20
+    of the same sequence reads both ranges' labels from it. A second identical fit is kept;
+    other inputs are an error until --overwrite. predict writes to runs/<scene>/predict
+    (never the training run, even for the training scene) and is skipped when rerun."""
     from ctcvo.learner.predict import predict
     from ctcvo.learner.train import fit
+    from ctcvo.teacher.generate import generate
+
+    generate("synthetic/tiny", frames="0:20")
 
     kw = dict(variant="cnn-unsup", preset="tiny", frames="0:8", val_scenes=["synthetic/tiny"], val_frames="8:20",
               steps=2)
@@ -174,7 +177,9 @@ def test_fit_labels_every_range_reruns_and_predict_keeps_out_of_the_run(tiny_run
 def test_cli_ctrl_c_is_one_line_and_resume_needs_only_out(tiny_run, monkeypatch, capsys, caplog) -> None:
     import ctcvo.learner.train as T
     from ctcvo.learner import cli
+    from ctcvo.teacher.generate import generate
 
+    generate("synthetic/tiny", frames="0:10")
     real = T._train_epoch
 
     def second_epoch_interrupted(*a, **k):

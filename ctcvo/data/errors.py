@@ -20,3 +20,7 @@ class FormatError(VOError):
 
 class ConfigError(VOError):
     """Command-line arguments or a configuration are inconsistent."""
+
+
+class MissingInputError(DataError):
+    """What an earlier stage writes is missing; the message names the command that writes it."""

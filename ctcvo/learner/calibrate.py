@@ -51,8 +51,12 @@ from ctcvo.data.io import git_revision, read_json_file, write_json
 from ctcvo.data.runs import Fingerprint, claim, file_digest, frames_id, scene_id, upstream_digest
 from ctcvo.data.scenes import open_scene
 from ctcvo.data.sequence import frame_ranges_overlap
-from ctcvo.data.uncertainty import CHI2_6_1SIGMA, CHI2_6_2SIGMA, mahalanobis2, nees_stats  # noqa: F401
+from ctcvo.data.uncertainty import mahalanobis2, nees_stats
+from ctcvo.learner.checkpoint import load_model
 from ctcvo.learner.config import CalibrationConfig, PredictConfig, check_variant, to_dict
+from ctcvo.learner.dataset import find_teacher_edges, load_frames
+from ctcvo.learner.mcdropout import COV_FLOOR, mc_edges
+from ctcvo.learner.model import CTCNet
 
 log = logging.getLogger(__name__)
 
@@ -357,18 +361,15 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: str | No
     """Fit the covariance calibration of ``checkpoint`` on validation ``scenes`` and write
     ``calibration.json`` beside it (the network runs on ``device``: auto, cpu or cuda).
 
-    The MC-dropout edges come from :func:`learner.predict.mc_edges` with ``config`` (the
+    The MC-dropout edges come from :func:`learner.mcdropout.mc_edges` with ``config`` (the
     same sample count, drop ratio and gaps ``learner predict`` uses); residuals are taken
-    against the teacher's good edges (``teacher_root`` as in ``learner fit``: without it,
-    missing labels are generated). Ground truth is never read.
+    against the teacher's good edges (``teacher_root`` as in ``learner fit``; missing labels
+    are an error naming the ``teacher generate`` command). Ground truth is never read.
 
     Rerun rule: a ``calibration.json`` fitted on the same inputs (its ``fingerprint``) is
     kept and returned; one of other inputs is replaced only with ``overwrite``, otherwise
     this raises :class:`data.runs.StaleOutputError` naming what differs.
     """
-    from ctcvo.learner.dataset import find_teacher_edges, load_frames
-    from ctcvo.learner.predict import load_model, mc_edges
-
     checkpoint = Path(checkpoint)
     scenes = [scenes] if isinstance(scenes, str) else list(scenes)
     if not scenes:
@@ -390,11 +391,56 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: str | No
         log.info("%s: calibration of the same inputs: kept", path)
         cal = read_calibration(path)
         return CalibrationResult(path, cal, cal.to_dict())
+    res = _residuals(model, state, checkpoint, opened, frames, config,
+                     sys.stderr.isatty() if progress is None else progress)
+    t_model = res.tcov if cal_config.teacher_variance else None
+    cal = Calibration(fit_groups(res.cov, res.r, res.heads, res.gaps, t_model, cal_config), {
+        "checkpoint": checkpoint.name, "checkpoint_sha1": file_sha1(checkpoint),
+        "checkpoint_epoch": int(state["epoch"]), "preset": state["preset"], "variant": state["variant"],
+        "scenes": scenes, "frames": frames, "split": split, "sequences": res.used,
+        "samples": config.samples, "drop": config.drop, "max_gap": config.max_gap, "cov_floor": COV_FLOOR,
+        "config": to_dict(cal_config), "pairs": len(res.r), "order": "v_x v_y v_z w_x w_y w_z",
+        "git_revision": git_revision(),
+    })
+    extra = res.tcov if cal_config.teacher_variance else 0.0
+    v = cal.info["validation"] = {
+        "before": nees_stats(mahalanobis2(res.r, res.cov + extra)),
+        "after": nees_stats(mahalanobis2(res.r, cal.apply(res.cov, res.heads, res.gaps) + extra)),
+        "skill": skill_figures(res.l2, res.l2_zero, res.gaps, res.l2_cv)}
+    cal.info["fingerprint"] = fp.to_dict()  # in the file itself: written in the same atomic step
+    report = cal.to_dict()
+    write_json(path, report)
+    log.info("calibration of %s on %d validation pairs: 1-sigma coverage %.3f -> %.3f, 2-sigma %.3f -> %.3f "
+             "(against teacher labels), se(3) L2 %.3gx zero motion's -> %s", checkpoint, len(res.r),
+             v["before"]["coverage_1sigma"], v["after"]["coverage_1sigma"], v["before"]["coverage_2sigma"],
+             v["after"]["coverage_2sigma"], v["skill"]["ratio"], path)
+    return CalibrationResult(path, cal, report)
+
+
+@dataclass
+class _Residuals:
+    """The validation pairs with teacher labels, over every sequence: MC-dropout
+    covariances ``cov`` (n, 6, 6), residuals ``r`` (n, 6), teacher covariances ``tcov``
+    (n, 6, 6), heads and gaps (n,), se(3) L2 distances to the labels of the learner, of
+    zero motion and of constant velocity (n,), and one record per sequence (``used``)."""
+
+    cov: NDArray[np.float64]
+    r: NDArray[np.float64]
+    tcov: NDArray[np.float64]
+    heads: list[str]
+    gaps: NDArray[np.int64]
+    l2: NDArray[np.float64]
+    l2_zero: NDArray[np.float64]
+    l2_cv: NDArray[np.float64]
+    used: list[dict[str, Any]]
+
+
+def _residuals(model: CTCNet, state: dict, checkpoint: Path, opened: list[tuple[str, Any, Path]],
+               frames: str | None, config: PredictConfig, progress: bool) -> _Residuals:
+    """MC-dropout edges of every validation sequence against its teacher labels."""
     uses_lstm, _, _ = check_variant(state["variant"])
     window = int(state["train_config"]["window_max"])
     train_seqs = _training_sequences(checkpoint)
-    if progress is None:
-        progress = sys.stderr.isatty()
     covs, res, tcovs, heads, gaps, used, l2, l2_zero, l2_cv = [], [], [], [], [], [], [], [], []
     for spec, seq, g2o in opened:
         if seq.name in train_seqs and frame_ranges_overlap(train_seqs[seq.name], frames):
@@ -418,33 +464,8 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: str | No
         gaps.append(edges.j[idx] - edges.i[idx])
         used.append({"scene": spec, "sequence": seq.name, "frames": len(seq), "edges": len(edges.i),
                      "pairs": len(idx), "teacher": str(g2o)})
-    cov, r, tcov, gap = np.concatenate(covs), np.concatenate(res), np.concatenate(tcovs), np.concatenate(gaps)
-    t_model = tcov if cal_config.teacher_variance else None
-    groups = fit_groups(cov, r, heads, gap, t_model, cal_config)
-    info = {
-        "checkpoint": checkpoint.name, "checkpoint_sha1": file_sha1(checkpoint),
-        "checkpoint_epoch": int(state["epoch"]), "preset": state["preset"], "variant": state["variant"],
-        "scenes": scenes, "frames": frames, "split": split, "sequences": used,
-        "samples": config.samples, "drop": config.drop, "max_gap": config.max_gap, "cov_floor": config.cov_floor,
-        "config": to_dict(cal_config), "pairs": len(r), "order": "v_x v_y v_z w_x w_y w_z",
-        "git_revision": git_revision(),
-    }
-    cal = Calibration(groups, info)
-    extra = tcov if cal_config.teacher_variance else 0.0
-    after_cov = cal.apply(cov, heads, gap)
-    info["validation"] = {"before": nees_stats(mahalanobis2(r, cov + extra)),
-                          "after": nees_stats(mahalanobis2(r, after_cov + extra)),
-                          "skill": skill_figures(np.concatenate(l2), np.concatenate(l2_zero), gap,
-                                                 np.concatenate(l2_cv))}
-    info["fingerprint"] = fp.to_dict()  # in the file itself: written in the same atomic step
-    report = cal.to_dict()
-    write_json(path, report)
-    v = info["validation"]
-    log.info("calibration of %s on %d validation pairs: 1-sigma coverage %.3f -> %.3f, 2-sigma %.3f -> %.3f "
-             "(against teacher labels), se(3) L2 %.3gx zero motion's -> %s", checkpoint, len(r),
-             v["before"]["coverage_1sigma"], v["after"]["coverage_1sigma"], v["before"]["coverage_2sigma"],
-             v["after"]["coverage_2sigma"], v["skill"]["ratio"], path)
-    return CalibrationResult(path, cal, report)
+    cat = np.concatenate
+    return _Residuals(cat(covs), cat(res), cat(tcovs), heads, cat(gaps), cat(l2), cat(l2_zero), cat(l2_cv), used)
 
 
 def fingerprint(checkpoint: Path, opened: list[tuple[str, Any, Path]], config: PredictConfig,

@@ -19,7 +19,8 @@ from ctcvo.learner.config import INPUTS, PRESETS, VARIANTS, PredictConfig
 
 PRESET_HELP = ("presets: 'paper' - the paper's network (320x240 VGG-11-BN widths, RGB pair; for a GPU); "
                "'cpu' - a network that trains on a 2-core CPU (128x96, VGG widths / 8, RGB + flow + inverse depth, "
-               "1500 steps); 'tiny' - a toy network for the tests only (it learns nothing useful)")
+               "1500 steps); 'demo' - the cpu network on flow and inverse depth without colour, with depth-scale and "
+               "mirroring augmentation (the demo's); 'tiny' - a toy network for the tests only (it learns nothing useful)")
 VARIANT_HELP = ("variants: cnn-* train the direct head on pairs, lstm-* and ctc also the LSTM on windows; *-gt on "
                 "ground-truth labels, *-unsup on the teacher's, *-aug on teacher labels redrawn from their "
                 "covariances; ctc adds the composite transformation constraints")
@@ -30,6 +31,13 @@ def _parser() -> argparse.ArgumentParser:
     ap, sub = make_parser("ctcvo learner", "Train the CTCNet-style learner on teacher labels, calibrate its covariances "
                                      "and predict edges.\n\n" + PRESET_HELP + ".\n" + VARIANT_HELP + ".")
 
+    _fit_options(sub)
+    _calibrate_options(sub)
+    _predict_options(sub)
+    return ap
+
+
+def _fit_options(sub: argparse._SubParsersAction) -> None:
     f = add_command(sub, "fit", "train on teacher (or ground-truth) labels",
                     "Train on teacher (or ground-truth) labels into a run folder. A rerun with the same inputs keeps "
                     "a finished run and continues an unfinished one; other inputs need --overwrite. Ctrl-C keeps the "
@@ -67,11 +75,6 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--scale-aug", type=float,
                    help="depth-scale augmentation: scale each sample's world by 2**u, u uniform in [-A, A] "
                         "(inputs with depth only; default: the preset's)")
-    f.add_argument("--reg-robust", type=float, metavar="C",
-                   help="Cauchy loss c*log(1+e/c) on each label residual e (normalised); 0 = squared error "
-                        "(default: the preset's)")
-    f.add_argument("--gap-weight", type=float, metavar="P",
-                   help="weigh the label residuals of gap g by g**P (default: the preset's)")
     f.add_argument("--input", choices=list(INPUTS),
                    help="encoder input: rgb (the paper's RGB pair), rgbd (plus inverse depth) or flow (plus optical "
                         "flow and inverse depth), flowd (flow and both inverse depths, no colour) (default: the preset's)")
@@ -82,12 +85,14 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--init", type=Path, help="fine-tune: start from the weights of this learner checkpoint "
                    "(same preset shape and --input), with a fresh optimiser and schedule")
     f.add_argument("--teacher", type=Path,
-                   help="teacher output folder to read labels from (never generated); "
-                        "default: runs/<scene>/teacher, generated where labels are missing")
+                   help="teacher output folder to read labels from (`ctcvo teacher generate --out`; "
+                        "default: runs/<scene>/teacher)")
     f.add_argument("--no-calibration", dest="calibrate", action="store_false", default=None,
                    help="do not fit calibration.json on the --val-scene sequences after training")
     add_topic_options(f)
 
+
+def _calibrate_options(sub: argparse._SubParsersAction) -> None:
     c = add_command(sub, "calibrate", "fit calibration.json (MC-dropout covariances vs teacher labels) "
                                       "of a checkpoint on a validation scene",
                     "Fit calibration.json (MC-dropout covariances vs teacher labels) of a checkpoint on a validation "
@@ -99,14 +104,16 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--frames", help="frame range START:STOP[:STEP] of every sequence (default: all frames)")
     c.add_argument("--split", default="all", help="7-Scenes split of a scene folder: train, test or all")
     c.add_argument("--teacher", type=Path,
-                   help="teacher output folder to read labels from (never generated); "
-                        "default: runs/<scene>/teacher, generated when missing")
+                   help="teacher output folder to read labels from (`ctcvo teacher generate --out`; "
+                        "default: runs/<scene>/teacher)")
     c.add_argument("--overwrite", action="store_true",
                    help="replace a calibration.json of other inputs instead of stopping with an error")
     _mc_options(c)
     c.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help=DEVICE_HELP)
     add_topic_options(c)
 
+
+def _predict_options(sub: argparse._SubParsersAction) -> None:
     p = add_command(sub, "predict", "MC-dropout edges, trajectory and report of a scene",
                     "MC-dropout edges with covariances, a trajectory and a report of a scene. A rerun with the same "
                     "checkpoint, calibration, scene, frames and settings is skipped; other inputs need --overwrite.")
@@ -123,7 +130,6 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-calibration", dest="calibration", action="store_false",
                    help="ignore the calibration.json beside the checkpoint")
     add_topic_options(p)
-    return ap
 
 
 def _mc_options(p: argparse.ArgumentParser) -> None:
@@ -144,8 +150,7 @@ def _fit(args: argparse.Namespace) -> int:
                   steps=args.steps, pretrain_steps=args.pretrain_steps, warmup_steps=args.warmup_steps,
                   eval_every=args.eval_every, lr=args.lr, batch_pairs=args.batch_pairs, seed=args.seed,
                   device=args.device, bf16=args.bf16, input=args.input, init=args.init, flip_prob=args.flip_prob,
-                  reverse_prob=args.reverse_prob, scale_aug=args.scale_aug,
-                  reg_robust=args.reg_robust, gap_weight=args.gap_weight, calibrate=args.calibrate)
+                  reverse_prob=args.reverse_prob, scale_aug=args.scale_aug, calibrate=args.calibrate)
     except FitInterrupted as exc:
         print(exc, file=sys.stderr)
         return 130

@@ -8,7 +8,6 @@ by mutation. The resolved configuration is saved as JSON next to every run
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -69,23 +68,21 @@ class ModelConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Training schedule (two phases, counted in optimiser steps), loss and optimiser.
+    """Training schedule (two phases, counted in optimiser steps), loss and augmentation.
 
     An *epoch* is ``eval_every`` optimiser steps: the unit of logging, evaluation,
-    checkpointing and window growth, not a pass over the data, so that a short sequence and
-    a long corpus both get the steps they need (the number of epochs is derived).
+    checkpointing and window growth, not a pass over the data.
     """
 
     steps: int = 60000
     """Total optimiser steps (phase 1 + phase 2)."""
     pretrain_steps: int = 20000
-    """Phase-1 steps: encoder + direct head on single pairs of gaps 1..max_gap, L_reg only.
-    Variants without an LSTM (``cnn-*``) train every step this way."""
+    """Phase-1 steps: encoder + direct head on single pairs of gaps 1..max_gap, L_reg only
+    (every step for the ``cnn-*`` variants)."""
     eval_every: int = 1000
-    """Steps per epoch: the training and validation se(3) L2 (beside zero motion and
-    constant velocity) are logged, and the checkpoint written, after every epoch."""
+    """Steps per epoch: evaluation, log line and checkpoint after each."""
     max_gap: int = 5
-    """Largest frame gap of a direct-head pair (phase 1 pairs and the CTC's G)."""
+    """Largest frame gap of a direct-head pair (phase-1 pairs and the CTC's G)."""
     batch_pairs: int = 32
     """Phase 1: pairs per optimiser step (global, split across DDP processes)."""
     batch_windows: int = 4
@@ -99,60 +96,20 @@ class TrainConfig:
     beta: float = 3.0
     """Weight of the label regression L_reg."""
     lr: float = 1e-4
-    """Peak Adam learning rate (reached after the warm-up)."""
+    """Peak Adam learning rate, reached after the warm-up and decayed by a cosine."""
     warmup_steps: int = 500
     """Linear learning-rate warm-up from 0 over this many steps."""
-    lr_final: float = 0.05
-    """After the warm-up the learning rate follows a cosine from ``lr`` down to
-    ``lr * lr_final`` at the last step (the paper halves it "every few epochs"; a cosine
-    needs no epoch count)."""
-    beta1: float = 0.9
-    """Adam beta1."""
-    freeze_bn_phase2: bool = True
-    """Phase 2 uses the BatchNorm statistics learnt in phase 1 (running averages, not
-    updated) instead of batch statistics: a phase-2 batch is a few windows of strongly
-    correlated pairs (2 windows of the same ~20 frames at the cpu preset), whose batch
-    statistics differ from the ones used at test time. The affine parameters still train."""
     seed: int = 0
     """Seed of sampling, dropout, label noise and initialisation."""
     flip_prob: float = 0.0
-    """Mirror each training pair (phase 1) or window (phase 2) left-right with this
-    probability, its labels with it: mirroring x maps ``T`` to ``S T S``, S = diag(-1, 1, 1),
-    i.e. ``(v, w) -> (-vx, vy, vz, wx, -wy, -wz)``; compositions stay consistent, so the
-    CTC holds. Exact for a principal point at the image centre (7-Scenes, the synthetic
-    scenes; TUM's is 1-2 px off at 640 px)."""
+    """Mirror each training pair or window left-right with this probability, its labels
+    ``(v, w) -> (-vx, vy, vz, wx, -wy, -wz)`` with it (exact for a centred principal point)."""
     reverse_prob: float = 0.0
-    """Play each training pair (phase 1) or window (phase 2) backwards with this
-    probability: the two frames of a pair swap places and the label becomes
-    ``log(T^-1) = -log(T)``; a window's frames run in reverse order, so its compositions
-    stay consistent and the CTC holds. Exact. The label set becomes symmetric, so the
-    network cannot learn the training recording's mean motion as a bias."""
+    """Play each training pair or window backwards with this probability, its labels
+    negated (exact)."""
     scale_aug: float = 0.0
-    """Depth-scale augmentation (inputs with depth only; not in the paper): each training
-    pair (phase 1) or window (phase 2) is drawn as if the scene and the camera path were
-    scaled by ``s = 2**u``, ``u`` uniform in [-scale_aug, scale_aug]: its inverse-depth
-    channels are divided by ``s`` and its labels' translations multiplied by ``s``, while
-    images and flow stay the same (a scaled world looks identical). Scaling is an
-    automorphism of SE(3), so compositions stay consistent and the CTC holds. Exact. One
-    room then shows many pairings of depth and step length, so the network has to read
-    the step from the flow and the depth together instead of remembering the room's."""
-
-    reg_robust: float = 0.0
-    """Robust label regression (not in the paper): each labelled prediction's normalised
-    squared error ``e`` (the mean over the 6 dimensions of ``((xi - xi_label) / s_g)^2``)
-    enters L_reg as the Cauchy loss ``c log(1 + e / c)`` with ``c = reg_robust`` instead
-    of as ``e``; 0 keeps the squared error. A teacher's gross label failures (PnP-RANSAC on
-    a stale or blurred frame) then pull the network ``1 + e / c`` times less than under the
-    squared error, while small residuals (``e << c``) are treated as before."""
-    gap_weight: float = 0.0
-    """Weight the label regression of every prediction of gap g by ``g ** gap_weight``
-    (not in the paper; the LSTM's consecutive pairs are gap 1 and weigh 1; L_reg stays a
-    weighted mean). Each gap's residual is divided by its target scale ``s_g``, which grows
-    like g, while a teacher's label noise grows more slowly (like sqrt(g) for a random
-    walk of independent errors): at 0 a gap-5 label, normalised, counts ~1/5 of what its
-    noise level warrants; 1 weighs the gaps by that random-walk noise model. Through the
-    CTC the long, relatively more accurate labels then constrain the consecutive
-    estimates."""
+    """Depth-scale augmentation (inputs with depth only): each pair or window is drawn as
+    if the world were scaled by ``2**u``, ``u`` uniform in [-scale_aug, scale_aug] (exact)."""
 
     @property
     def epochs(self) -> int:
@@ -163,19 +120,17 @@ class TrainConfig:
         if self.steps < 1 or not 0 <= self.pretrain_steps <= self.steps or self.eval_every < 1:
             raise ConfigError(f"need steps >= 1, 0 <= pretrain_steps <= steps and eval_every >= 1, got "
                               f"{self.steps}/{self.pretrain_steps}/{self.eval_every}")
-        if not 0 <= self.warmup_steps or not 0.0 <= self.lr_final <= 1.0 or self.lr <= 0:
-            raise ConfigError("need lr > 0, warmup_steps >= 0 and 0 <= lr_final <= 1")
+        if not 0 <= self.warmup_steps or self.lr <= 0:
+            raise ConfigError("need lr > 0 and warmup_steps >= 0")
         if self.max_gap < 1 or self.window_min < 1 or self.window_max < self.window_min:
             raise ConfigError("need max_gap >= 1 and 1 <= window_min <= window_max")
         if self.batch_pairs < 1 or self.batch_windows < 1:
             raise ConfigError("batch sizes must be positive")
+        if not (self.alpha >= 0 and self.beta >= 0):
+            raise ConfigError(f"need alpha >= 0 and beta >= 0, got {self.alpha} and {self.beta}")
         for name in ("flip_prob", "reverse_prob"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ConfigError(f"{name} must be in [0, 1], got {getattr(self, name)}")
-        if not (self.reg_robust >= 0.0 and math.isfinite(self.reg_robust)):
-            raise ConfigError(f"reg_robust must be a finite number >= 0, got {self.reg_robust}")
-        if not -3.0 <= self.gap_weight <= 3.0:
-            raise ConfigError(f"gap_weight must be in [-3, 3], got {self.gap_weight}")
         if not 0.0 <= self.scale_aug <= 3.0:
             raise ConfigError(f"scale_aug must be in [0, 3] (log2 of the largest scale), got {self.scale_aug}")
 
@@ -190,50 +145,37 @@ class PredictConfig:
     """Drop probability of the MC passes (the paper uses 10%)."""
     max_gap: int = 5
     """Direct-head edges are written for gaps 2..max_gap besides the gap-1 edges."""
-    cov_floor: float = 1e-8
-    """Added to the covariance diagonal before inversion (rad^2 / m^2)."""
-    outlier_factor: float = 3.0
-    """An edge is flagged an outlier when its sigma (sqrt of the covariance trace) exceeds
-    this many times the sequence's median sigma."""
-    batch_pairs: int = 64
-    """Pairs per encoder forward pass."""
 
     def __post_init__(self) -> None:
         if self.samples < 1:
             raise ConfigError(f"--samples must be >= 1, got {self.samples}")
         if not 0.0 <= self.drop < 1.0:
             raise ConfigError(f"drop ratio must be in [0, 1), got {self.drop}")
+        if self.max_gap < 1:
+            raise ConfigError(f"--max-gap must be >= 1, got {self.max_gap}")
 
 
 @dataclass(frozen=True)
 class CalibrationConfig:
     """Post-hoc calibration of the MC-dropout covariances against teacher labels
-    (:mod:`learner.calibrate`). Per edge group and se(3) dimension d the model is
-    ``r_d ~ N(0, a_d * c_dd + b_d + t_dd)``: ``r = log(inv(exp(mean)) @ T_teacher)``, ``c_dd``
-    the MC-dropout variance, ``t_dd`` the teacher's variance, ``a_d, b_d >= 0`` fitted by
-    maximum likelihood; the covariance becomes ``D C D + diag(b)``, ``D = diag(sqrt(a))``."""
+    (:mod:`learner.calibrate`): per edge group and dimension, ``r_d ~ N(0, a_d c_dd + b_d + t_dd)``."""
 
     min_pairs: int = 30
-    """Fewest labelled pairs for a group of its own (one head and gap); smaller groups
-    fall back to the fit of all gaps of their head, then to the fit of every pair."""
+    """Fewest labelled pairs for a group of its own (head and gap); smaller groups fall
+    back to their head's fit, then to the fit of every pair."""
     trim_z: float = 4.0
-    """Pairs whose residual exceeds this many calibrated standard deviations in a
-    dimension are left out of that dimension's fit (re-estimated until stable): gross
-    label or prediction failures must not inflate every covariance. Under a Gaussian
-    this drops 6e-5 of the pairs, a negligible bias."""
+    """Pairs beyond this many calibrated standard deviations in a dimension are left out
+    of its fit (re-estimated until stable)."""
     max_iterations: int = 10
     """Rounds of fitting and trimming."""
     fit_floor: bool = True
-    """Fit the floor ``b`` (error the dropout does not see); ``False`` fits the scale
-    ``a`` alone (``b`` stays at ``min_variance``), plain variance scaling."""
+    """Fit the floor ``b``; ``False`` fits the scale ``a`` alone (plain variance scaling)."""
     teacher_variance: bool = True
-    """Model the teacher's own variance (the diagonal of its edge covariance) in the
-    residual, so that ``a, b`` describe the learner's error only."""
+    """Model the teacher's own variance in the residual, so that ``a, b`` describe the
+    learner's error only."""
     min_variance: float = 1e-8
-    """Lower bound of ``b`` (m^2 / rad^2; the raw covariances' ``cov_floor``): the
-    calibrated covariance stays positive definite where ``a`` reaches 0, and no dimension
-    is claimed more precise than 0.1 mm / 0.1 mrad (1 sigma) when the teacher's variance
-    explains the whole residual."""
+    """Lower bound of ``b`` (m^2 / rad^2): no dimension is claimed more precise than
+    0.1 mm / 0.1 mrad."""
 
     def __post_init__(self) -> None:
         if self.min_pairs < 3 or self.trim_z <= 1.0 or self.max_iterations < 1 or self.min_variance <= 0:
@@ -259,30 +201,10 @@ def _div(widths: tuple[int, ...], k: int) -> tuple[int, ...]:
 #: The paper's network: 320x240 input, full VGG-11 widths, C = 1080, LSTM 1000.
 PAPER = Preset("paper", ModelConfig(), TrainConfig())
 #: A network that trains on a 2-core CPU: 128x96 input, VGG-11 widths / 8 (8..64
-#: channels), strided convs 256, C = 256, LSTM 256.
-#:
-#: Trade-off: the issue suggested widths / 4 (16..128). On a loaded 2-core machine widths / 4
-#: trained at 30-40 pairs per CPU second, short of the 100 pairs/s target, and widths / 8
-#: roughly tripled that (the conv cost scales with the square of the width, and 8-channel
-#: blocks suit oneDNN's AVX2 kernels). On the idle VM both pass (training 2 threads: widths
-#: / 4 170-218 pairs/s, widths / 8 299-323), and widths / 4 learnt no better: ctc on
-#: redkitchen 0:450 -> 450:600, se(3) L2 0.01189 / 0.01352 over two seeds against 0.01209 /
-#: 0.01278, in twice the time (bench/README.md). The price of widths / 8 is a thinner
-#: encoder: 8 channels after the first conv for 6 input channels, 64 at the deepest VGG
-#: layers. The input resolution was kept (it bounds the translation precision of small
-#: frame-to-frame motions), as were the heads. Use
-#: ``dataclasses.replace(CPU.model, conv_widths=_div(VGG11_WIDTHS, 4))`` for the wider one.
-#:
-#: Schedule (issue 11): 1500 optimiser steps, 1000 of them on single pairs, lr 1e-3 after a
-#: 100-step warm-up, cosine decay. The old epoch count gave a 350-frame sequence ~100 steps,
-#: too few to fit even the training frames. Half the training pairs and windows are played
-#: backwards (``reverse_prob``; not in the paper; exact), chosen on the validation range
-#: (redkitchen 350:450, trained on 0:350; bench/README.md, "Protocol"): cnn-unsup flow at
-#: this schedule 0.00804 with reversal vs 0.00915 without (se(3) L2); ctc at 300 steps
-#: only, 0.01038 vs 0.00987 (reversal does not pay off in so short a run). The input is ``flow`` (RGB pair +
-#: optical flow + inverse depth): on the validation ranges it generalised better than the
-#: paper's RGB pair (bench/README.md, "Learner: does it learn?"); the ``paper`` preset
-#: keeps ``rgb``.
+#: channels), strided convs 256, C = 256, LSTM 256, RGB + flow + inverse depth input;
+#: 1500 optimiser steps (1000 on single pairs), lr 1e-3 after a 100-step warm-up, half the
+#: pairs and windows played backwards. Widths, input and reversal were chosen on the
+#: validation range redkitchen 350:450, trained on 0:350 (bench/README.md, "Learner").
 CPU = Preset(
     "cpu",
     ModelConfig(width=128, height=96, conv_widths=_div(VGG11_WIDTHS, 8), strided_widths=(256, 256),
@@ -290,6 +212,7 @@ CPU = Preset(
     TrainConfig(steps=1500, pretrain_steps=1000, eval_every=100, batch_pairs=32, batch_windows=2, window_max=18,
                 lr=1e-3, warmup_steps=100, reverse_prob=0.5),
 )
+#: A toy network for the tests only (it learns nothing useful).
 TINY = Preset(
     "tiny",
     ModelConfig(width=64, height=48, conv_widths=_div(VGG11_WIDTHS, 16), strided_widths=(16, 16),
@@ -297,7 +220,16 @@ TINY = Preset(
     TrainConfig(steps=4, pretrain_steps=2, eval_every=2, max_gap=3, batch_pairs=4, batch_windows=2, window_min=3,
                 window_max=4, lr=1e-3, warmup_steps=0),
 )
-PRESETS: dict[str, Preset] = {p.name: p for p in (PAPER, CPU, TINY)}
+#: The demo's learner: the cpu preset on the flow and both frames' inverse depth, no
+#: colour (0.81x zero motion's se(3) L2 on the validation scene lab, trained on office,
+#: against 1.05-1.12x with the cpu preset's RGB + flow input, which fits the one training
+#: room's appearance), with depth scaling (|u| <= 1) and left-right mirroring besides time
+#: reversal (chosen on the validation scenes lab, lab at double speed and room-0..3, two
+#: seeds: all six below zero motion, mean 0.82-0.88x, against two of six above it without;
+#: bench/README.md, "Learner: does it learn?", 5 and 6).
+DEMO = Preset("demo", dataclasses.replace(CPU.model, input="flowd"),
+              dataclasses.replace(CPU.train, scale_aug=1.0, flip_prob=0.5))
+PRESETS: dict[str, Preset] = {p.name: p for p in (PAPER, CPU, TINY, DEMO)}
 
 #: variant -> (uses LSTM, label source, CTC on)
 VARIANTS: dict[str, tuple[bool, str, bool]] = {

@@ -21,6 +21,7 @@ import functools
 import hashlib
 import json
 import logging
+import shlex
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -33,10 +34,10 @@ from numpy.typing import NDArray
 from torch import Tensor
 
 from ctcvo.data import geometry as geo
-from ctcvo.data.errors import DataError, VOError
+from ctcvo.data.errors import DataError, MissingInputError, VOError
 from ctcvo.data.formats import read_g2o
 from ctcvo.data.io import atomic_write
-from ctcvo.data.runs import StaleOutputError, stage_dir
+from ctcvo.data.runs import stage_dir
 from ctcvo.data.sequence import Sequence, parse_frame_range
 from ctcvo.learner.config import FLOW_U_CHANNEL, INPUTS
 
@@ -348,45 +349,40 @@ def check_teacher_sequence(g2o: Path, name: str) -> None:
 
 def find_teacher_edges(spec: str, seqs: list[Sequence], split: str, frames: str | None,
                        teacher_root: Path | None) -> list[Path]:
-    """The teacher ``edges.g2o`` of every sequence, covering each sequence's frames; runs
-    the teacher over ``frames`` when they are missing (callers that use several ranges of
-    one scene pass the :func:`hull_range` of them first, so that one run covers all).
-
-    With an explicit ``teacher_root`` nothing is generated: missing labels are an error.
-    """
+    """The teacher ``edges.g2o`` of every sequence, covering each sequence's frames
+    (``teacher_root``: the teacher's ``--out``; default ``runs/<scene>/teacher``). Labels
+    are never made here: missing ones raise :class:`MissingInputError` naming the
+    ``teacher generate`` command that makes them (callers that use several ranges of one
+    scene check the :func:`hull_range` of them first, so that one command covers all)."""
     paths = [default_teacher_dir(spec, s, len(seqs), teacher_root) / "edges.g2o" for s in seqs]
-
-    def uncovered() -> str | None:
-        for seq, g2o in zip(seqs, paths):
-            if not g2o.is_file():
-                return f"{g2o} is missing"
-            check_teacher_sequence(g2o, seq.name)
-            lack = set(map(int, seq.ids())) - _labelled_ids(g2o)
-            if lack:
-                return (f"{g2o} covers other frames: {len(lack)} of the {len(seq)} frames {seq.ids()[0]}.."
-                        f"{seq.ids()[-1]} of {seq.name} are not in it")
-        return None
-
-    why = uncovered()
-    if why is None:
-        return paths
-    if teacher_root is not None:
-        raise DataError(f"scene {spec} has no teacher labels for frames {frames or 'all'}: {why} "
-                        "(run `teacher generate` first)")
-    try:
-        from ctcvo.teacher.generate import generate
-    except ImportError as exc:
-        raise DataError(f"scene {spec} has no teacher labels ({why}) and the teacher cannot be run: {exc}") from None
-    log.info("no teacher labels for frames %s of %s (%s): running the teacher", frames or "all", spec, why)
-    try:
-        generate(spec, split=split, frames=frames)
-    except StaleOutputError as exc:
-        raise StaleOutputError(f"{exc} (the labels there do not cover frames {frames or 'all'} of {spec}: run "
-                               f"`teacher generate --scene {spec} --frames {frames or '0:'} --overwrite`)") from None
-    why = uncovered()
-    if why is not None:
-        raise DataError(f"the teacher ran but {why}")
+    for seq, g2o in zip(seqs, paths):
+        if not g2o.is_file():
+            raise MissingInputError(f"no teacher labels for {spec} at {g2o.parent}: run "
+                                    f"`{teacher_command(spec, split, frames, teacher_root)}` first")
+        check_teacher_sequence(g2o, seq.name)
+        lack = set(map(int, seq.ids())) - _labelled_ids(g2o)
+        if lack:
+            raise MissingInputError(
+                f"no teacher labels for {len(lack)} of the {len(seq)} frames {seq.ids()[0]}..{seq.ids()[-1]} of "
+                f"{seq.name} of {spec} at {g2o.parent}: run "
+                f"`{teacher_command(spec, split, frames, teacher_root, overwrite=True)}` first")
     return paths
+
+
+def teacher_command(spec: str, split: str, frames: str | None, teacher_root: Path | None,
+                    overwrite: bool = False) -> str:
+    """The ``ctcvo teacher generate`` command line that writes the labels
+    :func:`find_teacher_edges` looks for."""
+    args = ["ctcvo", "teacher", "generate", "--scene", spec]
+    if split != "all":
+        args += ["--split", split]
+    if frames:
+        args += ["--frames", frames]
+    if teacher_root is not None:
+        args += ["--out", str(teacher_root)]
+    if overwrite:
+        args.append("--overwrite")
+    return shlex.join(args)
 
 
 def load_sequences(spec: str, seqs: list[Sequence], *, width: int, height: int, max_gap: int, label_source: str,

@@ -9,10 +9,7 @@ order: by gap, then by start). Then
 * ``L_reg = mean over every prediction (LSTM and direct) of || (xi - xi_label) / s_g ||^2 / 6``,
   with labels masked out where the teacher edge is missing or failed,
 
-``L = alpha L_ctc + beta L_reg``. Two options not in the paper change ``L_reg`` (both off
-by default, :class:`learner.config.TrainConfig`): a Cauchy loss on each prediction's
-normalised error (``reg_robust``) and a weight ``g ** gap_weight`` per gap (a weighted
-mean). ``s_g`` (6,) is the per-dimension *target scale* of gap g:
+``L = alpha L_ctc + beta L_reg``. ``s_g`` (6,) is the per-dimension *target scale* of gap g:
 the root mean square of the training labels of that gap and dimension
 (:func:`target_scale`). Dividing by it gives translation (metres) and rotation (radians)
 the same weight, whatever their units and magnitudes, and makes every term a mean, so
@@ -91,17 +88,12 @@ def ctc_loss(xi_seq: Tensor, xi_direct: Tensor, G: int, scale: Tensor) -> Tensor
     return total / max(count, 1)
 
 
-def reg_error(pred: Tensor, label: Tensor, mask: Tensor, scale: Tensor, robust: float = 0.0,
-              weight: Tensor | None = None) -> tuple[Tensor, Tensor]:
+def reg_error(pred: Tensor, label: Tensor, mask: Tensor, scale: Tensor) -> tuple[Tensor, Tensor]:
     """Masked normalised squared error (mean over the 6 dims) summed over all but the
     first axis, and the number of labelled predictions: (B, ..., 6) -> (B,), (B,).
-    ``scale`` (..., 6) broadcasts against ``pred``. ``robust`` > 0 passes each error ``e``
-    through the Cauchy loss ``robust * log(1 + e / robust)``; ``weight`` (broadcasting
-    against ``mask``) weighs each prediction, and the count becomes the sum of weights."""
+    ``scale`` (..., 6) broadcasts against ``pred``."""
     err = (((pred - label) / scale) ** 2).mean(-1)
-    if robust > 0:
-        err = robust * torch.log1p(err / robust)
-    w = mask.to(pred.dtype) if weight is None else mask.to(pred.dtype) * weight.to(pred.dtype)
+    w = mask.to(pred.dtype)
     err = err * w
     return err.reshape(err.shape[0], -1).sum(-1), w.reshape(w.shape[0], -1).sum(-1)
 
@@ -119,33 +111,27 @@ class LossTerms:
 
 
 def window_loss(xi_seq: Tensor, xi_direct: Tensor, lab_seq: Tensor, mask_seq: Tensor, lab_direct: Tensor,
-                mask_direct: Tensor, G: int, alpha: float, beta: float, scale: Tensor, robust: float = 0.0,
-                gap_weight: float = 0.0) -> LossTerms:
-    """Phase-2 loss of B windows: ``L_reg`` the (weighted) mean over every labelled
+                mask_direct: Tensor, G: int, alpha: float, beta: float, scale: Tensor) -> LossTerms:
+    """Phase-2 loss of B windows: ``L_reg`` the mean over every labelled
     prediction (LSTM and direct) of the batch, ``L_ctc`` the mean over its windows.
 
     Args:
         xi_seq, lab_seq, mask_seq: (B, W, 6), (B, W, 6), (B, W) sequential estimates and labels.
         xi_direct, lab_direct, mask_direct: (B, P, 6), (B, P, 6), (B, P) direct estimates.
         scale: target scale (G+1, 6) (:func:`target_scale`).
-        robust, gap_weight: ``TrainConfig.reg_robust`` and ``TrainConfig.gap_weight``.
     """
     W = xi_seq.shape[1]
     gaps = torch.tensor([j - i for i, j in window_pairs(W, G)], device=xi_direct.device)
     ctc = ctc_loss(xi_seq, xi_direct, G, scale).mean() if alpha > 0 else xi_seq.new_zeros(())
-    es, ns = reg_error(xi_seq, lab_seq, mask_seq, scale[1], robust)
-    ed, nd = reg_error(xi_direct, lab_direct, mask_direct, scale[gaps], robust,
-                       gaps.to(xi_direct.dtype) ** gap_weight if gap_weight else None)
+    es, ns = reg_error(xi_seq, lab_seq, mask_seq, scale[1])
+    ed, nd = reg_error(xi_direct, lab_direct, mask_direct, scale[gaps])
     reg = (es.sum() + ed.sum()) / (ns.sum() + nd.sum()).clamp(min=1)
     return LossTerms(alpha * ctc + beta * reg, ctc, reg)
 
 
-def pair_loss(xi_direct: Tensor, label: Tensor, mask: Tensor, gap: Tensor, beta: float, scale: Tensor,
-              robust: float = 0.0, gap_weight: float = 0.0) -> LossTerms:
-    """Phase-1 loss of N single pairs (N, 6) of gaps ``gap`` (N,): ``beta`` times the
-    (weighted) mean normalised squared error over the labelled pairs (``robust`` and
-    ``gap_weight`` as in :func:`window_loss`)."""
-    w = gap.to(xi_direct.dtype)[:, None] ** gap_weight if gap_weight else None
-    e, n = reg_error(xi_direct[:, None], label[:, None], mask[:, None], scale[gap][:, None], robust, w)
+def pair_loss(xi_direct: Tensor, label: Tensor, mask: Tensor, gap: Tensor, beta: float, scale: Tensor) -> LossTerms:
+    """Phase-1 loss of N single pairs (N, 6) of gaps ``gap`` (N,): ``beta`` times the mean
+    normalised squared error over the labelled pairs."""
+    e, n = reg_error(xi_direct[:, None], label[:, None], mask[:, None], scale[gap][:, None])
     reg = e.sum() / n.sum().clamp(min=1)
     return LossTerms(beta * reg, reg.new_zeros(()), reg)

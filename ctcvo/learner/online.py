@@ -1,5 +1,5 @@
 """The learner frame by frame: MC-dropout edges of each new frame as frames arrive
-(``vo-online``, pipeline/online.py), equal to ``learner predict``'s on the same frames.
+(``ctcvo online``, pipeline/online.py), equal to ``learner predict``'s on the same frames.
 
 The per-frame inputs are those :func:`learner.dataset.load_frames` caches for a whole
 sequence; the network, its calibration and the MC-dropout settings are those of
@@ -13,9 +13,15 @@ from collections import deque
 from pathlib import Path
 
 import numpy as np
+import torch
 from numpy.typing import NDArray
 
 from ctcvo.data.sequence import Frame
+from ctcvo.learner.calibrate import calibration_for
+from ctcvo.learner.checkpoint import load_model
+from ctcvo.learner.config import FLOW_U_CHANNEL, PredictConfig, check_variant
+from ctcvo.learner.dataset import Frames, grey2x_input, invdepth_input, rgb_input
+from ctcvo.learner.mcdropout import COV_FLOOR
 
 log = logging.getLogger(__name__)
 
@@ -25,17 +31,11 @@ class OnlineLearner:
     once, the dropout layers resampled K times; gap 1 from the LSTM head (LSTM variants;
     chunks of ``window_max`` pairs as in ``learner predict``, the LSTM being causal the
     newest output equals the batch one), longer gaps from the direct head. Mean and
-    covariance as in :func:`learner.predict.mc_edges`, calibrated with the checkpoint's
+    covariance as in :func:`learner.mcdropout.mc_edges`, calibrated with the checkpoint's
     ``calibration.json`` when there is one."""
 
     def __init__(self, checkpoint: Path, cfg=None, device: str = "cpu", use_calibration: bool = True,
                  seed: int = 0) -> None:
-        import torch
-
-        from ctcvo.learner.calibrate import calibration_for
-        from ctcvo.learner.config import PredictConfig, check_variant
-        from ctcvo.learner.predict import load_model
-
         self.cfg = cfg or PredictConfig()
         self.model, state = load_model(Path(checkpoint), None, device)
         found = calibration_for(Path(checkpoint), self.cfg) if use_calibration else None
@@ -53,9 +53,6 @@ class OnlineLearner:
 
     def inputs(self, frame: Frame) -> tuple:
         """Per-frame network inputs (resized RGB, inverse depth, grey at 2x), as the learner caches them."""
-        from ctcvo.learner.config import FLOW_U_CHANNEL
-        from ctcvo.learner.dataset import grey2x_input, invdepth_input, rgb_input
-
         rgb = rgb_input(frame.rgb, self.width, self.height)
         inv = invdepth_input(frame.depth, self.width, self.height) if self.mode != "rgb" else None
         grey = (grey2x_input(frame.rgb, self.width, self.height)
@@ -64,10 +61,6 @@ class OnlineLearner:
 
     def add(self, inputs: tuple) -> list[tuple[int, NDArray[np.float64], NDArray[np.float64], str]]:
         """(gap, mean twist (6,), covariance (6, 6), head) of the edges ending at the new frame."""
-        import torch
-
-        from ctcvo.learner.dataset import Frames
-
         self.buf.append(inputs)
         k, self.n = self.n, self.n + 1
         G = min(self.cfg.max_gap, len(self.buf) - 1)
@@ -99,7 +92,7 @@ class OnlineLearner:
             mean = s.mean(0)
             dev = s - mean
             cov = dev.T @ dev / max(self.cfg.samples - 1, 1)
-            cov = 0.5 * (cov + cov.T) + self.cfg.cov_floor * np.eye(6)
+            cov = 0.5 * (cov + cov.T) + COV_FLOOR * np.eye(6)
             if self.calibration is not None:
                 cov = self.calibration.apply(cov[None], [head], np.array([g]))[0]
             res.append((g, mean, cov, head))

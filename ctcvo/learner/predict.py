@@ -4,7 +4,7 @@ For every sequence of ``--scene`` the encoder runs once per frame pair; only the
 and the layers after it are resampled K times (:meth:`CTCNet.direct_mc`,
 :meth:`CTCNet.sequential_mc`). Per edge the K twists give a mean ``xi`` (the edge is
 ``exp(mean)``) and a 6x6 sample covariance in the project tangent order (v, w), which is
-regularised (``cov_floor`` on the diagonal) and written as information ``inv(cov)``.
+regularised (:data:`learner.mcdropout.COV_FLOOR` on the diagonal) and written as information ``inv(cov)``.
 When the checkpoint's folder holds a ``calibration.json`` (:mod:`learner.calibrate`, fitted
 on a validation scene against teacher labels) the covariances are calibrated with it
 before anything is written or flagged, unless ``use_calibration=False``.
@@ -26,9 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
 from numpy.typing import NDArray
-from tqdm import tqdm
+from scipy.stats import rankdata, spearmanr
 
 from ctcvo.data import geometry as geo
 from ctcvo.data.chain import chain_steps
@@ -47,35 +46,23 @@ from ctcvo.data.runs import (
     write_fingerprint,
 )
 from ctcvo.data.scenes import open_scene
-from ctcvo.data.sequence import frame_ranges_overlap
-from ctcvo.learner.calibrate import CALIBRATION_FILE, calibration_for, mahalanobis2, nees_stats
-from ctcvo.learner.config import PredictConfig, check_variant, model_from_dict, to_dict
-from ctcvo.learner.dataset import Frames, load_frames
+from ctcvo.data.sequence import Sequence, frame_ranges_overlap
+from ctcvo.data.uncertainty import mahalanobis2, nees_stats
+from ctcvo.learner.calibrate import CALIBRATION_FILE, Calibration, calibration_for
+from ctcvo.learner.checkpoint import CHECKPOINT, load_model
+from ctcvo.learner.config import PredictConfig, check_variant, to_dict
+from ctcvo.learner.dataset import load_frames
+from ctcvo.learner.mcdropout import EdgeSet, mc_edges
 from ctcvo.learner.model import CTCNet
-from ctcvo.learner.train import CHECKPOINT, load_checkpoint
 
 log = logging.getLogger(__name__)
 
 MC_CSV_COLUMNS = ["i", "j", "gap", "head", "sigma", "outlier", "error_se3_l2", "mahalanobis2"]
 #: what ``learner predict`` writes per sequence (``--overwrite`` removes them first)
 OUTPUT_FILES = ("edges.g2o", "edges_mc.csv", "trajectory.tum", "groundtruth.tum", "config.json", "report.json")
-
-
-@dataclass
-class EdgeSet:
-    """MC-dropout edges of one sequence, positions ``i < j`` (E,) into the sequence view,
-    mean twists (E, 6), covariances (E, 6, 6), head name per edge."""
-
-    i: NDArray[np.int64]
-    j: NDArray[np.int64]
-    mean: NDArray[np.float64]
-    cov: NDArray[np.float64]
-    head: list[str]
-
-    @property
-    def sigma(self) -> NDArray[np.float64]:
-        """sqrt(trace(cov)) per edge (E,)."""
-        return np.sqrt(np.trace(self.cov, axis1=1, axis2=2))
+#: an edge is flagged an outlier when its sigma exceeds this many times the median sigma of
+#: its gap (set with the first MC-dropout predict, 07e3e22, not tuned since)
+OUTLIER_FACTOR = 3.0
 
 
 @dataclass
@@ -84,70 +71,6 @@ class PredictResult:
 
     out_dirs: list[Path] = field(default_factory=list)
     reports: list[dict] = field(default_factory=list)
-
-
-def load_model(checkpoint: Path, preset: str | None = None, device: str = "auto") -> tuple[CTCNet, dict]:
-    """The network of a checkpoint (eval mode, on ``device``: auto, cpu or cuda) and the
-    checkpoint's metadata."""
-    from ctcvo.learner.train import resolve_device
-
-    dev = resolve_device(device)
-    state = load_checkpoint(checkpoint)
-    if preset is not None and preset != state["preset"]:
-        raise ConfigError(f"{checkpoint} was trained with preset {state['preset']!r}, not {preset!r}")
-    model = CTCNet(model_from_dict(state["model_config"]))
-    try:
-        model.load_state_dict(state["model"])
-    except RuntimeError as exc:
-        raise ConfigError(f"{checkpoint} does not match its own model config: {str(exc).splitlines()[0]}") from None
-    model.to(dev)
-    model.eval()
-    return model, state
-
-
-@torch.no_grad()
-def mc_edges(model: CTCNet, frames: Frames | torch.Tensor, *, uses_lstm: bool, window: int, cfg: PredictConfig,
-             progress: bool = False, seed: int = 0) -> EdgeSet:
-    """MC-dropout edges of one sequence's cached inputs (:class:`learner.dataset.Frames`, or
-    (N, 3, H, W) uint8 RGB frames)."""
-    n = len(frames)
-    device = model.output_scale.device  # the frames may live on the CPU or on the model's device
-    if isinstance(frames, torch.Tensor):
-        frames = Frames(frames)
-    torch.manual_seed(seed)
-    G = max(1, min(cfg.max_gap, n - 1))
-    ii, jj, means, covs, heads = [], [], [], [], []
-    bar = tqdm(total=sum(n - g for g in range(1, G + 1)), desc="encode", disable=not progress, leave=False)
-
-    def latents(g: int) -> torch.Tensor:
-        out = []
-        for a in range(0, n - g, cfg.batch_pairs):
-            k = torch.arange(a, min(a + cfg.batch_pairs, n - g))
-            out.append(model.encode(frames.pairs(k, k + g).to(device)))
-            bar.update(len(k))
-        return torch.cat(out)
-
-    for g in range(1, G + 1):
-        z = latents(g)  # (n-g, C)
-        if g == 1 and uses_lstm:
-            chunks = [model.sequential_mc(z[a:a + window][None], cfg.samples, cfg.drop)[:, 0]
-                      for a in range(0, len(z), window)]
-            samples, head = torch.cat(chunks, dim=1), "lstm"  # (K, n-1, 6)
-        else:
-            samples, head = model.direct_mc(z, cfg.samples, cfg.drop), "direct"
-        s = samples.double().cpu().numpy()
-        mean = s.mean(0)
-        dev = s - mean
-        cov = np.einsum("kei,kej->eij", dev, dev) / max(cfg.samples - 1, 1)
-        cov = 0.5 * (cov + cov.transpose(0, 2, 1)) + cfg.cov_floor * np.eye(6)
-        k = np.arange(n - g)
-        ii.append(k)
-        jj.append(k + g)
-        means.append(mean)
-        covs.append(cov)
-        heads += [head] * len(k)
-    bar.close()
-    return EdgeSet(np.concatenate(ii), np.concatenate(jj), np.concatenate(means), np.concatenate(covs), heads)
 
 
 def outlier_flags(edges: EdgeSet, factor: float) -> NDArray[np.bool_]:
@@ -170,8 +93,6 @@ def chain(edges: EdgeSet, T0: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def auroc(score: NDArray[np.float64], positive: NDArray[np.bool_]) -> float:
     """Area under the ROC curve of ``score`` for the ``positive`` class (Mann-Whitney)."""
-    from scipy.stats import rankdata
-
     npos, nneg = int(positive.sum()), int((~positive).sum())
     if npos == 0 or nneg == 0:
         return float("nan")
@@ -189,8 +110,6 @@ def calibration(edges: EdgeSet, gt: NDArray[np.float64]) -> tuple[dict[str, floa
       ``nees_mean``: the mean squared Mahalanobis distance (6 when calibrated);
     * ``outlier_auroc``: AUROC of sigma for separating the worst 10% edges by error.
     """
-    from scipy.stats import spearmanr
-
     T_est = np.array([geo.se3_exp(m) for m in edges.mean])
     T_gt = np.array([geo.relative_pose(gt[i], gt[j]) for i, j in zip(edges.i, edges.j)])
     err = se3_l2_errors(T_gt, T_est)
@@ -246,9 +165,6 @@ def _predict(checkpoint: Path, scene: str, base: Path, *, frames: str | None, sp
     elif use_calibration:
         log.info("no %s beside %s: MC-dropout covariances are used as they are (under-estimated; "
                  "see `learner calibrate`)", CALIBRATION_FILE, checkpoint)
-    uses_lstm, _, _ = check_variant(state["variant"])
-    window = int(state["train_config"]["window_max"])
-    mcfg = model.cfg
     seqs = open_scene(scene, split=split, frames=frames)
     if progress is None:
         progress = sys.stderr.isatty()
@@ -264,62 +180,78 @@ def _predict(checkpoint: Path, scene: str, base: Path, *, frames: str | None, sp
         finished = (out_dir / "report.json").is_file()
         if claim(out_dir, fp, done=finished, has_outputs=finished, overwrite=overwrite, outputs=OUTPUT_FILES):
             log.info("%s: predicted edges of the same inputs in %s: kept", seq.name, out_dir)
-            result.out_dirs.append(out_dir)
-            result.reports.append(json.loads((out_dir / "report.json").read_text()))
-            continue
-        frames_u8 = load_frames(seq, mcfg.width, mcfg.height, base / "cache", mcfg.input)
-        edges = mc_edges(model, frames_u8, uses_lstm=uses_lstm, window=window, cfg=config, progress=progress)
-        raw = edges
-        if (found is not None and seq.name in {str(s.get("sequence")) for s in found[1].info.get("sequences", [])}
-                and frame_ranges_overlap(found[1].info.get("frames"), frames)):
-            log.warning("%s is also a calibration sequence of %s (calibrated on frames %s, predicting %s): "
-                        "uncertainty figures on calibration frames are optimistic", seq.name, found[0],
-                        found[1].info.get("frames") or "all", frames or "all")
-        if found is not None:
-            edges = dataclasses.replace(edges, cov=found[1].apply(edges.cov, edges.head, edges.j - edges.i))
-        flags = outlier_flags(edges, config.outlier_factor)  # on the calibrated covariances
-        ids, gt = seq.ids(), seq.groundtruth()
-        poses = chain(edges, gt[0] if gt is not None else np.eye(4))
-        write_g2o(out_dir / "edges.g2o",
-                  [Edge(int(ids[i]), int(ids[j]), geo.se3_exp(m), c) for i, j, m, c in
-                   zip(edges.i, edges.j, edges.mean, edges.cov)],
-                  vertices={int(f): T for f, T in zip(ids, poses)})
-        write_tum(out_dir / "trajectory.tum", Trajectory(seq.times(), poses))
-        report: dict = {
-            "sequence": seq.name, "frames": len(seq), "checkpoint": str(checkpoint), "preset": state["preset"],
-            "variant": state["variant"], "samples": config.samples, "drop": config.drop,
-            "max_gap": int((edges.j - edges.i).max()), "edges": len(edges.i), "outliers": int(flags.sum()),
-            "median_sigma_gap1": float(np.median(edges.sigma[edges.j - edges.i == 1])),
-            "calibration_applied": found is not None, "calibration": str(found[0]) if found is not None else None,
-            "git_revision": git_revision(),
-        }
-        err = d2 = None
-        if gt is not None:
-            gt_traj = Trajectory(seq.times(), gt)
-            write_tum(out_dir / "groundtruth.tum", gt_traj)
-            report.update(trajectory_report(gt_traj, Trajectory(seq.times(), poses)))
-            report["baselines"] = baseline_reports(gt_traj)
-            log.info("%s: se(3) L2 %.5f, ATE %.4f m (zero motion %.5f / %.4f m, constant velocity %.5f / %.4f m)",
-                     seq.name, report["se3_l2_mean"], report["ate_rmse_m"],
-                     *(report["baselines"][b][k] for b in BASELINES for k in ("se3_l2_mean", "ate_rmse_m")))
-            cal, err, d2 = calibration(edges, gt)
-            report.update(cal)
-            if found is not None:  # the same figures under the uncalibrated MC-dropout covariances
-                raw_cal, _, _ = calibration(raw, gt)
-                report.update({f"raw_{k}": raw_cal[k] for k in
-                               ("coverage_1sigma", "coverage_2sigma", "nees_mean", "spearman_sigma_error")})
-        _write_mc_csv(out_dir / "edges_mc.csv", edges, ids, flags, err, d2)
-        report = json_safe(report)
-        write_json(out_dir / "config.json", {"scene": scene, "frames": frames, "split": split,
-                                             "checkpoint": str(checkpoint), "predict": to_dict(config),
-                                             "calibration": report["calibration"], "git_revision": git_revision()})
-        write_fingerprint(out_dir, fp)
-        write_json(out_dir / "report.json", report)
-        log.info("%s: %d edges, %d outliers, %s covariances -> %s", seq.name, len(edges.i), int(flags.sum()),
-                 "calibrated" if found is not None else "uncalibrated", out_dir)
+            report = json.loads((out_dir / "report.json").read_text())
+        else:
+            edges = _sequence_edges(model, state, seq, base, found, frames, config, progress)
+            report = _write_sequence(seq, out_dir, edges, checkpoint, state, found, config)
+            write_json(out_dir / "config.json", {"scene": scene, "frames": frames, "split": split,
+                                                 "checkpoint": str(checkpoint), "predict": to_dict(config),
+                                                 "calibration": report["calibration"], "git_revision": git_revision()})
+            write_fingerprint(out_dir, fp)
+            write_json(out_dir / "report.json", report)
+            log.info("%s: %d edges, %d outliers, %s covariances -> %s", seq.name, report["edges"], report["outliers"],
+                     "calibrated" if found is not None else "uncalibrated", out_dir)
         result.out_dirs.append(out_dir)
         result.reports.append(report)
     return result
+
+
+def _sequence_edges(model: CTCNet, state: dict, seq: Sequence, base: Path, found: tuple[Path, Calibration] | None,
+                    frames: str | None, config: PredictConfig, progress: bool) -> tuple[EdgeSet, EdgeSet]:
+    """The raw MC-dropout edges of ``seq`` and the same with calibrated covariances (when
+    there is a calibration; else the raw ones again)."""
+    uses_lstm, _, _ = check_variant(state["variant"])
+    mcfg = model.cfg
+    frames_u8 = load_frames(seq, mcfg.width, mcfg.height, base / "cache", mcfg.input)
+    raw = mc_edges(model, frames_u8, uses_lstm=uses_lstm, window=int(state["train_config"]["window_max"]),
+                   cfg=config, progress=progress)
+    if found is None:
+        return raw, raw
+    if (seq.name in {str(s.get("sequence")) for s in found[1].info.get("sequences", [])}
+            and frame_ranges_overlap(found[1].info.get("frames"), frames)):
+        log.warning("%s is also a calibration sequence of %s (calibrated on frames %s, predicting %s): "
+                    "uncertainty figures on calibration frames are optimistic", seq.name, found[0],
+                    found[1].info.get("frames") or "all", frames or "all")
+    return raw, dataclasses.replace(raw, cov=found[1].apply(raw.cov, raw.head, raw.j - raw.i))
+
+
+def _write_sequence(seq: Sequence, out_dir: Path, edges: tuple[EdgeSet, EdgeSet], checkpoint: Path, state: dict,
+                    found: tuple[Path, Calibration] | None, config: PredictConfig) -> dict:
+    """Write the edges, trajectories and MC csv of one sequence; its report (not written yet)."""
+    raw, edges = edges
+    flags = outlier_flags(edges, OUTLIER_FACTOR)  # on the calibrated covariances
+    ids, gt = seq.ids(), seq.groundtruth()
+    poses = chain(edges, gt[0] if gt is not None else np.eye(4))
+    write_g2o(out_dir / "edges.g2o",
+              [Edge(int(ids[i]), int(ids[j]), geo.se3_exp(m), c) for i, j, m, c in
+               zip(edges.i, edges.j, edges.mean, edges.cov)],
+              vertices={int(f): T for f, T in zip(ids, poses)})
+    write_tum(out_dir / "trajectory.tum", Trajectory(seq.times(), poses))
+    report: dict = {
+        "sequence": seq.name, "frames": len(seq), "checkpoint": str(checkpoint), "preset": state["preset"],
+        "variant": state["variant"], "samples": config.samples, "drop": config.drop,
+        "max_gap": int((edges.j - edges.i).max()), "edges": len(edges.i), "outliers": int(flags.sum()),
+        "median_sigma_gap1": float(np.median(edges.sigma[edges.j - edges.i == 1])),
+        "calibration_applied": found is not None, "calibration": str(found[0]) if found is not None else None,
+        "git_revision": git_revision(),
+    }
+    err = d2 = None
+    if gt is not None:
+        gt_traj = Trajectory(seq.times(), gt)
+        write_tum(out_dir / "groundtruth.tum", gt_traj)
+        report.update(trajectory_report(gt_traj, Trajectory(seq.times(), poses)))
+        report["baselines"] = baseline_reports(gt_traj)
+        log.info("%s: se(3) L2 %.5f, ATE %.4f m (zero motion %.5f / %.4f m, constant velocity %.5f / %.4f m)",
+                 seq.name, report["se3_l2_mean"], report["ate_rmse_m"],
+                 *(report["baselines"][b][k] for b in BASELINES for k in ("se3_l2_mean", "ate_rmse_m")))
+        cal, err, d2 = calibration(edges, gt)
+        report.update(cal)
+        if found is not None:  # the same figures under the uncalibrated MC-dropout covariances
+            raw_cal, _, _ = calibration(raw, gt)
+            report.update({f"raw_{k}": raw_cal[k] for k in
+                           ("coverage_1sigma", "coverage_2sigma", "nees_mean", "spearman_sigma_error")})
+    _write_mc_csv(out_dir / "edges_mc.csv", edges, ids, flags, err, d2)
+    return json_safe(report)
 
 
 def _write_mc_csv(path: Path, edges: EdgeSet, ids: NDArray[np.int64], flags: NDArray[np.bool_],

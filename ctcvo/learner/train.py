@@ -1,37 +1,22 @@
 """``learner fit``: train the network on teacher (or ground-truth) labels.
 
-Phase 1 (the first ``pretrain_steps`` optimiser steps, and every step of the ``cnn-*``
-variants) trains the encoder and the direct head on single pairs of gaps 1..G with L_reg
-only. Phase 2 trains on windows of consecutive pairs whose length grows linearly from
-``window_min`` to ``window_max`` with ``alpha L_ctc + beta L_reg`` (``alpha = 0`` except
-for ``ctc``), BatchNorm statistics frozen (``freeze_bn_phase2``). Losses are normalised per
-gap and dimension (:mod:`learner.loss`): 1.0 is what zero motion scores on the labels. The
-schedule counts optimiser steps (warm-up, cosine decay); an epoch is ``eval_every`` steps,
-after which the training and validation se(3) L2 are logged beside zero motion and
-constant velocity (:class:`Evaluator`), and a loud warning ends a run whose model is no
-better than zero motion.
+Phase 1 (the first ``pretrain_steps`` optimiser steps, every step of the ``cnn-*``
+variants) trains the encoder and the direct head on single pairs with L_reg only; phase 2
+trains on windows of consecutive pairs, growing from ``window_min`` to ``window_max``, with
+``alpha L_ctc + beta L_reg`` and BatchNorm statistics frozen. An epoch is ``eval_every``
+steps, after which the run is evaluated (:mod:`learner.evaluate`) and checkpointed
+(:mod:`learner.checkpoint`); batches and augmentation live in :mod:`learner.batches` and
+:mod:`learner.augment`.
 
-The code is in three parts: :func:`resolve_fit` (options -> :class:`FitSpec`, pure),
-:func:`train_loop` (the epochs), and :func:`fit` (the entry point: processes, the run
-folder and its files, the rerun rule of :mod:`data.runs`).
-
-The run folder holds ``config.json`` (resolved configuration, variant, scenes, git
-revision, and the options ``--resume`` reads back), ``fingerprint.json`` (the rerun rule),
-``checkpoint.pt`` (written atomically after every epoch; a rerun of the same inputs
-continues from it and reaches the same weights as an uninterrupted run, because every
-epoch re-seeds its own shuffling, dropout and label noise from ``(seed, epoch)``),
-``history.json`` (per-epoch losses) and ``cache/`` (resized frames). With validation scenes
-(and ``calibrate``), the run ends with :func:`learner.calibrate.calibrate` on them, which
-writes ``calibration.json`` (covariance calibration against the validation scenes' teacher
-labels). Without validation scenes no calibration is fitted: held-out frames of the
-training sequences would be a choice fit cannot make safely (the user's test frames are
-unknown here); name them (``--val-scene`` the same sequence with a disjoint
-``--val-frames``) or run ``learner calibrate`` on a separate scene instead. Training further
-(``resume``) deletes a stale ``calibration.json`` first.
-
-Runs under ``torchrun --nproc_per_node=N`` with DistributedDataParallel (gloo on CPU,
-nccl on GPU): every process draws the same batches and trains on its share of each;
-only rank 0 writes files.
+:func:`resolve_fit` turns options into a :class:`FitSpec` (pure), :func:`train_loop` runs
+the epochs, :func:`fit` is the entry point (processes, the run folder, the rerun rule of
+:mod:`data.runs`). The run folder holds ``config.json``, ``fingerprint.json``,
+``checkpoint.pt`` (a rerun of the same inputs continues from it and reaches the same
+weights: every epoch re-seeds from ``(seed, epoch)``), ``history.json``, ``cache/`` and,
+with validation scenes, ``calibration.json`` (:func:`learner.calibrate.calibrate`). Teacher
+labels are read, never made: missing ones stop the run naming the ``teacher generate``
+command. Under ``torchrun`` each process trains on its share of every batch; only rank 0
+writes files.
 """
 
 from __future__ import annotations
@@ -40,7 +25,6 @@ import dataclasses
 import json
 import logging
 import math
-import os
 import sys
 import time
 from collections.abc import Sequence as TypingSequence
@@ -50,15 +34,11 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.distributed as dist
-from numpy.typing import NDArray
 from torch import Tensor
 from tqdm import tqdm
 
-from ctcvo.data import geometry as geo
 from ctcvo.data.errors import ConfigError, DataError, VOError
-from ctcvo.data.io import atomic_write, git_revision, write_json
-from ctcvo.data.metrics import relative_poses
+from ctcvo.data.io import git_revision, write_json
 from ctcvo.data.runs import (
     Fingerprint,
     StaleOutputError,
@@ -76,13 +56,12 @@ from ctcvo.data.runs import (
 from ctcvo.data.scenes import open_scene
 from ctcvo.data.sequence import frame_ranges_overlap
 from ctcvo.learner import loss as L
-from ctcvo.learner import se3
+from ctcvo.learner.batches import lr_at, pair_batches, pairs_step, window_batches, window_length, windows_step
 from ctcvo.learner.calibrate import CALIBRATION_FILE
 from ctcvo.learner.calibrate import calibrate as run_calibration
+from ctcvo.learner.checkpoint import CHECKPOINT, load_checkpoint, save_checkpoint
 from ctcvo.learner.config import (
-    FLOW_U_CHANNEL,
     INVDEPTH_CHANNELS,
-    PredictConfig,
     Preset,
     TrainConfig,
     check_variant,
@@ -90,14 +69,15 @@ from ctcvo.learner.config import (
     model_from_dict,
     to_dict,
 )
-from ctcvo.learner.dataset import Frames, SequenceData, check_labels, find_teacher_edges, hull_range, load_sequences
+from ctcvo.learner.dataset import SequenceData, check_labels, find_teacher_edges, hull_range, load_sequences
+from ctcvo.learner.device import Dist, setup_dist
+from ctcvo.learner.evaluate import Evaluator, epoch_line, warn_if_no_skill
 from ctcvo.learner.model import CTCNet, load_pretrained_vgg
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT = "checkpoint.pt"
-CHECKPOINT_FORMAT = 2
-"""2: losses normalised by the labels' RMS, inputs normalised in raw units (``ModelConfig.input``)."""
+#: Adam's (beta1, beta2): PyTorch's defaults, never tuned here
+ADAM_BETAS = (0.9, 0.999)
 
 
 @dataclass
@@ -110,158 +90,6 @@ class FitResult:
     history: list[dict] = field(default_factory=list)
     calibration: Path | None = None
     """calibration.json, when validation scenes were given."""
-
-
-@dataclass
-class _Dist:
-    rank: int = 0
-    world: int = 1
-    device: torch.device = torch.device("cpu")
-
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
-
-    def barrier(self) -> None:
-        if self.world > 1:
-            dist.barrier()
-
-
-def resolve_device(choice: str = "auto") -> torch.device:
-    """The torch device of a single process: ``auto`` (CUDA when available, else the CPU),
-    ``cpu`` or ``cuda`` (an error without a GPU)."""
-    if choice not in ("auto", "cpu", "cuda"):
-        raise ConfigError(f"--device must be auto, cpu or cuda, got {choice!r}")
-    cuda = torch.cuda.is_available()
-    if choice == "cuda" and not cuda:
-        raise ConfigError("--device cuda: no CUDA device is available")
-    return torch.device("cuda" if choice == "cuda" or (choice == "auto" and cuda) else "cpu")
-
-
-def _setup_dist(device: str = "auto") -> _Dist:
-    """One process: the device of :func:`resolve_device`. Under torchrun (``WORLD_SIZE > 1``):
-    a process group (nccl on GPUs, gloo on the CPU), one GPU per process by ``LOCAL_RANK``."""
-    dev = resolve_device(device)
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return _Dist(device=dev)
-    cuda = dev.type == "cuda"
-    if not dist.is_initialized():
-        dist.init_process_group("nccl" if cuda else "gloo")
-    rank = dist.get_rank()
-    if cuda:
-        local = int(os.environ.get("LOCAL_RANK", "0"))
-        torch.cuda.set_device(local)
-        dev = torch.device("cuda", local)
-    return _Dist(rank, dist.get_world_size(), dev)
-
-
-# ----------------------------------------------------------------------------------
-# batches
-# ----------------------------------------------------------------------------------
-def lr_at(cfg: TrainConfig, step: int) -> float:
-    """Learning rate of optimiser step ``step`` (0-based): linear warm-up, then a cosine
-    from ``lr`` to ``lr * lr_final`` at the last step."""
-    if step < cfg.warmup_steps:
-        return cfg.lr * (step + 1) / cfg.warmup_steps
-    span = max(cfg.steps - cfg.warmup_steps - 1, 1)
-    t = min(max(step - cfg.warmup_steps, 0) / span, 1.0)
-    return cfg.lr * (cfg.lr_final + (1.0 - cfg.lr_final) * 0.5 * (1.0 + math.cos(math.pi * t)))
-
-
-def window_length(cfg: TrainConfig, epoch: int) -> int:
-    """Phase-2 window length (pairs) of ``epoch``: grows linearly from ``window_min`` in the
-    first epoch holding phase-2 steps to ``window_max`` in the last one."""
-    first = cfg.pretrain_steps // cfg.eval_every
-    n2 = cfg.epochs - first
-    if n2 <= 1:
-        return cfg.window_max
-    return int(round(cfg.window_min + (cfg.window_max - cfg.window_min) * (epoch - first) / (n2 - 1)))
-
-
-def _cycle(rows: np.ndarray, n_batches: int, size: int, rng: np.random.Generator) -> list[np.ndarray]:
-    """``n_batches`` batches of ``size`` rows, drawn from reshuffled passes over ``rows``."""
-    out: list[np.ndarray] = []
-    pool = rows[:0]
-    while len(out) < n_batches:
-        if len(pool) < size:
-            pool = np.concatenate([pool, rows[rng.permutation(len(rows))]])
-        out.append(pool[:size])
-        pool = pool[size:]
-    return out
-
-
-def pair_batches(data: list[SequenceData], cfg: TrainConfig, rng: np.random.Generator,
-                  n_batches: int | None = None) -> list[np.ndarray]:
-    """Batches of rows (seq, k, gap) of labelled pairs: one shuffled pass (``n_batches``
-    None), or ``n_batches`` batches from as many passes as they need."""
-    rows = []
-    for s, d in enumerate(data):
-        g, k = np.nonzero(d.mask.numpy())
-        rows.append(np.stack([np.full_like(k, s), k, g], 1))
-    allrows = np.concatenate(rows)
-    if n_batches is None:
-        allrows = allrows[rng.permutation(len(allrows))]
-        return [allrows[i:i + cfg.batch_pairs] for i in range(0, len(allrows), cfg.batch_pairs)]
-    return _cycle(allrows, n_batches, min(cfg.batch_pairs, len(allrows)), rng)
-
-
-def window_batches(data: list[SequenceData], W: int, cfg: TrainConfig, rng: np.random.Generator,
-                    n_batches: int | None = None) -> list[np.ndarray]:
-    """Batches of rows (seq, start) of windows of W pairs (frames start..start+W), every
-    start position of every sequence long enough: one shuffled pass (``n_batches`` None),
-    or ``n_batches`` batches from as many passes as they need."""
-    rows = [(s, k) for s, d in enumerate(data) for k in range(max(len(d) - W, 0))]
-    if not rows:
-        return []
-    arr = np.array(rows)
-    if n_batches is None:
-        arr = arr[rng.permutation(len(arr))]
-        return [arr[i:i + cfg.batch_windows] for i in range(0, len(arr), cfg.batch_windows)]
-    return _cycle(arr, n_batches, min(cfg.batch_windows, len(arr)), rng)
-
-
-def _labels(d: SequenceData, k: Tensor, g: Tensor, aug: bool, gen: torch.Generator) -> tuple[Tensor, Tensor]:
-    """Labels (n, 6) and mask (n,) of pairs (k, k+g); ``aug`` draws each label from
-    N(teacher, teacher covariance) as a right perturbation ``log(exp(xi) exp(L eps))``."""
-    lab, m = d.labels[g, k], d.mask[g, k]
-    if aug and d.chol is not None:
-        eps = torch.randn(lab.shape, generator=gen)
-        delta = (d.chol[g, k] @ eps[..., None])[..., 0]
-        lab = se3.se3_log(se3.se3_exp(lab.double()) @ se3.se3_exp(delta.double())).float()
-    return lab, m
-
-
-# ----------------------------------------------------------------------------------
-# checkpoints
-# ----------------------------------------------------------------------------------
-def save_checkpoint(path: Path, model: CTCNet, opt: torch.optim.Optimizer, epoch: int, preset: Preset,
-                    variant: str, history: list[dict]) -> None:
-    state = {
-        "format": CHECKPOINT_FORMAT, "epoch": epoch, "preset": preset.name, "variant": variant,
-        "model_config": to_dict(preset.model), "train_config": to_dict(preset.train),
-        "model": model.state_dict(), "optimizer": opt.state_dict(), "history": history,
-        "git_revision": git_revision(),
-    }
-    with atomic_write(path, "wb") as fh:
-        torch.save(state, fh)
-
-
-def load_checkpoint(path: Path) -> dict:
-    """Read a learner checkpoint; clear error when missing or not one."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"checkpoint {path} does not exist")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - corrupt pickles raise many types
-        raise DataError(f"cannot read checkpoint {path}: {exc}") from None
-    if not isinstance(state, dict) or "model" not in state or "format" not in state:
-        raise DataError(f"{path} is not a learner checkpoint")
-    if state["format"] != CHECKPOINT_FORMAT:
-        raise DataError(f"{path} is a learner checkpoint of format {state['format']}, this version reads format "
-                        f"{CHECKPOINT_FORMAT}: train it again")
-    return state
 
 
 # ----------------------------------------------------------------------------------
@@ -425,9 +253,9 @@ def _check_resumable(state: dict, ckpt_path: Path, spec: FitSpec) -> None:
 
 def _teacher_labels(spec: FitSpec, opened: list[tuple[str, list]], val_opened: list[tuple[str, list]]
                     ) -> dict[str, str]:
-    """Make sure teacher labels cover every frame range the run uses (training and
-    validation: one teacher run per scene over the hull of its ranges); return the
-    digest of each sequence's labels."""
+    """Check that teacher labels cover every frame range the run uses (training and
+    validation; a missing scene is named with the hull of its ranges, so one teacher run
+    covers them all); return the digest of each sequence's labels."""
     need_train = spec.label_source in ("teacher", "aug")
     need_val = need_train or (spec.calibrate and bool(spec.val_scenes))
     ranges: dict[str, list[str | None]] = {}
@@ -488,33 +316,80 @@ def fit(scenes: TypingSequence[str] = (), *, out: Path | None = None, resume: bo
         options.pop("scenes", None)
     spec = resolve_fit(scenes, **options)
     run_dir = Path(out) if out is not None else stage_dir(spec.scenes[0], "learner")
-    dd = _setup_dist(device)
+    dd = setup_dist(device)
     if progress is None:
         progress = sys.stderr.isatty()
     with output_folder(run_dir):
         return _fit(spec, run_dir, dd, resume=resume, overwrite=overwrite, progress=progress, device=device)
 
 
-def _fit(spec: FitSpec, run_dir: Path, dd: _Dist, *, resume: bool, overwrite: bool, progress: bool,
+def _fit(spec: FitSpec, run_dir: Path, dd: Dist, *, resume: bool, overwrite: bool, progress: bool,
          device: str) -> FitResult:
     """The files and processes around :func:`train_loop`: scenes, teacher labels, the rerun
     rule, the cached data, the model, config.json / fingerprint.json, the calibration."""
-    p, cfg, mcfg = spec.preset, spec.preset.train, spec.preset.model
+    cfg = spec.preset.train
     ckpt_path = run_dir / CHECKPOINT
     if resume and ckpt_path.is_file():
         _check_resumable(load_checkpoint(ckpt_path), ckpt_path, spec)
+    opened, val_opened = _open_scenes(spec)
+    fp = fingerprint(spec, opened, val_opened, _teacher_labels(spec, opened, val_opened))
+    kept, state = _claim_run(spec, run_dir, dd, fp, resume=resume, overwrite=overwrite)
+    if kept is not None:
+        return kept
+    train_data, val_data, scale = _load_data(spec, opened, val_opened, run_dir / "cache", dd)
+    evaluator = Evaluator(train_data, val_data, spec.uses_lstm, cfg.window_max)
+    model, opt = _build_model(spec, state, scale, dd.device, ckpt_path)
+    start_epoch = int(state["epoch"]) if state is not None else 0
+    history: list[dict] = list(state["history"]) if state is not None else []
+    if dd.main:
+        write_json(run_dir / "config.json", {
+            "preset": spec.preset.name, "variant": spec.variant, "model": to_dict(spec.preset.model),
+            "train": to_dict(cfg), "scenes": list(spec.scenes), "val_scenes": list(spec.val_scenes),
+            "frames": spec.frames, "val_frames": spec.val_frames, "split": spec.split,
+            "train_sequences": sorted({s.name for _, seqs in opened for s in seqs}),
+            "val_sequences": [d.name for d in val_data], "pretrained": _str(spec.pretrained), "init": _str(spec.init),
+            "world_size": dd.world, "git_revision": git_revision(), "request": spec.request(),
+        })
+        write_fingerprint(run_dir, fp)
+    stale = run_dir / CALIBRATION_FILE
+    if dd.main and start_epoch < cfg.epochs and stale.exists():
+        log.info("removing %s: it was fitted for the weights before this training", stale)
+        stale.unlink()
+    if start_epoch > 0:
+        log.info("resuming %s after epoch %d/%d (step %d of %d)", run_dir, start_epoch, cfg.epochs,
+                 min(start_epoch * cfg.eval_every, cfg.steps), cfg.steps)
+    history = train_loop(model, opt, train_data, scale, evaluator, spec, dd, start_epoch=start_epoch,
+                         history=history, run_dir=run_dir, progress=progress)
+    if dd.main and history:
+        warn_if_no_skill(history[-1])
+    cal_path = None
+    if dd.main and spec.calibrate and spec.val_scenes:
+        cal_path = run_calibration(ckpt_path, list(spec.val_scenes), frames=spec.val_frames, split=spec.split,
+                                   teacher_root=spec.teacher_root, progress=progress, device=device).path
+    elif dd.main and spec.calibrate:
+        log.info("no validation scene: no calibration.json (run `learner calibrate --checkpoint %s --scene VAL` "
+                 "on a scene that is neither trained nor tested on)", ckpt_path)
+    return FitResult(run_dir, ckpt_path, cfg.epochs, history, cal_path)
+
+
+def _open_scenes(spec: FitSpec) -> tuple[list[tuple[str, list]], list[tuple[str, list]]]:
+    """(scene, sequences) of the training and of the validation scenes; a validation
+    sequence that is also a training one needs a disjoint frame range."""
     opened = [(s, open_scene(s, split=spec.split, frames=spec.frames)) for s in spec.scenes]
     val_opened = [(s, open_scene(s, split=spec.split, frames=spec.val_frames)) for s in spec.val_scenes]
-    train_names = {s.name for _, seqs in opened for s in seqs}
-    clash = train_names & {s.name for _, seqs in val_opened for s in seqs}
+    clash = {s.name for _, seqs in opened for s in seqs} & {s.name for _, seqs in val_opened for s in seqs}
     if clash and frame_ranges_overlap(spec.frames, spec.val_frames):
-        raise ConfigError(f"validation sequence(s) {', '.join(sorted(clash))} are also training sequences "
-                          f"(frames {spec.frames or 'all'} and {spec.val_frames or 'all'}): give disjoint --frames / --val-frames")
-    labels = _teacher_labels(spec, opened, val_opened) if dd.main else {}  # rank 0 runs the teacher if needed
-    dd.barrier()
-    if not dd.main:
-        labels = _teacher_labels(spec, opened, val_opened)
-    fp = fingerprint(spec, opened, val_opened, labels)
+        raise ConfigError(f"validation sequence(s) {', '.join(sorted(clash))} are also training sequences (frames "
+                          f"{spec.frames or 'all'} and {spec.val_frames or 'all'}): give disjoint --frames / --val-frames")
+    return opened, val_opened
+
+
+def _claim_run(spec: FitSpec, run_dir: Path, dd: Dist, fp: Fingerprint, *, resume: bool,
+               overwrite: bool) -> tuple[FitResult | None, dict | None]:
+    """The rerun rule of :mod:`data.runs` for the run folder: (the kept result of a finished
+    run of the same inputs, None) or (None, the checkpoint state to continue from or None)."""
+    cfg = spec.preset.train
+    ckpt_path = run_dir / CHECKPOINT
     done, state = _finished(run_dir, spec)
     old = read_fingerprint(run_dir)
     if resume and state is not None and old is not None and old["digest"] != fp.digest:
@@ -531,74 +406,45 @@ def _fit(spec: FitSpec, run_dir: Path, dd: _Dist, *, resume: bool, overwrite: bo
                  run_dir, state["epoch"], cfg.epochs)
         history = state.get("history", [])
         cal = run_dir / CALIBRATION_FILE
-        return FitResult(run_dir, ckpt_path, int(state["epoch"]), history, cal if cal.is_file() else None)
+        return FitResult(run_dir, ckpt_path, int(state["epoch"]), history, cal if cal.is_file() else None), None
     if old is None and state is not None and not resume:  # a checkpoint without (matching) fingerprint
         claim(run_dir, fp, done=False, has_outputs=True, overwrite=overwrite, outputs=RUN_FILES if dd.main else ())
     dd.barrier()  # rank 0 removed a replaced run's files
-    if not (run_dir / CHECKPOINT).is_file():
+    if not ckpt_path.is_file():
         state = None
     if state is not None:
         _check_resumable(state, ckpt_path, spec)
+    return None, state
 
-    # -------------------------------------------------------------- data
-    cache = run_dir / "cache"
 
-    def _load(items: list[tuple[str, list]], frame_range: str | None) -> list[SequenceData]:
-        out_: list[SequenceData] = []
+def _load_data(spec: FitSpec, opened: list[tuple[str, list]], val_opened: list[tuple[str, list]], cache: Path,
+               dd: Dist) -> tuple[list[SequenceData], list[SequenceData], Tensor]:
+    """Training and validation data (frames cached by rank 0 first; on the GPU with CUDA)
+    and the target scale (G+1, 6) of the training labels."""
+    cfg, mcfg = spec.preset.train, spec.preset.model
+
+    def load(items: list[tuple[str, list]], frame_range: str | None) -> list[SequenceData]:
+        out: list[SequenceData] = []
         for s, seqs in items:
-            out_ += load_sequences(s, seqs, width=mcfg.width, height=mcfg.height, max_gap=cfg.max_gap,
-                                   label_source=spec.label_source, cache_dir=cache, split=spec.split,
-                                   frames=frame_range, teacher_root=spec.teacher_root, mode=mcfg.input)
-        return out_
+            out += load_sequences(s, seqs, width=mcfg.width, height=mcfg.height, max_gap=cfg.max_gap,
+                                  label_source=spec.label_source, cache_dir=cache, split=spec.split,
+                                  frames=frame_range, teacher_root=spec.teacher_root, mode=mcfg.input)
+        return out
 
     if dd.main:  # rank 0 decodes and fills the cache
-        train_data, val_data = _load(opened, spec.frames), _load(val_opened, spec.val_frames)
+        train_data, val_data = load(opened, spec.frames), load(val_opened, spec.val_frames)
     dd.barrier()
     if not dd.main:
-        train_data, val_data = _load(opened, spec.frames), _load(val_opened, spec.val_frames)
+        train_data, val_data = load(opened, spec.frames), load(val_opened, spec.val_frames)
     check_labels(train_data)
     scale = L.target_scale(torch.cat([d.labels for d in train_data], 1), torch.cat([d.mask for d in train_data], 1))
     log.info("target scale (gap-1 RMS of the training labels): v %s mm, w %s mrad",
-             np.array2string(scale[1, :3].numpy() * 1e3, precision=2), np.array2string(scale[1, 3:].numpy() * 1e3, precision=2))
+             np.array2string(scale[1, :3].numpy() * 1e3, precision=2),
+             np.array2string(scale[1, 3:].numpy() * 1e3, precision=2))
     if dd.device.type == "cuda":  # the cached frames live on the GPU: no host-to-device copy per step
         for d in train_data + val_data:
             d.frames = d.frames.to(dd.device)
-    scale = scale.to(dd.device)
-    evaluator = Evaluator(train_data, val_data, spec.uses_lstm, cfg.window_max)
-
-    # -------------------------------------------------------------- model
-    model, opt = _build_model(spec, state, scale, dd.device, ckpt_path)
-    start_epoch = int(state["epoch"]) if state is not None else 0
-    history: list[dict] = list(state["history"]) if state is not None else []
-    if dd.main:
-        write_json(run_dir / "config.json", {
-            "preset": p.name, "variant": spec.variant, "model": to_dict(mcfg), "train": to_dict(cfg),
-            "scenes": list(spec.scenes), "val_scenes": list(spec.val_scenes), "frames": spec.frames,
-            "val_frames": spec.val_frames, "split": spec.split,
-            "train_sequences": sorted(train_names), "val_sequences": [d.name for d in val_data],
-            "pretrained": _str(spec.pretrained), "init": _str(spec.init),
-            "world_size": dd.world, "git_revision": git_revision(), "request": spec.request(),
-        })
-        write_fingerprint(run_dir, fp)
-    stale = run_dir / CALIBRATION_FILE
-    if dd.main and start_epoch < cfg.epochs and stale.exists():
-        log.info("removing %s: it was fitted for the weights before this training", stale)
-        stale.unlink()
-    if start_epoch > 0:
-        log.info("resuming %s after epoch %d/%d (step %d of %d)", run_dir, start_epoch, cfg.epochs,
-                 min(start_epoch * cfg.eval_every, cfg.steps), cfg.steps)
-    history = train_loop(model, opt, train_data, scale, evaluator, spec, dd, start_epoch=start_epoch,
-                         history=history, run_dir=run_dir, progress=progress)
-    if dd.main and history:
-        _warn_if_no_skill(history[-1])
-    cal_path = None
-    if dd.main and spec.calibrate and spec.val_scenes:
-        cal_path = run_calibration(ckpt_path, list(spec.val_scenes), frames=spec.val_frames, split=spec.split,
-                                   teacher_root=spec.teacher_root, progress=progress, device=device).path
-    elif dd.main and spec.calibrate:
-        log.info("no validation scene: no calibration.json (run `learner calibrate --checkpoint %s --scene VAL` "
-                 "on a scene that is neither trained nor tested on)", ckpt_path)
-    return FitResult(run_dir, ckpt_path, cfg.epochs, history, cal_path)
+    return train_data, val_data, scale.to(dd.device)
 
 
 #: the files of a training run (removed by ``--overwrite`` before training anew)
@@ -629,14 +475,14 @@ def _build_model(spec: FitSpec, state: dict | None, scale: Tensor, device: torch
         except RuntimeError as exc:
             raise ConfigError(f"{ckpt_path} does not fit preset {p.name!r}: {str(exc).splitlines()[0]}") from None
     model.to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(cfg.beta1, 0.999))
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=ADAM_BETAS)
     if state is not None:
         opt.load_state_dict(state["optimizer"])
     return model, opt
 
 
 def train_loop(model: CTCNet, opt: torch.optim.Optimizer, train_data: list[SequenceData], scale: Tensor,
-               evaluator: Evaluator, spec: FitSpec, dd: _Dist, *, start_epoch: int, history: list[dict],
+               evaluator: Evaluator, spec: FitSpec, dd: Dist, *, start_epoch: int, history: list[dict],
                run_dir: Path, progress: bool) -> list[dict]:
     """Train epochs ``start_epoch .. epochs-1``; after each one evaluate, log, and (rank 0)
     write the checkpoint and history.json. Every epoch re-seeds its shuffling, dropout and
@@ -656,7 +502,7 @@ def train_loop(model: CTCNet, opt: torch.optim.Optimizer, train_data: list[Seque
                                         ckpt_path, progress))
             if dd.main:
                 log.info("epoch %d/%d (step %d): %s", epoch + 1, cfg.epochs, history[-1]["steps"],
-                         _epoch_line(history[-1]))
+                         epoch_line(history[-1]))
                 save_checkpoint(ckpt_path, model, opt, epoch + 1, spec.preset, spec.variant, history)
                 write_json(run_dir / "history.json", history)
             dd.barrier()
@@ -666,7 +512,7 @@ def train_loop(model: CTCNet, opt: torch.optim.Optimizer, train_data: list[Seque
 
 
 def _train_epoch(net: torch.nn.Module, model: CTCNet, opt: torch.optim.Optimizer, train_data: list[SequenceData],
-                 scale: Tensor, evaluator: Evaluator, spec: FitSpec, dd: _Dist, epoch: int, aug: bool,
+                 scale: Tensor, evaluator: Evaluator, spec: FitSpec, dd: Dist, epoch: int, aug: bool,
                  ckpt_path: Path, progress: bool) -> dict[str, Any]:
     """One epoch of ``eval_every`` optimiser steps; its history entry."""
     cfg = spec.preset.train
@@ -695,7 +541,7 @@ def _train_epoch(net: torch.nn.Module, model: CTCNet, opt: torch.optim.Optimizer
         step = first + i
         for group in opt.param_groups:
             group["lr"] = lr_at(cfg, step)
-        if phase == "windows" and cfg.freeze_bn_phase2:
+        if phase == "windows":  # since 07e1812 (issue 11); live statistics were never A/B-tested (bench/README.md)
             _freeze_batchnorm(model)
         mine = batch[dd.rank::dd.world]
         with torch.autocast(dd.device.type, dtype=torch.bfloat16, enabled=spec.bf16):
@@ -728,216 +574,10 @@ def _fmt(d: dict) -> str:
     return ", ".join(f"{k}={v:.4g}" for k, v in d.items())
 
 
-_MIRROR = torch.tensor([-1.0, 1.0, 1.0, 1.0, -1.0, -1.0])
-"""Twist of a left-right mirrored motion, per component (see ``TrainConfig.flip_prob``)."""
-
-
-def _mirror(x: Tensor, lab: Tensor, flip: Tensor, mode: str = "rgb") -> tuple[Tensor, Tensor]:
-    """Mirror the samples ``flip`` (B,) bool of images ``x`` (B, ..., C, H, W) of input
-    ``mode`` and labels ``lab`` (B, ..., 6); an input with flow also has its horizontal
-    flow negated."""
-    if not bool(flip.any()):
-        return x, lab
-    x, lab = x.clone(), lab.clone()
-    x[flip] = x[flip].flip(-1)
-    if mode in FLOW_U_CHANNEL:
-        x[flip, ..., FLOW_U_CHANNEL[mode], :, :] *= -1
-    lab[flip] = lab[flip] * _MIRROR
-    return x, lab
-
-
-def _rescale(x: Tensor, lab: Tensor, u: Tensor, mode: str) -> tuple[Tensor, Tensor]:
-    """Scale the world of the samples of images ``x`` (B, ..., C, H, W) and labels ``lab``
-    (B, ..., 6) by ``2**u`` (B,) (``TrainConfig.scale_aug``): inverse depth / s, translation
-    * s; colour and flow are unchanged."""
-    s = torch.exp2(u).float()
-    x = x.float().clone()
-    for c in INVDEPTH_CHANNELS[mode]:
-        x[..., c, :, :] /= s.view((len(s),) + (1,) * (x.dim() - 2))
-    lab = lab.clone()
-    lab[..., :3] *= s.view((len(s),) + (1,) * (lab.dim() - 1))
-    return x, lab
-
-
-def _augment(x: Tensor, lab: Tensor, cfg: TrainConfig, gen: torch.Generator, mode: str) -> tuple[Tensor, Tensor]:
-    """Mirror (``flip_prob``) and rescale (``scale_aug``) whole samples: pairs (B, C, H, W)
-    or windows (B, P, C, H, W), with their labels (B, [P,] 6)."""
-    if cfg.flip_prob > 0:
-        x, lab = _mirror(x, lab, torch.rand(len(x), generator=gen) < cfg.flip_prob, mode)
-    if cfg.scale_aug > 0:
-        x, lab = _rescale(x, lab, (2 * torch.rand(len(x), generator=gen) - 1) * cfg.scale_aug, mode)
-    return x, lab
-
-
-def _reversed_pairs(d: SequenceData, i: Tensor, j: Tensor, rev: Tensor) -> Tensor:
-    """Inputs of the pairs (i, j), those with ``rev`` played backwards: built as (j, i),
-    the later frame first (the flow and depth of the ``flow`` input come out right too)."""
-    return d.pairs(torch.where(rev, j, i), torch.where(rev, i, j))
-
-
 def _freeze_batchnorm(model: torch.nn.Module) -> None:
-    """Put every BatchNorm layer in eval mode: normalise with the running statistics and
-    leave them as they are (``TrainConfig.freeze_bn_phase2``)."""
+    """Put every BatchNorm layer in eval mode: phase 2 normalises with phase 1's running
+    statistics (a batch of a few windows of correlated pairs has other statistics than test
+    time); the affine parameters still train."""
     for m in model.modules():
         if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
             m.eval()
-
-
-def pairs_step(net, data, rows: np.ndarray, cfg: TrainConfig, aug: bool, gen, device,
-                scale: Tensor) -> L.LossTerms:
-    x, labs, masks, gaps = [], [], [], []
-    for s in np.unique(rows[:, 0]):
-        r = rows[rows[:, 0] == s]
-        d = data[int(s)]
-        k, g = torch.from_numpy(r[:, 1]), torch.from_numpy(r[:, 2])
-        rev = torch.rand(len(k), generator=gen) < cfg.reverse_prob if cfg.reverse_prob > 0 \
-            else torch.zeros(len(k), dtype=torch.bool)
-        x.append(_reversed_pairs(d, k, k + g, rev))
-        lab, m = _labels(d, k, g, aug, gen)
-        lab = torch.where(rev[:, None], -lab, lab)  # log(T^-1) = -log(T)
-        labs.append(lab)
-        masks.append(m)
-        gaps.append(g)
-    x, lab = _augment(torch.cat(x), torch.cat(labs), cfg, gen, data[0].frames.mode)
-    xi_d, _ = net(x.to(device))
-    return L.pair_loss(xi_d.float(), lab.to(device), torch.cat(masks).to(device), torch.cat(gaps).to(device),
-                       cfg.beta, scale, cfg.reg_robust, cfg.gap_weight)
-
-
-def windows_step(net, data, rows: np.ndarray, W: int, cfg: TrainConfig, aug: bool, gen, device,
-                  scale: Tensor) -> L.LossTerms:
-    pairs = L.window_pairs(W, cfg.max_gap)
-    P = len(pairs)
-    pi = torch.tensor([i for i, _ in pairs])
-    pg = torch.tensor([j - i for i, j in pairs])
-    B = len(rows)
-    # a reversed window: its pair (i, j) is the original pair (start + W - j, start + W - i)
-    # played backwards (built as (j, i), its label negated)
-    rev = (torch.rand(B, generator=gen) < cfg.reverse_prob) if cfg.reverse_prob > 0 else torch.zeros(B, dtype=torch.bool)
-    x, labs, masks = [], [], []
-    for b, (s, start) in enumerate(rows):
-        d = data[int(s)]
-        k = int(start) + W - pi - pg if rev[b] else pi + int(start)
-        x.append(_reversed_pairs(d, k, k + pg, rev[b].expand(len(k))))
-        lab, m = _labels(d, k, pg, aug, gen)
-        labs.append(-lab if rev[b] else lab)  # log(T^-1) = -log(T)
-        masks.append(m)
-    # (B, P, C, H, W), (B, P, 6), augmented a whole window at a time
-    x, lab = _augment(torch.stack(x), torch.stack(labs), cfg, gen, data[0].frames.mode)
-    seq_index = (torch.arange(B)[:, None] * P + torch.arange(W)[None, :]).to(device)  # gap-1 block first
-    xi_d, xi_s = net(x.flatten(0, 1).to(device), seq_index)
-    lab = lab.to(device)
-    mask = torch.stack(masks).to(device)
-    xi_d = xi_d.float().view(B, P, 6)
-    # the LSTM's consecutive pairs share the labels of the direct gap-1 pairs
-    with torch.autocast(device.type, enabled=False):  # se(3) maps in float32
-        return L.window_loss(xi_s.float(), xi_d, lab[:, :W], mask[:, :W], lab, mask, cfg.max_gap, cfg.alpha,
-                             cfg.beta, scale, cfg.reg_robust, cfg.gap_weight)
-
-
-
-
-# ----------------------------------------------------------------------------------
-# per-epoch evaluation beside the trivial baselines
-# ----------------------------------------------------------------------------------
-@dataclass
-class _EvalSeq:
-    frames: Frames
-    """The cached inputs of a stretch of n frames of one sequence."""
-    ref: NDArray[np.float64]
-    """(n-1, 6) reference gap-1 twists; rows of NaN where there is none."""
-
-
-class Evaluator:
-    """The se(3) L2 error of the gap-1 estimates that ``learner predict`` writes (the LSTM
-    head for LSTM variants, the direct head otherwise; no dropout) on the training and
-    validation frames (``<set>_se3_l2``), beside the same figure of zero motion and of
-    constant velocity (each step repeats the previous reference step) on the same pairs.
-    LSTM variants also get the direct head's figure (``<set>_direct_se3_l2``; the LSTM
-    head only trains in phase 2).
-
-    The reference is the ground truth when every sequence of a set has it, else the
-    teacher's gap-1 labels (``<set>_reference`` in the history says which). At most
-    ``max_pairs`` pairs per set, the first frames of each sequence in turn, are scored.
-    """
-
-    def __init__(self, train: list[SequenceData], val: list[SequenceData], uses_lstm: bool, window: int,
-                 max_pairs: int = 1000) -> None:
-        self.uses_lstm, self.window = uses_lstm, window
-        self.sets = {name: self._view(data, max_pairs) for name, data in (("train", train), ("val", val)) if data}
-        self.baselines = {name: self._baselines(v) for name, v in self.sets.items()}
-
-    @staticmethod
-    def _view(data: list[SequenceData], max_pairs: int) -> tuple[str, list[_EvalSeq]]:
-        use_gt = all(d.gt is not None for d in data)
-        out, left = [], max_pairs
-        for d in data:
-            n = min(len(d), left + 1)
-            if n < 2:
-                break
-            if use_gt:
-                ref = np.array([geo.se3_log(T) for T in relative_poses(d.gt[:n])])
-            else:
-                ref = d.labels[1, : n - 1].double().numpy().copy()
-                ref[~d.mask[1, : n - 1].numpy()] = np.nan
-            out.append(_EvalSeq(d.frames.head(n), ref))
-            left -= n - 1
-        return ("ground truth" if use_gt else "teacher"), out
-
-    @staticmethod
-    def _score(seqs: list[_EvalSeq], preds: list[NDArray[np.float64]]) -> float:
-        err = np.concatenate([np.linalg.norm(s.ref - p, axis=1) for s, p in zip(seqs, preds)])
-        err = err[np.isfinite(err)]
-        return float(err.mean()) if len(err) else float("nan")
-
-    def _baselines(self, view: tuple[str, list[_EvalSeq]]) -> dict[str, float]:
-        seqs = view[1]
-        zero = [np.zeros_like(s.ref) for s in seqs]
-        cv = [np.nan_to_num(np.vstack([np.zeros((1, 6)), s.ref[:-1]])) for s in seqs]
-        return {"zero_motion": self._score(seqs, zero), "constant_velocity": self._score(seqs, cv)}
-
-    @torch.no_grad()
-    def __call__(self, model: CTCNet, device: torch.device) -> dict[str, Any]:
-        from ctcvo.learner.predict import mc_edges  # predict imports this module
-
-        was = model.training
-        model.eval()
-        cfg = PredictConfig(samples=1, drop=0.0, max_gap=1)
-        out: dict[str, Any] = {}
-        for name, (ref_kind, seqs) in self.sets.items():
-            for lstm in (False, True) if self.uses_lstm else (False,):
-                preds = [mc_edges(model, s.frames, uses_lstm=lstm, window=self.window, cfg=cfg).mean for s in seqs]
-                out[f"{name}_{'lstm' if lstm else 'direct'}_se3_l2"] = self._score(seqs, preds)
-            out[f"{name}_se3_l2"] = out[f"{name}_{'lstm' if self.uses_lstm else 'direct'}_se3_l2"]
-            out[f"{name}_zero_motion_se3_l2"] = self.baselines[name]["zero_motion"]
-            out[f"{name}_constant_velocity_se3_l2"] = self.baselines[name]["constant_velocity"]
-            out[f"{name}_reference"] = ref_kind
-        model.train(was)
-        return out
-
-
-def _epoch_line(entry: dict) -> str:
-    parts = [", ".join(f"{k}={entry[k]:.4g}" for k in ("pairs_reg", "windows_reg", "windows_ctc") if k in entry)]
-    for name in ("train", "val"):
-        if f"{name}_se3_l2" in entry:
-            heads = (f"direct {entry[f'{name}_direct_se3_l2']:.5f}, lstm {entry[f'{name}_lstm_se3_l2']:.5f}"
-                     if f"{name}_lstm_se3_l2" in entry else f"{entry[f'{name}_se3_l2']:.5f}")
-            parts.append(f"{name} se(3) L2 {heads} (zero motion "
-                         f"{entry[f'{name}_zero_motion_se3_l2']:.5f}, constant velocity "
-                         f"{entry[f'{name}_constant_velocity_se3_l2']:.5f}; vs {entry[f'{name}_reference']})")
-    return " | ".join(parts)
-
-
-def _warn_if_no_skill(entry: dict) -> None:
-    """Say loudly when the trained model is no better than a camera that never moves."""
-    for name in ("val", "train"):
-        err, zero = entry.get(f"{name}_se3_l2"), entry.get(f"{name}_zero_motion_se3_l2")
-        if err is None or zero is None or not (math.isfinite(err) and math.isfinite(zero)):
-            continue
-        if err >= zero:
-            log.warning("!!! the trained model is NOT better than zero motion on its %s frames: se(3) L2 %.5f vs "
-                        "%.5f for a camera that never moves. Its predictions carry no usable motion.",
-                        "validation" if name == "val" else "training", err, zero)
-        else:
-            log.info("%s se(3) L2 %.5f = %.2fx zero motion (%.5f)", name, err, err / zero, zero)
-        return
