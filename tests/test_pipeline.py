@@ -1,9 +1,12 @@
-"""`python -m pipeline.demo` end to end on tiny scenes, run twice (the second run only
+"""`ctcvo demo` end to end on tiny scenes, run twice (the second run only
 reads what the first wrote), and a pose graph over a teacher run longer than the learner's."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import re
 import time
 
 import pytest
@@ -25,13 +28,15 @@ def demo_runs(tmp_path_factory):
     args = ["--train", "synthetic/tiny", "--val", "synthetic/tiny-clean", "--test", "synthetic/tiny",
             "--frames", "0:12", "--steps", "2", "--preset", "tiny"]
     try:
-        outs, secs, starts = [], [], []
+        outs, secs, starts, prints = [], [], [], []
         for _ in range(2):
             starts.append(time.time())
             t0 = time.perf_counter()
-            outs.append(demo.main(args))
+            with contextlib.redirect_stdout(io.StringIO()) as printed:
+                outs.append(demo.main(args))
             secs.append(time.perf_counter() - t0)
-        yield tmp, outs, secs, starts
+            prints.append(printed.getvalue())
+        yield tmp, outs, secs, starts, prints
     finally:
         torch.set_num_threads(before)
         mp.undo()
@@ -40,8 +45,11 @@ def demo_runs(tmp_path_factory):
 def test_demo_end_to_end_on_tiny_scenes(demo_runs, capsys):
     """Every stage runs, the learner is calibrated on the validation scene, the table has
     the three rows and the two baselines, and predict did not write into the training run."""
-    tmp, rcs, _, _ = demo_runs
+    tmp, rcs, secs, _, prints = demo_runs
     assert rcs == [0, 0]
+    stages = dict(re.findall(r"^(teacher generate \S+|learner fit .*?|learner predict \S+|posegraph optimize \S+|total)"
+                             r"\s+([0-9.]+) s$", prints[0].split("time per stage:")[1], re.M))
+    assert len(stages) == 6 and float(stages["total"]) <= secs[0] + 0.05, prints[0][-800:]
     runs = tmp / "runs" / "synthetic-tiny"
     assert (runs / "learner" / "calibration.json").is_file()
     assert not (runs / "learner" / "edges.g2o").exists() and (runs / "predict" / "edges.g2o").is_file()
@@ -58,7 +66,7 @@ def test_demo_end_to_end_on_tiny_scenes(demo_runs, capsys):
 def test_demo_rerun_reads_only(demo_runs):
     """The second run rewrote nothing (every stage's fingerprint matched) and took a
     fraction of the first run's time."""
-    tmp, rcs, secs, starts = demo_runs
+    tmp, rcs, secs, starts, _ = demo_runs
     runs = tmp / "runs"
     newest = max(p.stat().st_mtime for p in runs.rglob("*") if p.is_file())
     assert newest < starts[1]  # the second run wrote no file
@@ -71,7 +79,7 @@ def test_posegraph_cuts_a_longer_teacher_run_to_the_learner_frames(demo_runs, tm
     from ctcvo.learner.predict import predict
     from ctcvo.posegraph.optimize import optimize
 
-    tmp, _, _, _ = demo_runs
+    tmp, _, _, _, _ = demo_runs
     monkeypatch.chdir(tmp)
     runs = tmp / "runs" / "synthetic-tiny"
     pred = predict(runs / "learner" / "checkpoint.pt", "synthetic/tiny", frames="4:12", out=tmp_path / "pred")

@@ -1,14 +1,14 @@
 """End to end on synthetic scenes: teacher -> learner fit (calibrated on a validation
 scene) -> learner predict -> pose graph.
 
-    python -m pipeline.demo [--train synthetic/office] [--val synthetic/lab]
-                            [--test synthetic/kitchen] [--frames 0:120] [--steps 200]
+    ctcvo demo [--train synthetic/office] [--val synthetic/lab] [--test synthetic/kitchen]
+               [--frames 0:120] [--steps 200] [--preset demo]
 
 Each stage is called through its library function and writes its usual files under
 runs/<scene-slug>/ (teacher/, learner/, predict/, posegraph/). Every stage follows the
 same rerun rule: work of the same inputs already on disk is kept (a second run only
 reads it), and work of other inputs stops the demo unless --overwrite is given. At the
-end the pose-graph table of the test scene is printed.
+end the pose-graph table of the test scene is printed, then the time of each stage.
 """
 
 from __future__ import annotations
@@ -16,58 +16,58 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from ctcvo.data.cli import HelpFormatter
 from ctcvo.data.cli import run as run_cli
+from ctcvo.learner.config import PRESETS, VARIANTS
+from ctcvo.learner.predict import predict
+from ctcvo.learner.train import fit
+from ctcvo.posegraph.optimize import optimize
+from ctcvo.teacher.generate import generate
 
 log = logging.getLogger("ctcvo.pipeline.demo")  # also when run as __main__
 
 
-#: the demo learner's encoder input: the flow and both frames' inverse depth, no colour.
-#: Chosen on the validation scene lab (ctc, cpu preset, trained on office): 0.81x zero
-#: motion's se(3) L2, against 1.05-1.12x with the cpu preset's RGB + flow input, which fits
-#: the one training room's appearance (bench/README.md, "Learner: does it learn?", 5).
-DEMO_INPUT = "flowd"
-#: the demo learner's augmentation beyond the cpu preset's time reversal: depth scaling
-#: (``TrainConfig.scale_aug``, the world scaled by 2**u, |u| <= 1) and left-right
-#: mirroring. Chosen on validation scenes only (lab, lab at double speed, the corpus rooms
-#: room-0..3; trained on office, two seeds): with them every one of the six is below zero
-#: motion and the mean ratio is 0.82-0.88x; without them two of the six are above it in
-#: each seed, mean 0.99-1.12x (bench/README.md, "Learner: does it learn?", 6).
-DEMO_AUGMENT = {"scale_aug": 1.0, "flip_prob": 0.5}
+class StageTimes:
+    """Wall-clock seconds of each stage, in the order they ran."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    def run(self, name: str, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        log.info("%s", name)
+        t0 = time.perf_counter()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+
+    def table(self) -> str:
+        width = max(map(len, self.seconds), default=5)
+        rows = [f"{name:<{width}}  {secs:8.1f} s" for name, secs in self.seconds.items()]
+        return "\n".join(["time per stage:", *rows, f"{'total':<{width}}  {sum(self.seconds.values()):8.1f} s"])
 
 
-def run(train: str, test: str, frames: str | None, steps: int | None,
-        preset: str = "cpu", variant: str = "ctc", val: str | None = "synthetic/lab",
-        overwrite: bool = False, input: str | None = DEMO_INPUT, augment: dict | None = None) -> Path:
+def run(train: str, test: str, frames: str | None, steps: int | None, preset: str = "demo", variant: str = "ctc",
+        val: str | None = "synthetic/lab", overwrite: bool = False, times: StageTimes | None = None) -> Path:
     """Run every stage; return the pose-graph output folder of ``test``. With ``val``, the
     learner's MC-dropout covariances are calibrated on that scene's teacher labels (never
-    on the test scene, never on ground truth). ``input``: the learner's encoder input (None:
-    the preset's); ``augment``: training overrides (None: :data:`DEMO_AUGMENT`; ``{}``: the
-    preset's augmentation)."""
-    from ctcvo.learner.predict import predict
-    from ctcvo.learner.train import fit
-    from ctcvo.posegraph.optimize import optimize
-    from ctcvo.teacher.generate import generate
-
+    on the test scene, never on ground truth)."""
+    times = times if times is not None else StageTimes()
     for scene in dict.fromkeys([s for s in (train, val, test) if s]):
-        log.info("teacher generate %s", scene)
-        generate(scene, None, "all", frames, overwrite=overwrite)
-    log.info("learner fit %s (%s, %s)%s", train, preset, variant, f", calibrated on {val}" if val else "")
-    res = fit([train], variant=variant, preset=preset, val_scenes=[val] if val else (), frames=frames,
-              steps=steps, overwrite=overwrite, input=input, **(augment if augment is not None else DEMO_AUGMENT))
-    log.info("learner predict %s", test)
-    predict(res.checkpoint, test, frames=frames, overwrite=overwrite)  # -> runs/<test>/predict
-    log.info("posegraph optimize %s", test)
-    outs = optimize(scene=test, overwrite=overwrite)  # runs/<test>/{teacher,predict} -> runs/<test>/posegraph
+        times.run(f"teacher generate {scene}", generate, scene, None, "all", frames, overwrite=overwrite)
+    res = times.run(f"learner fit {train} ({preset}, {variant})", fit, [train], variant=variant, preset=preset,
+                    val_scenes=[val] if val else (), frames=frames, steps=steps, overwrite=overwrite)
+    times.run(f"learner predict {test}", predict, res.checkpoint, test, frames=frames, overwrite=overwrite)
+    outs = times.run(f"posegraph optimize {test}", optimize, scene=test, overwrite=overwrite)
     return outs[0]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from ctcvo.learner.config import INPUTS, PRESETS, VARIANTS
-
     p = argparse.ArgumentParser(prog="ctcvo demo", description=__doc__, formatter_class=HelpFormatter)
     p.add_argument("-v", "--verbose", action="store_true", help="debug messages of this project's modules")
     p.add_argument("--train", default="synthetic/office", help="training scene")
@@ -76,16 +76,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--test", default="synthetic/kitchen", help="test scene")
     p.add_argument("--frames", default=None, help="frame range START:STOP[:STEP] of every scene (default: all)")
     p.add_argument("--steps", type=int, default=None, help="learner optimiser steps (default: the preset's)")
-    p.add_argument("--preset", default="cpu", choices=list(PRESETS), help="learner preset (see `learner fit -h`)")
-    p.add_argument("--variant", default="ctc", choices=list(VARIANTS), help="learner variant (see `learner fit -h`)")
+    p.add_argument("--preset", default="demo", choices=list(PRESETS),
+                   help="learner preset (see `ctcvo learner fit -h`; demo: cpu with flow + inverse depth input "
+                        "and depth-scale / mirror augmentation, chosen on validation rooms)")
+    p.add_argument("--variant", default="ctc", choices=list(VARIANTS), help="learner variant")
     p.add_argument("--overwrite", action="store_true", help="let every stage replace outputs of other inputs")
-    p.add_argument("--input", default=DEMO_INPUT, choices=list(INPUTS),
-                   help="learner encoder input (flowd: optical flow and inverse depth, no colour; chosen on lab)")
     args = p.parse_args(argv)
 
     def body(a: argparse.Namespace) -> int:
-        out = run(a.train, a.test, a.frames, a.steps, a.preset, a.variant, a.val or None, a.overwrite, a.input)
+        times = StageTimes()
+        out = run(a.train, a.test, a.frames, a.steps, a.preset, a.variant, a.val or None, a.overwrite, times)
         print((out / "report.md").read_text())
+        print(times.table())
         return 0
 
     return run_cli(args, body)
