@@ -63,7 +63,7 @@ class Paced(online.FrameSource):
 
     def __init__(self, seq, frames: list, rate: float, drop_late: bool = False) -> None:
         self.frames, self.rate, self.drop_late = frames, rate, drop_late
-        self.name, self.intrinsics = seq.name, seq.intrinsics
+        self.name, self.intrinsics, self.sensor = seq.name, seq.intrinsics, seq.sensor
         self.skipped, self._arrived = 0, None
 
     def __iter__(self):

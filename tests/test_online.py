@@ -228,7 +228,7 @@ class _Interrupting(online.FrameSource):
     """A source whose user presses Ctrl-C after ``n`` frames."""
 
     def __init__(self, inner: online.FrameSource, n: int) -> None:
-        self.inner, self.n, self.name, self.intrinsics = inner, n, inner.name, inner.intrinsics
+        self.inner, self.n, self.name, self.intrinsics, self.sensor = inner, n, inner.name, inner.intrinsics, inner.sensor
 
     def __iter__(self):
         for k, f in enumerate(self.inner):
@@ -259,7 +259,7 @@ class _SigintAt(online.FrameSource):
     main thread gets wherever it is in a frame's work)."""
 
     def __init__(self, inner: online.FrameSource, n: int) -> None:
-        self.inner, self.n, self.name, self.intrinsics = inner, n, inner.name, inner.intrinsics
+        self.inner, self.n, self.name, self.intrinsics, self.sensor = inner, n, inner.name, inner.intrinsics, inner.sensor
 
     def __iter__(self):
         import signal

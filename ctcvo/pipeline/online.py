@@ -57,7 +57,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
@@ -68,6 +68,7 @@ from threadpoolctl import ThreadpoolController, threadpool_limits
 
 from ctcvo.data import geometry as geo
 from ctcvo.data.errors import ConfigError, DataError, VOError
+from ctcvo.data.sensor import Sensor
 from ctcvo.data.sequence import Frame, Intrinsics
 from ctcvo.posegraph.online import OnlineGraph
 
@@ -117,10 +118,11 @@ class OnlineConfig:
 # frame sources
 # ----------------------------------------------------------------------------------
 class FrameSource:
-    """Frames in order, one at a time, with the camera's intrinsics."""
+    """Frames in order, one at a time, with the camera's intrinsics and sensor."""
 
     name: str
     intrinsics: Intrinsics
+    sensor: Sensor
     skipped: int = 0
     """Frames passed over to hand out a newer one (``OnlineConfig.drop_late``)."""
 
@@ -139,7 +141,7 @@ class SequenceSource(FrameSource):
     """The frames of a :class:`data.sequence.Sequence` (folder, bag, synthetic), read lazily."""
 
     def __init__(self, seq) -> None:
-        self.seq, self.name, self.intrinsics = seq, seq.name, seq.intrinsics
+        self.seq, self.name, self.intrinsics, self.sensor = seq, seq.name, seq.intrinsics, seq.sensor
 
     def __iter__(self) -> Iterator[Frame]:
         for k in range(len(self.seq)):
@@ -227,6 +229,7 @@ class FollowSevenScenes(FollowFolder):
 
         super().__init__(folder, cfg)
         self.intrinsics = sevenscenes.folder_intrinsics(self.folder)
+        self.sensor = sevenscenes.folder_sensor(self.folder)
         self.last = -1
 
     def _ready(self, final: bool) -> Iterator[object]:
@@ -274,6 +277,7 @@ class FollowTum(FollowFolder):
 
         super().__init__(folder, cfg)
         self.intrinsics = tum.intrinsics_for(self.folder)
+        self.sensor = tum.SENSOR
         self.last_t = -np.inf
         self._pairs_key: tuple | None = None
         self._pairs_cache: list[tuple[float, str, str, float]] = []
@@ -464,35 +468,6 @@ class _Progress:
             self.stream.flush()
 
 
-def _colour_camera(source: FrameSource, teacher_cfg):
-    """The teacher's colour camera model for ``source``, chosen as ``teacher generate`` does."""
-    from ctcvo.teacher.generate import colour_camera_for, colour_camera_of_folder
-
-    return _as_generate_does(source, lambda seq: colour_camera_for(seq, teacher_cfg), colour_camera_of_folder,
-                             teacher_cfg.colour_camera == "auto")
-
-
-def _rolling_shutter(source: FrameSource, teacher_cfg) -> float:
-    """The teacher's rolling shutter readout for ``source``, chosen as ``teacher generate`` does."""
-    from ctcvo.teacher.generate import rolling_shutter_for, rolling_shutter_of_folder
-
-    return _as_generate_does(source, lambda seq: rolling_shutter_for(seq, teacher_cfg), rolling_shutter_of_folder,
-                             teacher_cfg.rolling_shutter_s is None)
-
-
-def _as_generate_does(source: FrameSource, for_seq: Callable, of_folder: Callable, auto: bool):
-    """A teacher setting for ``source`` as ``teacher generate`` picks it for a sequence
-    (``for_seq(seq)``): a followed 7-Scenes-layout folder on auto is read as that folder
-    (``of_folder``, e.g. a synthetic scene's own sensor model); any other source as no
-    sequence (``for_seq(None)``: the setting itself, or auto's choice for a recording that is
-    not a 7-Scenes folder)."""
-    if isinstance(source, SequenceSource):
-        return for_seq(source.seq)
-    if isinstance(source, FollowSevenScenes) and auto:
-        return of_folder(source.folder)
-    return for_seq(None)
-
-
 def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Path | None = None,
         predict_cfg=None, graph_cfg=None, cfg: OnlineConfig = OnlineConfig(), device: str = "cpu",
         max_frames: int | None = None, progress: bool = True) -> OnlineResult:
@@ -502,6 +477,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Path | Non
     from ctcvo.data.io import ensure_dir
     from ctcvo.data.open3d_import import open3d_follows_openmp
     from ctcvo.teacher.config import DEFAULT as TEACHER_DEFAULT
+    from ctcvo.teacher.generate import colour_camera_for, rolling_shutter_for
 
     teacher_cfg = teacher_cfg or TEACHER_DEFAULT
     out = ensure_dir(Path(out))
@@ -512,8 +488,8 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Path | Non
         learner = OnlineLearner(checkpoint, predict_cfg, device)
     graph = OnlineGraph(graph_cfg)
     teacher = OnlineTeacher(source.intrinsics,
-                            dataclasses.replace(teacher_cfg, rolling_shutter_s=_rolling_shutter(source, teacher_cfg)),
-                            _colour_camera(source, teacher_cfg))
+                            dataclasses.replace(teacher_cfg, rolling_shutter_s=rolling_shutter_for(source.sensor, teacher_cfg)),
+                            colour_camera_for(source.sensor, teacher_cfg))
     t_edges: list = []
     l_edges: list[Edge] = []
     gts: list[NDArray | None] = []
