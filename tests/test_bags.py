@@ -13,6 +13,7 @@ from ctcvo.data import bag, bag_write
 from ctcvo.data.errors import ConfigError
 from ctcvo.data.formats import read_tum
 from ctcvo.data.scenes import open_scene, scene_slug
+from ctcvo.data.sensor import KINECT_V1_READOUT_S, Sensor
 from ctcvo.teacher import cli as teacher_cli
 
 FRAMES = "0:24"
@@ -146,6 +147,10 @@ def test_16uc1_millimetres_and_mono8(tmp_path, tiny_seq):
     np.testing.assert_array_equal(seq.depth(2), tiny_seq.depth(2))  # 7-Scenes depth is whole mm
     rgb = seq.rgb(2)
     assert rgb.shape == tiny_seq.rgb(2).shape and (rgb[..., 0] == rgb[..., 1]).all()
+    # a bag's sensor: colour registered, Kinect v1's readout, the depth encoding's units per metre
+    assert seq.sensor == Sensor(None, KINECT_V1_READOUT_S, synchronous=False, depth_scale=1000.0)
+    metres = open_scene(str(_write(tmp_path, tiny_seq, name="m.bag", depth_encoding="32FC1")))[0]
+    assert metres.sensor == Sensor(None, KINECT_V1_READOUT_S, synchronous=False, depth_scale=1.0)
 
 
 def _cli_error(capsys, argv) -> str:

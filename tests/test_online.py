@@ -1,4 +1,4 @@
-"""``vo-online`` (pipeline/online.py): frame by frame it gives the batch stages' edges, an
+"""``ctcvo online`` (pipeline/online*.py): frame by frame it gives the batch stages' edges, an
 ISAM2 trajectory as accurate as the batch pose graph on the same edges, follows a folder
 still being written, and keeps the trajectory so far when interrupted."""
 
@@ -492,7 +492,7 @@ def _write_tum(folder: Path, frames, camera: str, gt_rows: str, period_s: float 
 
 @pytest.mark.slow
 def test_follow_a_tum_folder_being_written(tmp_path, monkeypatch):
-    """rgb.txt and depth.txt grow while vo-online --follow runs: every frame is taken once,
+    """rgb.txt and depth.txt grow while ctcvo online --follow runs: every frame is taken once,
     paired as the TUM reader pairs a finished folder, with the same teacher edges and ground
     truth as a run over that finished folder; a rerun is kept until the lists grow."""
     frames, camera, gt_rows = _tum_frames()

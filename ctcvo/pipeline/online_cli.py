@@ -19,14 +19,15 @@ from ctcvo.pipeline.online_outputs import TRAJECTORY
 from ctcvo.teacher.config import PRESETS as TEACHER_PRESETS
 
 DESCRIPTION = """\
-Odometry frame by frame, as the frames arrive: the teacher's edges of each new frame
-(and, with --checkpoint, the learner's), an ISAM2 pose graph, and each frame's pose
-appended to OUT/trajectory.tum as soon as it is known.
+Odometry frame by frame, as the frames arrive: the teacher's edges of each new
+frame (and, with --checkpoint, the learner's), an ISAM2 pose graph, and each
+frame's pose appended to OUT/trajectory.tum as soon as it is known.
 
-Frames come from any --scene read in order, or with --follow from a 7-Scenes-layout or
-TUM RGB-D folder still being written. At the end (or on Ctrl-C) OUT holds the smoothed
-trajectory_final.tum, the edges in teacher/ and learner/ and report.json (fps, latency,
-ATE when there is ground truth). A rerun of the same inputs keeps a finished run."""
+Frames come from any --scene read in order, or with --follow from a
+7-Scenes-layout or TUM RGB-D folder still being written. At the end (or on
+Ctrl-C) OUT holds the smoothed trajectory_final.tum, the edges in teacher/ and
+learner/ and report.json (fps, latency, ATE when there is ground truth). A rerun
+of the same inputs keeps a finished run."""
 
 
 def build_parser() -> argparse.ArgumentParser:
