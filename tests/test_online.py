@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ctcvo.data import live
 from ctcvo.data.formats import read_g2o, read_tum
+from ctcvo.data.live import FollowSevenScenes, FollowTum, FrameSource
 from ctcvo.data.scenes import open_scene
 from ctcvo.pipeline import online, online_cli, online_loop, online_outputs
 from ctcvo.teacher.config import TINY
@@ -225,10 +225,10 @@ def test_follow_times_out_without_frames(tmp_path):
     assert not (tmp_path / "o" / online_outputs.TRAJECTORY).exists()
 
 
-class _Interrupting(live.FrameSource):
+class _Interrupting(FrameSource):
     """A source whose user presses Ctrl-C after ``n`` frames."""
 
-    def __init__(self, inner: live.FrameSource, n: int) -> None:
+    def __init__(self, inner: FrameSource, n: int) -> None:
         self.inner, self.n, self.name, self.intrinsics, self.sensor = inner, n, inner.name, inner.intrinsics, inner.sensor
 
     def __iter__(self):
@@ -255,11 +255,11 @@ def test_ctrl_c_keeps_the_trajectory_so_far(tmp_path, monkeypatch, capsys):
     assert len(read_tum(tmp_path / "o" / online_outputs.FINAL_TRAJECTORY)) == n
 
 
-class _SigintAt(live.FrameSource):
+class _SigintAt(FrameSource):
     """A source after whose frame ``n`` the user presses Ctrl-C (a real SIGINT, which the
     main thread gets wherever it is in a frame's work)."""
 
-    def __init__(self, inner: live.FrameSource, n: int) -> None:
+    def __init__(self, inner: FrameSource, n: int) -> None:
         self.inner, self.n, self.name, self.intrinsics, self.sensor = inner, n, inner.name, inner.intrinsics, inner.sensor
 
     def __iter__(self):
@@ -523,7 +523,7 @@ def test_follow_a_tum_folder_being_written(tmp_path, monkeypatch):
     with open(live / "rgb.txt", "a") as fh:
         fh.write("1305031200.000000 rgb/half-writ")
     src = online.open_source(str(live), follow=True, cfg=cfg)
-    assert isinstance(src, live.FollowTum) and len(src.present_ids()) == 21
+    assert isinstance(src, FollowTum) and len(src.present_ids()) == 21
 
     class Ran(Exception):
         pass
@@ -539,10 +539,10 @@ def test_follow_picks_the_layout_and_waits_for_one(tmp_path):
 
     (tmp_path / "tum_fr1").mkdir()
     (tmp_path / "tum_fr1" / "rgb.txt").write_text("# nothing yet\n")
-    assert isinstance(online.open_source(str(tmp_path / "tum_fr1"), follow=True, cfg=cfg), live.FollowTum)
+    assert isinstance(online.open_source(str(tmp_path / "tum_fr1"), follow=True, cfg=cfg), FollowTum)
     (tmp_path / "seven").mkdir()
     (tmp_path / "seven" / "frame-000000.depth.png").write_bytes(b"")
-    assert isinstance(online.open_source(str(tmp_path / "seven"), follow=True, cfg=cfg), live.FollowSevenScenes)
+    assert isinstance(online.open_source(str(tmp_path / "seven"), follow=True, cfg=cfg), FollowSevenScenes)
     (tmp_path / "empty").mkdir()
     with pytest.raises(DataError, match="no frame arrived within 0.2 s"):
         online.open_source(str(tmp_path / "empty"), follow=True, cfg=cfg)
