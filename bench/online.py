@@ -49,6 +49,7 @@ if __name__ == "__main__":  # as `teacher generate` does: its worker imports whi
 
 from ctcvo.data import live  # noqa: E402
 from ctcvo.data.scenes import open_scene  # noqa: E402
+from ctcvo.data.sensor import KINECT_V1_READOUT_S  # noqa: E402
 from ctcvo.pipeline import online  # noqa: E402
 from ctcvo.teacher.config import DEFAULT  # noqa: E402
 
@@ -64,7 +65,10 @@ class Paced(live.FrameSource):
 
     def __init__(self, seq, frames: list, rate: float, drop_late: bool = False) -> None:
         self.frames, self.rate, self.drop_late = frames, rate, drop_late
-        self.name, self.intrinsics, self.sensor = seq.name, seq.intrinsics, seq.sensor
+        self.name, self.intrinsics = seq.name, seq.intrinsics
+        # the teacher settings this source got before sources carried a sensor (colour registered,
+        # Kinect v1's readout), not seq.sensor: on a 7-Scenes folder they differ from the batch teacher's
+        self.sensor = replace(seq.sensor, colour=None, readout_s=KINECT_V1_READOUT_S)
         self.skipped, self._arrived = 0, None
 
     def __iter__(self):
