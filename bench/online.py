@@ -47,7 +47,9 @@ if __name__ == "__main__":  # as `teacher generate` does: its worker imports whi
     processes.start()
 
 
+from ctcvo.data import live  # noqa: E402
 from ctcvo.data.scenes import open_scene  # noqa: E402
+from ctcvo.data.sensor import KINECT_V1_READOUT_S  # noqa: E402
 from ctcvo.pipeline import online  # noqa: E402
 from ctcvo.teacher.config import DEFAULT  # noqa: E402
 
@@ -55,7 +57,7 @@ SCENES = [str(REPO.parent / "shared" / "data" / "7scenes" / "redkitchen" / "seq-
           str(REPO.parent / "shared" / "data" / "tum" / "images" / "rgbd_dataset_freiburg1_xyz")]
 
 
-class Paced(online.FrameSource):
+class Paced(live.FrameSource):
     """A camera at ``rate`` Hz: frame k arrives, decoded, at ``t0 + k / rate`` whether or
     not the run has taken the earlier ones (``frames``: the sequence decoded into memory
     beforehand); its latency counts from then. With ``drop_late`` it hands out the newest
@@ -64,6 +66,9 @@ class Paced(online.FrameSource):
     def __init__(self, seq, frames: list, rate: float, drop_late: bool = False) -> None:
         self.frames, self.rate, self.drop_late = frames, rate, drop_late
         self.name, self.intrinsics = seq.name, seq.intrinsics
+        # the teacher settings this source got before sources carried a sensor (colour registered,
+        # Kinect v1's readout), not seq.sensor: on a 7-Scenes folder they differ from the batch teacher's
+        self.sensor = replace(seq.sensor, colour=None, readout_s=KINECT_V1_READOUT_S)
         self.skipped, self._arrived = 0, None
 
     def __iter__(self):
@@ -102,7 +107,7 @@ def bench_scene(spec: str, frames: str, checkpoint: Path | None, tmp: Path, tcfg
         "ate_rmse_m"]
     decoded = [seq.frame(k) for k in range(len(seq))]  # the paced camera's frames
     drop = replace(ocfg, drop_late=True)
-    for name, src, cfg in (("online", online.SequenceSource(seq), ocfg),
+    for name, src, cfg in (("online", live.SequenceSource(seq), ocfg),
                            ("online_30hz", Paced(seq, decoded, 30.0), ocfg),
                            ("online_30hz_drop", Paced(seq, decoded, 30.0, drop_late=True), drop)):
         wall, cpu = time.perf_counter(), time.process_time()
@@ -127,7 +132,7 @@ def bench_scene(spec: str, frames: str, checkpoint: Path | None, tmp: Path, tcfg
                             "teacher_chain": rep["teacher_chain"]["ate_rmse_m"]}
             row["final_solve_s"] = (rep.get("final_polish") or {}).get("seconds")
     if checkpoint is not None:
-        for name, src in (("learner", online.SequenceSource(seq)), ("learner_30hz", Paced(seq, decoded, 30.0))):
+        for name, src in (("learner", live.SequenceSource(seq)), ("learner_30hz", Paced(seq, decoded, 30.0))):
             res = online.run(src, tmp / seq.name / name, tcfg, checkpoint=checkpoint, cfg=ocfg, progress=False)
             row[f"{name}_fps"] = res.fps
             row[f"{name}_latency_ms"] = res.latency_ms

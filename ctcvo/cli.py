@@ -18,7 +18,7 @@ STAGES = {
     "learner": ("ctcvo.learner.cli", "the CNN + LSTM trained on teacher labels (fit, calibrate, predict)"),
     "posegraph": ("ctcvo.posegraph.cli", "GTSAM fusion of teacher and learner edges, and the error report "
                                          "(optimize, calibrate)"),
-    "online": ("ctcvo.pipeline.online", "frame-by-frame odometry of a recording or a folder being written"),
+    "online": ("ctcvo.pipeline.online_cli", "frame-by-frame odometry of a recording or a folder being written"),
     "demo": ("ctcvo.pipeline.demo", "every stage end to end on the built-in synthetic rooms"),
 }
 

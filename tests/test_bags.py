@@ -9,10 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ctcvo.data import bag
+from ctcvo.data import bag, bag_write
 from ctcvo.data.errors import ConfigError
 from ctcvo.data.formats import read_tum
 from ctcvo.data.scenes import open_scene, scene_slug
+from ctcvo.data.sensor import KINECT_V1_READOUT_S, Sensor
 from ctcvo.teacher import cli as teacher_cli
 
 FRAMES = "0:24"
@@ -29,10 +30,10 @@ def bags(tum_seq, tmp_path_factory) -> dict[str, Path]:
     16UC1, ROS2 sqlite3 raw, ROS2 mcap with JPEG-compressed colour."""
     d = tmp_path_factory.mktemp("bags")
     return {
-        "ros1": bag.write_bag(tum_seq, d / "rec.bag", depth_encoding="32FC1"),
-        "ros1_bgr_mm": bag.write_bag(tum_seq, d / "bgr.bag", colour_encoding="bgr8"),
-        "ros2_sqlite": bag.write_bag(tum_seq, d / "rec2", ros2=True, depth_encoding="32FC1"),
-        "ros2_mcap_jpeg": bag.write_bag(tum_seq, d / "rec2mcap", ros2=True, storage="mcap", compressed=True,
+        "ros1": bag_write.write_bag(tum_seq, d / "rec.bag", depth_encoding="32FC1"),
+        "ros1_bgr_mm": bag_write.write_bag(tum_seq, d / "bgr.bag", colour_encoding="bgr8"),
+        "ros2_sqlite": bag_write.write_bag(tum_seq, d / "rec2", ros2=True, depth_encoding="32FC1"),
+        "ros2_mcap_jpeg": bag_write.write_bag(tum_seq, d / "rec2mcap", ros2=True, storage="mcap", compressed=True,
                                         depth_encoding="32FC1"),
     }
 
@@ -136,7 +137,7 @@ def tiny_seq():
 
 
 def _write(tmp_path, tiny_seq, name="r.bag", **kw) -> Path:
-    return bag.write_bag(tiny_seq, tmp_path / name, **kw)
+    return bag_write.write_bag(tiny_seq, tmp_path / name, **kw)
 
 
 @pytest.mark.slow
@@ -146,6 +147,10 @@ def test_16uc1_millimetres_and_mono8(tmp_path, tiny_seq):
     np.testing.assert_array_equal(seq.depth(2), tiny_seq.depth(2))  # 7-Scenes depth is whole mm
     rgb = seq.rgb(2)
     assert rgb.shape == tiny_seq.rgb(2).shape and (rgb[..., 0] == rgb[..., 1]).all()
+    # a bag's sensor: colour registered, Kinect v1's readout, the depth encoding's units per metre
+    assert seq.sensor == Sensor(None, KINECT_V1_READOUT_S, synchronous=False, depth_scale=1000.0)
+    metres = open_scene(str(_write(tmp_path, tiny_seq, name="m.bag", depth_encoding="32FC1")))[0]
+    assert metres.sensor == Sensor(None, KINECT_V1_READOUT_S, synchronous=False, depth_scale=1.0)
 
 
 def _cli_error(capsys, argv) -> str:
@@ -221,7 +226,7 @@ def test_wrong_encodings(tmp_path, tiny_seq, capsys):
             w.write(c_rgb, k * 10**9, store.serialize_cdr(img, bag.IMAGE))
             w.write(c_d, k * 10**9, store.serialize_cdr(dep, bag.IMAGE))
             if k == 0:
-                w.write(c_i, 0, store.serialize_cdr(bag._camera_info(T, hdr, intr, True), bag.CAMERA_INFO))
+                w.write(c_i, 0, store.serialize_cdr(bag_write._camera_info(T, hdr, intr, True), bag.CAMERA_INFO))
     out = ["--out", str(tmp_path / "o")]
     # auto-detection does not take an unsupported encoding for colour
     assert "no colour image topic" in _cli_error(capsys, ["--scene", str(p), *out])

@@ -1,4 +1,4 @@
-"""``vo-online`` (pipeline/online.py): frame by frame it gives the batch stages' edges, an
+"""``ctcvo online`` (pipeline/online*.py): frame by frame it gives the batch stages' edges, an
 ISAM2 trajectory as accurate as the batch pose graph on the same edges, follows a folder
 still being written, and keeps the trajectory so far when interrupted."""
 
@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 from ctcvo.data.formats import read_g2o, read_tum
+from ctcvo.data.live import FollowSevenScenes, FollowTum, FrameSource
 from ctcvo.data.scenes import open_scene
-from ctcvo.pipeline import online
+from ctcvo.pipeline import online, online_cli, online_loop, online_outputs
 from ctcvo.teacher.config import TINY
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -69,11 +70,11 @@ def test_online_trajectory_matches_batch_pose_graph(batch, online_run):
     chain = rep["teacher_chain"]["ate_rmse_m"]
     assert rep["final"]["ate_rmse_m"] < 0.7 * chain and rep["online"]["ate_rmse_m"] < chain
     assert rep["final_isam2"]["ate_rmse_m"] < 1.02 * chain
-    rows = read_tum(online_run.out / online.TRAJECTORY)
+    rows = read_tum(online_run.out / online_outputs.TRAJECTORY)
     assert len(rows) == 20
     gt = open_scene("synthetic/tiny")[0]
     np.testing.assert_allclose(rows.timestamps, gt.times(), atol=1e-6)
-    assert len(read_tum(online_run.out / online.FINAL_TRAJECTORY)) == 20
+    assert len(read_tum(online_run.out / online_outputs.FINAL_TRAJECTORY)) == 20
     assert online_run.latency_ms["p95"] > 0 and online_run.fps > 0
 
 
@@ -84,15 +85,15 @@ def test_pose_after_gap1_solves_the_same_edges(batch, online_run, tmp_path):
     the final trajectory solves the same graph (the batch pose graph's ATE to 10 %), and
     the causal estimates still beat chaining the gap-1 edges."""
     res = online.run(online.open_source("synthetic/tiny"), tmp_path / "o", TCFG,
-                     cfg=online.OnlineConfig(pose_after_gap1=True), progress=False)
+                     cfg=online_loop.OnlineConfig(pose_after_gap1=True), progress=False)
     assert res.frames == 20
     assert (res.out / "teacher" / "edges.g2o").read_text() == (batch / "teacher" / "edges.g2o").read_text()
     batch_ate = json.loads((batch / "posegraph" / "report.json").read_text())["rows"]["fused"]["ate_rmse_m"]
     rep = res.report
     assert abs(rep["final"]["ate_rmse_m"] - batch_ate) <= 0.1 * batch_ate, (rep["final"]["ate_rmse_m"], batch_ate)
     assert rep["online"]["ate_rmse_m"] < rep["teacher_chain"]["ate_rmse_m"]
-    causal = read_tum(res.out / online.TRAJECTORY).poses
-    assert len(causal) == 20 and not np.allclose(causal, read_tum(online_run.out / online.TRAJECTORY).poses)
+    causal = read_tum(res.out / online_outputs.TRAJECTORY).poses
+    assert len(causal) == 20 and not np.allclose(causal, read_tum(online_run.out / online_outputs.TRAJECTORY).poses)
     # each frame's work until its pose is part of its whole work (so every percentile is too)
     assert all(rep["work_to_pose_ms"][q] <= rep["work_ms"][q] for q in ("p50", "p95", "max"))
     assert online_run.report["work_to_pose_ms"] == online_run.report["work_ms"]
@@ -151,8 +152,8 @@ def test_follow_a_folder_being_written(tmp_path, online_run):
     writer.start()
     try:
         res = online.run(online.open_source(str(live), follow=True,
-                                            cfg=online.OnlineConfig(poll_s=0.01, timeout_s=3.0)),
-                         tmp_path / "out", TCFG, progress=False, cfg=online.OnlineConfig(poll_s=0.01, timeout_s=3.0))
+                                            cfg=online_loop.OnlineConfig(poll_s=0.01, timeout_s=3.0)),
+                         tmp_path / "out", TCFG, progress=False, cfg=online_loop.OnlineConfig(poll_s=0.01, timeout_s=3.0))
     finally:
         writer.join()
     assert done.is_set() and res.frames == 20
@@ -168,14 +169,14 @@ def test_drop_late_takes_the_newest_frame_when_behind(tmp_path, monkeypatch):
     live = tmp_path / "live"
     live.mkdir()
     shutil.copy(seq.root.parent / "config.json", tmp_path / "config.json")
-    add = online.OnlineTeacher.add
+    add = online_loop.OnlineTeacher.add
 
     def slow_add(self, frame, fk):
         time.sleep(0.1)
         return add(self, frame, fk)
 
-    monkeypatch.setattr(online.OnlineTeacher, "add", slow_add)
-    cfg = online.OnlineConfig(poll_s=0.005, timeout_s=2.0, drop_late=True)
+    monkeypatch.setattr(online_loop.OnlineTeacher, "add", slow_add)
+    cfg = online_loop.OnlineConfig(poll_s=0.005, timeout_s=2.0, drop_late=True)
     done = threading.Event()
     writer = threading.Thread(target=_copy_frames_slowly, args=(seq.root, live, 0.01, done))
     writer.start()
@@ -187,7 +188,7 @@ def test_drop_late_takes_the_newest_frame_when_behind(tmp_path, monkeypatch):
     rep = res.report
     assert done.is_set() and rep["frames_skipped"] > 0
     assert res.frames + rep["frames_skipped"] == 20
-    ids = np.round(30 * read_tum(res.out / online.FINAL_TRAJECTORY).timestamps).astype(int)
+    ids = np.round(30 * read_tum(res.out / online_outputs.FINAL_TRAJECTORY).timestamps).astype(int)
     assert len(ids) == res.frames and np.all(np.diff(ids) > 0) and ids[-1] == 19
     edges, _ = read_g2o(res.out / "teacher" / "edges.g2o")
     taken = set(ids.tolist())
@@ -206,7 +207,7 @@ def test_follow_latency_counts_from_when_the_frame_was_written(tmp_path):
     for f in seq.root.glob("frame-000000.*"):
         shutil.copy(f, live / f.name)
         os.utime(live / f.name, (written, written))
-    src = online.open_source(str(live), follow=True, cfg=online.OnlineConfig(poll_s=0.01, timeout_s=0.2))
+    src = online.open_source(str(live), follow=True, cfg=online_loop.OnlineConfig(poll_s=0.01, timeout_s=0.2))
     next(iter(src))
     assert 1.9 < time.perf_counter() - src.arrival() < 60
     assert online.open_source("synthetic/tiny").arrival() is None
@@ -216,19 +217,19 @@ def test_follow_times_out_without_frames(tmp_path):
     """A folder whose frames never become readable (a depth file without its colour image)."""
     (tmp_path / "stuck").mkdir()
     (tmp_path / "stuck" / "frame-000000.depth.png").write_bytes(b"")
-    src = online.open_source(str(tmp_path / "stuck"), follow=True, cfg=online.OnlineConfig(poll_s=0.01, timeout_s=0.2))
+    src = online.open_source(str(tmp_path / "stuck"), follow=True, cfg=online_loop.OnlineConfig(poll_s=0.01, timeout_s=0.2))
     from ctcvo.data.errors import DataError
 
     with pytest.raises(DataError, match="no frame arrived"):
         online.run(src, tmp_path / "o", TCFG, progress=False)
-    assert not (tmp_path / "o" / online.TRAJECTORY).exists()
+    assert not (tmp_path / "o" / online_outputs.TRAJECTORY).exists()
 
 
-class _Interrupting(online.FrameSource):
+class _Interrupting(FrameSource):
     """A source whose user presses Ctrl-C after ``n`` frames."""
 
-    def __init__(self, inner: online.FrameSource, n: int) -> None:
-        self.inner, self.n, self.name, self.intrinsics = inner, n, inner.name, inner.intrinsics
+    def __init__(self, inner: FrameSource, n: int) -> None:
+        self.inner, self.n, self.name, self.intrinsics, self.sensor = inner, n, inner.name, inner.intrinsics, inner.sensor
 
     def __iter__(self):
         for k, f in enumerate(self.inner):
@@ -241,25 +242,25 @@ class _Interrupting(online.FrameSource):
 def test_ctrl_c_keeps_the_trajectory_so_far(tmp_path, monkeypatch, capsys):
     inner = online.open_source("synthetic/tiny")
     monkeypatch.setattr(online, "open_source", lambda *a, **k: _Interrupting(inner, 9))
-    rc = online.main(["--scene", "synthetic/tiny", "--out", str(tmp_path / "o"), "--preset", "tiny"])
+    rc = online_cli.main(["--scene", "synthetic/tiny", "--out", str(tmp_path / "o"), "--preset", "tiny"])
     assert rc == 130
     err = capsys.readouterr().err.strip().splitlines()
     assert len([l for l in err if l.startswith("interrupted after")]) == 1
     assert "Traceback" not in "\n".join(err)
     # the frames handed over before the interrupt are all kept (prefetched ones included)
-    n = len(read_tum(tmp_path / "o" / online.TRAJECTORY))
+    n = len(read_tum(tmp_path / "o" / online_outputs.TRAJECTORY))
     assert 7 <= n <= 9
     rep = json.loads((tmp_path / "o" / "report.json").read_text())
     assert rep["interrupted"] and rep["frames"] == n
-    assert len(read_tum(tmp_path / "o" / online.FINAL_TRAJECTORY)) == n
+    assert len(read_tum(tmp_path / "o" / online_outputs.FINAL_TRAJECTORY)) == n
 
 
-class _SigintAt(online.FrameSource):
+class _SigintAt(FrameSource):
     """A source after whose frame ``n`` the user presses Ctrl-C (a real SIGINT, which the
     main thread gets wherever it is in a frame's work)."""
 
-    def __init__(self, inner: online.FrameSource, n: int) -> None:
-        self.inner, self.n, self.name, self.intrinsics = inner, n, inner.name, inner.intrinsics
+    def __init__(self, inner: FrameSource, n: int) -> None:
+        self.inner, self.n, self.name, self.intrinsics, self.sensor = inner, n, inner.name, inner.intrinsics, inner.sensor
 
     def __iter__(self):
         import signal
@@ -278,10 +279,10 @@ def test_sigint_ends_the_run_after_the_frame_in_hand(tmp_path):
 
     before = signal.getsignal(signal.SIGINT)
     res = online.run(_SigintAt(online.open_source("synthetic/tiny"), 6), tmp_path / "o", TCFG, progress=False,
-                     cfg=online.OnlineConfig(pose_after_gap1=True))
+                     cfg=online_loop.OnlineConfig(pose_after_gap1=True))
     assert signal.getsignal(signal.SIGINT) is before  # the run's handler is gone
     assert res.interrupted and 4 <= res.frames < 20
-    causal, final = read_tum(res.out / online.TRAJECTORY), read_tum(res.out / online.FINAL_TRAJECTORY)
+    causal, final = read_tum(res.out / online_outputs.TRAJECTORY), read_tum(res.out / online_outputs.FINAL_TRAJECTORY)
     assert len(causal) == len(final) == res.frames == res.report["frames"]
     ids = set(np.round(30 * final.timestamps).astype(int).tolist())
     edges, _ = read_g2o(res.out / "teacher" / "edges.g2o")
@@ -289,12 +290,12 @@ def test_sigint_ends_the_run_after_the_frame_in_hand(tmp_path):
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):
-    assert online.main(["--scene", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 1
+    assert online_cli.main(["--scene", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and "\n" not in err
-    assert online.main(["--scene", "synthetic/tiny", "--follow", "--frames", "0:5", "--out", str(tmp_path / "o")]) == 1
+    assert online_cli.main(["--scene", "synthetic/tiny", "--follow", "--frames", "0:5", "--out", str(tmp_path / "o")]) == 1
     assert "--frames does not apply with --follow" in capsys.readouterr().err
-    assert online.main(["--scene", "synthetic/tiny", "--drop-late", "--out", str(tmp_path / "o")]) == 1
+    assert online_cli.main(["--scene", "synthetic/tiny", "--drop-late", "--out", str(tmp_path / "o")]) == 1
     assert "--drop-late needs --follow" in capsys.readouterr().err
 
 
@@ -333,7 +334,7 @@ def test_rerun_keeps_refuses_and_overwrites(tmp_path, monkeypatch, capsys):
     fp = json.loads((out / "fingerprint.json").read_text())
     assert fp["stage"] == "online" and fp["inputs"]["frames"] == "0..19 (20 frames)"
     assert fp["inputs"]["follow"] is False and fp["inputs"]["checkpoint"] is None
-    stamp = {f: (out / f).stat().st_mtime_ns for f in online.OUTPUT_FILES if (out / f).exists()}
+    stamp = {f: (out / f).stat().st_mtime_ns for f in online_outputs.OUTPUT_FILES if (out / f).exists()}
     assert set(stamp) >= {"report.json", "trajectory.tum", "trajectory_final.tum", "teacher/edges.g2o"}
 
     def no_run(*a, **k):
@@ -343,18 +344,18 @@ def test_rerun_keeps_refuses_and_overwrites(tmp_path, monkeypatch, capsys):
     again = online.online("synthetic/tiny", out, teacher_cfg=TCFG, progress=False)
     assert again.kept and again.frames == 20 and again.report == first.report
     argv = ["--scene", "synthetic/tiny", "--preset", "tiny", "--out", str(out)]
-    assert online.main(argv) == 0
+    assert online_cli.main(argv) == 0
     assert "(kept: a finished run of the same inputs)" in capsys.readouterr().out
-    assert online.main([*argv, "--frames", "0:10"]) == 1
+    assert online_cli.main([*argv, "--frames", "0:10"]) == 1
     err = capsys.readouterr().err.strip()
     assert err == (f"error: {out} holds outputs of other inputs (frames: 0..19 (20 frames) -> 0..9 (10 frames)); "
                    "pass --overwrite to replace them, or choose another --out")
-    assert online.main([*argv, "--gaps", "1"]) == 1
+    assert online_cli.main([*argv, "--gaps", "1"]) == 1
     assert "teacher.gaps: 2 -> 1" in capsys.readouterr().err
     assert {f: (out / f).stat().st_mtime_ns for f in stamp} == stamp
     monkeypatch.undo()
-    assert online.main([*argv, "--frames", "0:10", "--overwrite"]) == 0
-    assert len(read_tum(out / online.TRAJECTORY)) == 10
+    assert online_cli.main([*argv, "--frames", "0:10", "--overwrite"]) == 0
+    assert len(read_tum(out / online_outputs.TRAJECTORY)) == 10
     assert json.loads((out / "report.json").read_text())["frame_ids"] == "0..9 (10 frames)"
 
 
@@ -369,14 +370,14 @@ def test_a_killed_run_is_run_again_and_fails_leave_nothing(tmp_path):
     import sys
 
     out = tmp_path / "o"
-    argv = [sys.executable, "-m", "ctcvo.pipeline.online", "--scene", "synthetic/tiny", "--preset", "tiny", "--out", str(out)]
+    argv = [sys.executable, "-m", "ctcvo.pipeline.online_cli", "--scene", "synthetic/tiny", "--preset", "tiny", "--out", str(out)]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.Popen(argv, cwd=Path(__file__).resolve().parents[1], env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and proc.poll() is None:
-            traj = out / online.TRAJECTORY
+            traj = out / online_outputs.TRAJECTORY
             if traj.is_file() and len(traj.read_text().splitlines()) >= 4:  # header + 3 frames
                 break
             time.sleep(0.02)
@@ -385,22 +386,22 @@ def test_a_killed_run_is_run_again_and_fails_leave_nothing(tmp_path):
     finally:
         proc.wait()
     assert (out / "fingerprint.json").is_file() and not (out / "report.json").exists()
-    assert not (out / online.FINAL_TRAJECTORY).exists()
-    rows = read_tum(out / online.TRAJECTORY)  # whole rows only
+    assert not (out / online_outputs.FINAL_TRAJECTORY).exists()
+    rows = read_tum(out / online_outputs.TRAJECTORY)  # whole rows only
     assert 3 <= len(rows) < 20
     from ctcvo.data.runs import StaleOutputError
 
     with pytest.raises(StaleOutputError, match="holds outputs of other inputs"):
         online.online("synthetic/tiny", out, frames="0:10", teacher_cfg=TCFG, progress=False)
     res = online.online("synthetic/tiny", out, teacher_cfg=TCFG, progress=False)
-    assert not res.kept and res.frames == 20 and len(read_tum(out / online.TRAJECTORY)) == 20
+    assert not res.kept and res.frames == 20 and len(read_tum(out / online_outputs.TRAJECTORY)) == 20
 
     (tmp_path / "empty").mkdir()
     from ctcvo.data.errors import DataError
 
     with pytest.raises(DataError, match="no frame arrived"):
         online.online(str(tmp_path / "empty"), tmp_path / "runs" / "x", follow=True, teacher_cfg=TCFG,
-                      cfg=online.OnlineConfig(poll_s=0.01, timeout_s=0.2), progress=False)
+                      cfg=online_loop.OnlineConfig(poll_s=0.01, timeout_s=0.2), progress=False)
     assert not (tmp_path / "runs").exists()
 
 
@@ -418,7 +419,7 @@ def test_follow_rerun_is_kept_until_the_folder_grows(tmp_path):
                 shutil.copy(f, live / f.name)
 
     copy(range(10))
-    cfg = online.OnlineConfig(poll_s=0.01, timeout_s=0.3)
+    cfg = online_loop.OnlineConfig(poll_s=0.01, timeout_s=0.3)
     kw = dict(follow=True, teacher_cfg=TCFG, cfg=cfg, progress=False)
     first = online.online(str(live), tmp_path / "o", **kw)
     assert first.frames == 10 and first.report["frame_ids"] == "0..9 (10 frames)"
@@ -426,7 +427,7 @@ def test_follow_rerun_is_kept_until_the_folder_grows(tmp_path):
     assert online.online(str(live), tmp_path / "o", **kw).kept
     copy(range(10, 14))
     grown = online.online(str(live), tmp_path / "o", **kw)
-    assert not grown.kept and grown.frames == 14 and len(read_tum(tmp_path / "o" / online.TRAJECTORY)) == 14
+    assert not grown.kept and grown.frames == 14 and len(read_tum(tmp_path / "o" / online_outputs.TRAJECTORY)) == 14
 
 
 # ----------------------------------------------------------------------------------
@@ -491,13 +492,13 @@ def _write_tum(folder: Path, frames, camera: str, gt_rows: str, period_s: float 
 
 @pytest.mark.slow
 def test_follow_a_tum_folder_being_written(tmp_path, monkeypatch):
-    """rgb.txt and depth.txt grow while vo-online --follow runs: every frame is taken once,
+    """rgb.txt and depth.txt grow while ctcvo online --follow runs: every frame is taken once,
     paired as the TUM reader pairs a finished folder, with the same teacher edges and ground
     truth as a run over that finished folder; a rerun is kept until the lists grow."""
     frames, camera, gt_rows = _tum_frames()
     live = tmp_path / "live"
     live.mkdir()
-    cfg = online.OnlineConfig(poll_s=0.01, timeout_s=2.0)
+    cfg = online_loop.OnlineConfig(poll_s=0.01, timeout_s=2.0)
     writer = threading.Thread(target=_write_tum, args=(live, frames, camera, gt_rows, 0.04))
     writer.start()
     try:
@@ -505,7 +506,7 @@ def test_follow_a_tum_folder_being_written(tmp_path, monkeypatch):
     finally:
         writer.join()
     assert res.frames == 20 and res.report["frame_ids"] == "0..19 (20 frames)"
-    rows = read_tum(res.out / online.TRAJECTORY)
+    rows = read_tum(res.out / online_outputs.TRAJECTORY)
     np.testing.assert_allclose(rows.timestamps, [f[0] for f in frames], atol=1e-6)
     # the same folder, finished, read by the TUM reader
     batch = online.online(str(live), tmp_path / "batch", teacher_cfg=TCFG, progress=False)
@@ -522,7 +523,7 @@ def test_follow_a_tum_folder_being_written(tmp_path, monkeypatch):
     with open(live / "rgb.txt", "a") as fh:
         fh.write("1305031200.000000 rgb/half-writ")
     src = online.open_source(str(live), follow=True, cfg=cfg)
-    assert isinstance(src, online.FollowTum) and len(src.present_ids()) == 21
+    assert isinstance(src, FollowTum) and len(src.present_ids()) == 21
 
     class Ran(Exception):
         pass
@@ -533,15 +534,15 @@ def test_follow_a_tum_folder_being_written(tmp_path, monkeypatch):
 
 
 def test_follow_picks_the_layout_and_waits_for_one(tmp_path):
-    cfg = online.OnlineConfig(poll_s=0.01, timeout_s=0.2)
+    cfg = online_loop.OnlineConfig(poll_s=0.01, timeout_s=0.2)
     from ctcvo.data.errors import DataError
 
     (tmp_path / "tum_fr1").mkdir()
     (tmp_path / "tum_fr1" / "rgb.txt").write_text("# nothing yet\n")
-    assert isinstance(online.open_source(str(tmp_path / "tum_fr1"), follow=True, cfg=cfg), online.FollowTum)
+    assert isinstance(online.open_source(str(tmp_path / "tum_fr1"), follow=True, cfg=cfg), FollowTum)
     (tmp_path / "seven").mkdir()
     (tmp_path / "seven" / "frame-000000.depth.png").write_bytes(b"")
-    assert isinstance(online.open_source(str(tmp_path / "seven"), follow=True, cfg=cfg), online.FollowSevenScenes)
+    assert isinstance(online.open_source(str(tmp_path / "seven"), follow=True, cfg=cfg), FollowSevenScenes)
     (tmp_path / "empty").mkdir()
     with pytest.raises(DataError, match="no frame arrived within 0.2 s"):
         online.open_source(str(tmp_path / "empty"), follow=True, cfg=cfg)

@@ -570,3 +570,29 @@ def test_depth_timestamps_default_and_file(tmp_path: Path) -> None:
     (seq_dir / "depth-offsets.txt").write_text("0 -0.004 x\n")
     with pytest.raises(DataError, match="depth-offsets.txt:1"):
         SevenScenesSequence(seq_dir)
+
+
+def test_each_reader_sets_its_sensor(tmp_path: Path) -> None:
+    """7-Scenes: the Kinect v1 fit (unregistered colour, 27 ms readout, mm); a rendered
+    scene: its renderer's sensor model (synchronous; registered with readout 0 when
+    noise-free); TUM RGB-D: registered colour, Kinect v1 readout, 5000 units per metre."""
+    import json
+
+    from ctcvo.data.sensor import KINECT_V1_COLOUR, KINECT_V1_READOUT_S, ColourCamera, Sensor
+
+    seven = SevenScenesSequence(make_7scenes_seq(tmp_path / "scene" / "seq-01", n=2))
+    assert seven.sensor == Sensor(KINECT_V1_COLOUR, KINECT_V1_READOUT_S, synchronous=False, depth_scale=1000.0)
+    assert seven.select(1, 2).sensor is seven.sensor
+    model = {"noise_free": False, "rgb_focal_scale": 0.9, "rgb_shift_px": [1.0, -2.0], "rgb_baseline_m": 0.02,
+             "rolling_shutter_s": 0.01}
+    (tmp_path / "scene" / "config.json").write_text(json.dumps({"config": {"sensor": model}}))
+    rendered = SevenScenesSequence(tmp_path / "scene" / "seq-01")
+    assert rendered.sensor == Sensor(ColourCamera(0.9, (1.0, -2.0), 0.02, synchronous=True), 0.01, synchronous=True,
+                                     depth_scale=1000.0)
+    (tmp_path / "scene" / "config.json").write_text(json.dumps({"config": {"sensor": {**model, "noise_free": True}}}))
+    assert SevenScenesSequence(tmp_path / "scene" / "seq-01").sensor == Sensor(None, 0.0, synchronous=True,
+                                                                                depth_scale=1000.0)
+    (tmp_path / "scene" / "config.json").write_text("{}")  # not a renderer's config: a real 7-Scenes folder
+    assert SevenScenesSequence(tmp_path / "scene" / "seq-01").sensor == seven.sensor
+    tum_seq = TumSequence(make_tum_seq(tmp_path / "rgbd_dataset_freiburg1_x"))
+    assert tum_seq.sensor == Sensor(None, KINECT_V1_READOUT_S, synchronous=False, depth_scale=5000.0)

@@ -780,7 +780,7 @@ def test_colour_registration_inverts_the_colour_camera_model():
     pixels: at the depth pixel :meth:`ColourCamera.to_depth_pixels` gives for a colour pixel,
     the registered image holds that colour pixel's value (a smooth image, a fronto-parallel
     wall at 1.5 m, so the parallax term is the same both ways)."""
-    from ctcvo.teacher.colour import KINECT_V1_COLOUR
+    from ctcvo.data.sensor import KINECT_V1_COLOUR
 
     K = np.array([[585.0, 0, 320], [0, 585.0, 240], [0, 0, 1]])
     yy, xx = np.mgrid[0:480, 0:640].astype(np.float32)
@@ -1061,13 +1061,13 @@ def test_dense_method_auto_follows_the_sensor(office_clean, tmp_path):
     cfg = TeacherConfig()
     assert cfg.dense_method == "auto"
     noisy = synthetic_sequence("tiny", cache_dir=tmp_path / "cache", config=dataclasses.replace(PRESETS["tiny"], frames=2))
-    assert dense_method_for(noisy, cfg) == "hybrid"
-    colour = colour_camera_for(noisy, cfg)
+    assert dense_method_for(noisy.sensor, cfg) == "hybrid"
+    colour = colour_camera_for(noisy.sensor, cfg)
     f = extract(noisy.rgb(0), noisy.depth(0), cfg, K=noisy.intrinsics.K, colour=colour)
     assert f.dense.photo is not None
-    assert dense_method_for(noisy, dataclasses.replace(cfg, dense_method="point-to-plane")) == "point-to-plane"
-    assert dense_method_for(office_clean, cfg) == "point-to-plane"
-    assert dense_method_for(office_clean, dataclasses.replace(cfg, dense_method="hybrid")) == "hybrid"
+    assert dense_method_for(noisy.sensor, dataclasses.replace(cfg, dense_method="point-to-plane")) == "point-to-plane"
+    assert dense_method_for(office_clean.sensor, cfg) == "point-to-plane"
+    assert dense_method_for(office_clean.sensor, dataclasses.replace(cfg, dense_method="hybrid")) == "hybrid"
     src = noisy.root
     real = tmp_path / "scene" / "seq-01"
     real.mkdir(parents=True)
@@ -1078,9 +1078,9 @@ def test_dense_method_auto_follows_the_sensor(office_clean, tmp_path):
             shutil.copy(src.parent / f, real.parent / f)
     seq = open_scene(str(real))[0]
     assert isinstance(seq, SevenScenesSequence)
-    assert dense_method_for(seq, cfg) == "point-to-plane"
+    assert dense_method_for(seq.sensor, cfg) == "point-to-plane"
     with pytest.raises(ConfigError):
-        dense_method_for(office_clean, dataclasses.replace(cfg, dense_method="photometric"))
+        dense_method_for(office_clean.sensor, dataclasses.replace(cfg, dense_method="photometric"))
 
 
 # ---------------------------------------------------------------------------- fast paths
@@ -1373,18 +1373,20 @@ def test_middle_row_moves_a_point_by_its_rows_time_at_the_velocity():
 def test_rolling_shutter_readout_auto_follows_the_scene(tmp_path):
     """Auto: a synthetic scene's own sensor readout (0 when noise-free), Kinect v1's for
     anything else; a set value wins; a bad one is a ConfigError."""
+    from ctcvo.data import tum
     from ctcvo.data.errors import ConfigError
-    from ctcvo.teacher.colour import KINECT_V1_READOUT_S
-    from ctcvo.teacher.generate import rolling_shutter_for, rolling_shutter_of_folder
+    from ctcvo.data.sensor import KINECT_V1_READOUT_S
+    from ctcvo.data.sevenscenes import folder_sensor
+    from ctcvo.teacher.generate import rolling_shutter_for
 
     cfg = TeacherConfig()
-    assert rolling_shutter_for(open_scene("synthetic/tiny")[0], cfg) == 0.027
-    assert rolling_shutter_for(open_scene("synthetic/tiny-clean")[0], cfg) == 0.0
-    assert rolling_shutter_for(None, cfg) == KINECT_V1_READOUT_S
-    assert rolling_shutter_of_folder(tmp_path / "seq-01") == KINECT_V1_READOUT_S  # a real 7-Scenes folder
-    assert rolling_shutter_for(None, dataclasses.replace(cfg, rolling_shutter_s=0.0)) == 0.0
+    assert rolling_shutter_for(open_scene("synthetic/tiny")[0].sensor, cfg) == 0.027
+    assert rolling_shutter_for(open_scene("synthetic/tiny-clean")[0].sensor, cfg) == 0.0
+    assert rolling_shutter_for(tum.SENSOR, cfg) == KINECT_V1_READOUT_S
+    assert rolling_shutter_for(folder_sensor(tmp_path / "seq-01"), cfg) == KINECT_V1_READOUT_S  # a real 7-Scenes folder
+    assert rolling_shutter_for(tum.SENSOR, dataclasses.replace(cfg, rolling_shutter_s=0.0)) == 0.0
     with pytest.raises(ConfigError, match="rolling_shutter_s"):
-        rolling_shutter_for(None, dataclasses.replace(cfg, rolling_shutter_s=float("nan")))
+        rolling_shutter_for(tum.SENSOR, dataclasses.replace(cfg, rolling_shutter_s=float("nan")))
 
 
 def test_rolling_shutter_correction_lowers_the_longer_edges_error():

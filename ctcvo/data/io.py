@@ -21,7 +21,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from ctcvo.data.errors import VOError
+from ctcvo.data.errors import FormatError, VOError
 
 
 def ensure_dir(path: Path) -> Path:
@@ -100,8 +100,6 @@ def write_json(path: Path, obj: Any) -> None:
 def read_json_file(path: Path, what: str, fmt: int, key: str, kind: type) -> dict[str, Any]:
     """The JSON object in ``path``, checked to be ``what`` of format ``fmt`` with a ``key`` of
     type ``kind``; :class:`~data.errors.FormatError` says in one line what is wrong."""
-    from ctcvo.data.errors import FormatError
-
     try:
         d = json.loads(Path(path).read_text())
     except (OSError, ValueError) as exc:

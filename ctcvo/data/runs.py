@@ -6,7 +6,7 @@ Layout: ``runs/<scene-slug>/<stage>`` (:func:`stage_dir`), with the stages
 * ``learner``   - ``learner fit`` (a training run: checkpoint, config, history)
 * ``predict``   - ``learner predict`` (edges of a scene; never a training run's folder)
 * ``posegraph`` - ``posegraph optimize``
-* ``online``    - ``vo-online`` (pipeline/online.py)
+* ``online``    - ``ctcvo online`` (pipeline/online.py)
 
 Rerun rule. Beside its outputs each stage writes ``fingerprint.json``: the inputs that
 shape its outputs (scene, selected frames, the stage's resolved config, the fingerprints

@@ -18,7 +18,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ctcvo.data.errors import DataError
+from ctcvo.data import bag, sevenscenes, synthetic, tum
+from ctcvo.data.errors import ConfigError, DataError
 from ctcvo.data.runs import SYNTHETIC_PREFIX, scene_slug  # noqa: F401 - scene_slug lives with the run layout
 from ctcvo.data.sequence import Sequence, parse_frame_range
 
@@ -34,14 +35,8 @@ def open_scene(spec: str, split: str = "all", frames: str | None = None,
 
 
 def _open(spec: str, split: str, cache_dir: Path | None) -> list[Sequence]:
-    from ctcvo.data import sevenscenes
-
     if spec.startswith(SYNTHETIC_PREFIX):
-        from ctcvo.data import synthetic
-
         return synthetic.synthetic_sequences(spec[len(SYNTHETIC_PREFIX):], cache_dir=cache_dir)
-    from ctcvo.data import bag
-
     path = Path(spec.partition(bag.SPEC_SEP)[0])
     if bag.is_bag(path) or bag.SPEC_SEP in spec:
         bag_path, topics = bag.parse_spec(spec)
@@ -58,8 +53,6 @@ def _open(spec: str, split: str, cache_dir: Path | None) -> list[Sequence]:
     if not path.is_dir():
         raise DataError(f"scene {spec!r} is not a folder")
     if (path / "rgb.txt").is_file() and (path / "depth.txt").is_file():
-        from ctcvo.data import tum
-
         if split != "all":
             raise DataError(f"--split applies to a 7-Scenes scene folder; {spec} is a single TUM sequence")
         return [tum.TumSequence(path)]
@@ -87,15 +80,11 @@ def add_topic_options(parser) -> None:
 def scene_with_topics(spec: str | None, args) -> str | None:
     """``spec`` with the topic options of :func:`add_topic_options` appended (unchanged when
     none is given; a ConfigError when some are given but ``spec`` is not a bag)."""
-    from ctcvo.data import bag
-
     topics = bag.BagTopics(getattr(args, "rgb_topic", None), getattr(args, "depth_topic", None),
                            getattr(args, "camera_info_topic", None), getattr(args, "gt_topic", None))
     if spec is None or topics == bag.BagTopics():
         return spec
     if spec.startswith(SYNTHETIC_PREFIX) or not bag.is_bag(Path(spec.partition(bag.SPEC_SEP)[0])):
-        from ctcvo.data.errors import ConfigError
-
         raise ConfigError(f"--rgb-topic/--depth-topic/--camera-info-topic/--gt-topic apply to a ROS bag scene, "
                           f"not to {spec}")
     return bag.with_topics(spec, topics)
@@ -104,8 +93,6 @@ def scene_with_topics(spec: str | None, args) -> str | None:
 def scenes_with_topics(specs: list[str], args) -> list[str]:
     """:func:`scene_with_topics` over several scenes: the topic options go to the bag scenes
     among them (a ConfigError when they are given and none is a bag)."""
-    from ctcvo.data import bag
-
     is_bag = [not s.startswith(SYNTHETIC_PREFIX) and bag.is_bag(Path(s.partition(bag.SPEC_SEP)[0])) for s in specs]
     if not any(is_bag):
         return [scene_with_topics(s, args) for s in specs[:1]] + list(specs[1:])  # errors if options given

@@ -13,6 +13,7 @@ sub-range ``seq.select(450, 600)`` keeps the ids 450..599.
 from __future__ import annotations
 
 import abc
+import copy
 import functools
 from collections.abc import Sequence as TypingSequence
 from dataclasses import dataclass
@@ -22,7 +23,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ctcvo.data.errors import DataError
+from ctcvo.data.errors import ConfigError, DataError
+from ctcvo.data.sensor import Sensor
 
 cv2.setNumThreads(1)  # frames are decoded in a thread pool; keep OpenCV single-threaded
 
@@ -119,16 +121,19 @@ class Sequence(abc.ABC):
     #: short name, used for output folders (e.g. ``redkitchen-seq-01``)
     name: str
     intrinsics: Intrinsics
+    #: the camera that recorded it, as the reader knows it
+    sensor: Sensor
 
     def __init__(self, name: str, intrinsics: Intrinsics, timestamps: NDArray[np.float64],
                  frame_ids: NDArray[np.int64], gt: NDArray[np.float64] | None,
-                 depth_timestamps: NDArray[np.float64] | None = None) -> None:
+                 depth_timestamps: NDArray[np.float64] | None = None, *, sensor: Sensor) -> None:
         """``timestamps``: each frame's colour image's; ``depth_timestamps``: its depth
         image's (None: the same moments)."""
         if len(timestamps) == 0:
             raise DataError(f"sequence {name} has no frames")
         self.name = name
         self.intrinsics = intrinsics
+        self.sensor = sensor
         self.timestamps = np.asarray(timestamps, dtype=np.float64)
         self.depth_timestamps = None if depth_timestamps is None else np.asarray(depth_timestamps, dtype=np.float64)
         if self.depth_timestamps is not None and (self.depth_timestamps.shape != self.timestamps.shape
@@ -198,8 +203,6 @@ class Sequence(abc.ABC):
 
     def select(self, start: int | None = None, stop: int | None = None, step: int | None = None) -> Sequence:
         """A view of frame positions ``start:stop:step`` of this view (ids are kept)."""
-        import copy
-
         view = copy.copy(self)
         view._positions = self._positions[slice(start, stop, step)]
         if len(view._positions) == 0:
@@ -225,8 +228,6 @@ def frame_ranges_overlap(a: str | None, b: str | None) -> bool:
 
 def parse_frame_range(spec: str | None) -> tuple[int | None, int | None, int | None]:
     """Parse ``A:B`` / ``A:B:S`` / ``A:`` (Python slice syntax over frame positions)."""
-    from ctcvo.data.errors import ConfigError
-
     if spec is None or spec == "":
         return None, None, None
     parts = spec.split(":")

@@ -13,6 +13,7 @@ image time minus its colour image time; without it both are ``frame_id / 30``.
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -21,11 +22,14 @@ from numpy.typing import NDArray
 
 from ctcvo.data.errors import DataError
 from ctcvo.data.geometry import is_rigid, orthonormalize
+from ctcvo.data.sensor import KINECT_V1_COLOUR, KINECT_V1_READOUT_S, ColourCamera, Sensor
 from ctcvo.data.sequence import Intrinsics, Sequence, read_depth, read_rgb
 
 DEFAULT_INTRINSICS = Intrinsics(585.0, 585.0, 320.0, 240.0, 640, 480)
 FPS = 30.0
 DEPTH_SCALE = 1000.0  # raw units per metre
+#: a 7-Scenes recording: Kinect v1, its colour not registered to depth and exposed at other times
+KINECT_V1 = Sensor(KINECT_V1_COLOUR, KINECT_V1_READOUT_S, synchronous=False, depth_scale=DEPTH_SCALE)
 _FRAME_RE = re.compile(r"^frame-(\d{6})\.depth\.png$")
 
 
@@ -123,6 +127,28 @@ def folder_intrinsics(seq_dir: Path) -> Intrinsics:
     return DEFAULT_INTRINSICS
 
 
+def folder_sensor(seq_dir: Path) -> Sensor:
+    """The sensor of a 7-Scenes-layout sequence folder: a synthetic scene's own sensor model
+    when the renderer's ``config.json`` is one level up (registered, readout 0 when
+    noise-free), else :data:`KINECT_V1` (a real 7-Scenes folder)."""
+    rendered = Path(seq_dir).parent / "config.json"
+    if rendered.is_file():
+        try:
+            return _rendered_sensor(json.loads(rendered.read_text())["config"]["sensor"])
+        except (ValueError, KeyError, TypeError):
+            pass  # not a synthetic scene's config: a real 7-Scenes folder
+    return KINECT_V1
+
+
+def _rendered_sensor(sensor: dict) -> Sensor:
+    """The :class:`Sensor` of a synthetic scene's sensor model (its ``config.json`` entry)."""
+    if sensor["noise_free"]:
+        return Sensor(None, 0.0, synchronous=True, depth_scale=DEPTH_SCALE)
+    colour = ColourCamera(float(sensor["rgb_focal_scale"]), tuple(map(float, sensor["rgb_shift_px"])),
+                          float(sensor["rgb_baseline_m"]), synchronous=True)
+    return Sensor(colour, float(sensor["rolling_shutter_s"]), synchronous=True, depth_scale=DEPTH_SCALE)
+
+
 class SevenScenesSequence(Sequence):
     """One ``seq-XX`` folder of a 7-Scenes-layout scene."""
 
@@ -145,7 +171,7 @@ class SevenScenesSequence(Sequence):
         ids_arr = np.asarray(ids, dtype=np.int64)
         offsets = read_depth_offsets(seq_dir / "depth-offsets.txt", ids_arr)
         super().__init__(name or f"{seq_dir.parent.name}-{seq_dir.name}", intr, ids_arr / FPS, ids_arr, gt,
-                         None if offsets is None else ids_arr / FPS + offsets)
+                         None if offsets is None else ids_arr / FPS + offsets, sensor=folder_sensor(seq_dir))
 
     def _read_rgb(self, pos: int) -> NDArray[np.uint8]:
         fid = int(self.frame_ids[pos])

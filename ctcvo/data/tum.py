@@ -13,8 +13,8 @@ How the frames are built (docs/formats.md, "TUM RGB-D input"):
   nearest first, only if ``|t_rgb - t_depth| < max_dt`` (0.02 s) - the greedy scheme of
   TUM's ``associate.py``. Unpaired images are dropped. A frame's timestamp is its RGB
   timestamp; its depth image's timestamp is kept too (``Sequence.depth_times()``: on
-  fr1/xyz 8.4 ms before the RGB one in the median, 5-95 % 3.6-15.9 ms); frame ids are the positions ``0..N-1`` after association (and after the GT
-  restriction below).
+  fr1/xyz 8.4 ms before the RGB one in the median, 5-95 % 3.6-15.9 ms); frame ids are the
+  positions ``0..N-1`` after association (and after the GT restriction below).
 * **Ground truth** (motion capture, ~100 Hz) is interpolated to the RGB timestamps: linear
   in position, Slerp in rotation. Frames before the first or after the last GT sample
   have no GT: if *some* frames lie inside the GT time span, the sequence is restricted to
@@ -42,6 +42,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from ctcvo.data.errors import DataError, FormatError
 from ctcvo.data.formats import read_tum, read_tum_rows
+from ctcvo.data.sensor import KINECT_V1_READOUT_S, Sensor
 from ctcvo.data.sequence import Intrinsics, Sequence, read_depth, read_rgb
 from ctcvo.data.sevenscenes import read_intrinsics_file
 
@@ -49,6 +50,8 @@ log = logging.getLogger(__name__)
 
 #: Raw depth units per metre in TUM RGB-D depth PNGs.
 DEPTH_SCALE = 5000.0
+#: The Freiburg Kinects as recorded: depth registered to colour, Kinect v1's row readout.
+SENSOR = Sensor(None, KINECT_V1_READOUT_S, synchronous=False, depth_scale=DEPTH_SCALE)
 #: Default RGB-to-depth association window, seconds (as in TUM's associate.py).
 MAX_ASSOC_DT = 0.02
 #: GT samples further apart than this (s) around a frame are reported as a GT gap. The
@@ -224,7 +227,7 @@ class TumSequence(Sequence):
         self._rgb_files = rgb_files
         self._depth_files = depth_files
         ids = np.arange(len(times), dtype=np.int64)
-        super().__init__(name or folder.resolve().name, intr, times, ids, gt, depth_times)
+        super().__init__(name or folder.resolve().name, intr, times, ids, gt, depth_times, sensor=SENSOR)
 
     def _read_rgb(self, pos: int) -> NDArray[np.uint8]:
         return read_rgb(self.root / self._rgb_files[pos], self.intrinsics)

@@ -7,6 +7,7 @@ import math
 from dataclasses import asdict, dataclass, replace
 
 from ctcvo.data.errors import ConfigError
+from ctcvo.data.sensor import ColourCamera
 
 DENSE_METHODS = ("auto", "hybrid", "point-to-plane")
 COLOUR_CAMERAS = ("auto", "registered", "kinect-v1")
@@ -79,3 +80,11 @@ TINY = TeacherConfig(gaps=2, n_features=800)
 #: without the robust refinement, the dense step and the rolling shutter correction.
 PAPER = replace(DEFAULT, refine=False, dense=False, rolling_shutter_s=0.0)
 PRESETS = {"default": DEFAULT, "tiny": TINY, "paper": PAPER}
+
+
+def dense_method(cfg: TeacherConfig, colour: ColourCamera | None) -> str:
+    """``cfg.dense_method`` resolved for a colour camera model: ``auto`` is ``hybrid`` for a
+    synchronous one (:attr:`ColourCamera.synchronous`), else ``point-to-plane``."""
+    if cfg.dense_method != "auto":
+        return cfg.dense_method
+    return "hybrid" if colour is not None and colour.synchronous else "point-to-plane"

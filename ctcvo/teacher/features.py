@@ -10,8 +10,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from ctcvo.teacher.colour import ColourCamera, dense_method
-from ctcvo.teacher.config import TeacherConfig
+from ctcvo.data.sensor import ColourCamera
+from ctcvo.teacher.config import TeacherConfig, dense_method
 from ctcvo.teacher.maps import DEPTH_MAX, DEPTH_MIN, DenseMaps, dense_maps
 
 # 'the validation ranges': redkitchen 350:450 and synthetic/lab 0:150 (bench/README.md, seventh session)

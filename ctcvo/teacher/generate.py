@@ -20,7 +20,6 @@ ground truth), report.json, config.json.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import sys
 import threading
@@ -45,10 +44,10 @@ from ctcvo.data.metrics import relative_pose_error, trajectory_report
 from ctcvo.data.open3d_import import openmp_threads
 from ctcvo.data.runs import Fingerprint, claim, frames_id, output_folder, scene_id, stage_dir, write_fingerprint
 from ctcvo.data.scenes import open_scene
+from ctcvo.data.sensor import KINECT_V1_COLOUR, ColourCamera, Sensor
 from ctcvo.data.sequence import Sequence
 from ctcvo.teacher import processes
-from ctcvo.teacher.colour import KINECT_V1_COLOUR, KINECT_V1_READOUT_S, ColourCamera
-from ctcvo.teacher.config import TeacherConfig
+from ctcvo.teacher.config import TeacherConfig, dense_method
 from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb
 from ctcvo.teacher.maps import PhotoMaps
 from ctcvo.teacher.record import EdgeEstimate
@@ -172,8 +171,8 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     k_end = min(n, k1 + cfg.gaps)
     edges: list[EdgeEstimate] = []
     orb = make_orb(cfg)
-    colour = colour_camera_for(seq, cfg)  # it also picks the dense step's method (dense_method_for)
-    cfg = dataclasses.replace(cfg, rolling_shutter_s=rolling_shutter_for(seq, cfg))
+    colour = colour_camera_for(seq.sensor, cfg)  # it also picks the dense step's method (dense_method_for)
+    cfg = dataclasses.replace(cfg, rolling_shutter_s=rolling_shutter_for(seq.sensor, cfg))
 
     def _extract(k: int) -> FrameFeatures:
         return extract(seq.rgb(k), seq.depth(k), cfg, orb, intr.K, colour)  # one thread uses this ORB
@@ -259,88 +258,31 @@ def _photo_before(seq: Sequence, k: int, cfg: TeacherConfig, orb, colour: Colour
     return (photo if grey else photo.depth_only()), behind
 
 
-def colour_camera_for(seq: Sequence, cfg: TeacherConfig) -> ColourCamera | None:
-    """The colour camera model ``cfg.colour_camera`` names for ``seq`` (None: registered).
-
-    ``auto``: a synthetic scene (a 7-Scenes-layout folder whose parent holds the renderer's
-    ``config.json``) gets its own sensor model's ``rgb_*`` fields (registered when
-    noise-free); another 7-Scenes-layout folder the Kinect v1 fit; anything else (TUM RGB-D,
-    whose depth is registered to colour) none."""
-    from ctcvo.data.errors import ConfigError
-
+def colour_camera_for(sensor: Sensor, cfg: TeacherConfig) -> ColourCamera | None:
+    """The colour camera model ``cfg.colour_camera`` names (None: registered); ``auto``: the
+    sensor's own (``Sequence.sensor``, set by its reader)."""
     if cfg.colour_camera == "registered":
         return None
     if cfg.colour_camera == "kinect-v1":
         return KINECT_V1_COLOUR
-    if cfg.colour_camera != "auto":
-        raise ConfigError(f"colour_camera must be auto, registered or kinect-v1, got {cfg.colour_camera!r}")
-    from ctcvo.data.sevenscenes import SevenScenesSequence
-
-    if not isinstance(seq, SevenScenesSequence):
-        return None
-    return colour_camera_of_folder(Path(seq.root))
+    return sensor.colour
 
 
-def rolling_shutter_for(seq: Sequence | None, cfg: TeacherConfig) -> float:
-    """``cfg.rolling_shutter_s`` for ``seq``, auto (None) resolved: a synthetic scene's (a
-    7-Scenes-layout folder whose parent holds the renderer's ``config.json``) own sensor
-    model's readout, 0 when noise-free; any other recording Kinect v1's (:data:`KINECT_V1_READOUT_S`)."""
-    from ctcvo.data.errors import ConfigError
-
-    if cfg.rolling_shutter_s is not None:
-        if not (np.isfinite(cfg.rolling_shutter_s) and 0.0 <= cfg.rolling_shutter_s < 1.0):
-            raise ConfigError(f"rolling_shutter_s must be in [0, 1) s, got {cfg.rolling_shutter_s!r}")
-        return float(cfg.rolling_shutter_s)
-    from ctcvo.data.sevenscenes import SevenScenesSequence
-
-    if isinstance(seq, SevenScenesSequence):
-        return rolling_shutter_of_folder(Path(seq.root))
-    return KINECT_V1_READOUT_S
+def rolling_shutter_for(sensor: Sensor, cfg: TeacherConfig) -> float:
+    """``cfg.rolling_shutter_s``, auto (None) resolved: the sensor's own readout
+    (``Sequence.sensor``: a synthetic scene's sensor model's, 0 when noise-free; Kinect v1's,
+    :data:`data.sensor.KINECT_V1_READOUT_S`, for real recordings)."""
+    return sensor.readout_s if cfg.rolling_shutter_s is None else float(cfg.rolling_shutter_s)
 
 
-def rolling_shutter_of_folder(seq_dir: Path) -> float:
-    """Auto's readout for a 7-Scenes-layout sequence folder (see :func:`rolling_shutter_for`)."""
-    return _from_rendered_sensor(
-        seq_dir, lambda sensor: 0.0 if sensor["noise_free"] else float(sensor["rolling_shutter_s"]), KINECT_V1_READOUT_S)
-
-
-def dense_method_for(seq: Sequence, cfg: TeacherConfig) -> str:
-    """The dense step's method for ``seq``: ``cfg.dense_method``, with ``auto`` resolved by
-    the colour camera model ``colour_camera_for`` picks (:func:`teacher.colour.dense_method`):
+def dense_method_for(sensor: Sensor, cfg: TeacherConfig) -> str:
+    """The dense step's method: ``cfg.dense_method``, with ``auto`` resolved by the colour
+    camera model ``colour_camera_for`` picks (:func:`teacher.config.dense_method`):
     ``hybrid`` for a synthetic scene's sensor model (colour and depth exposed at the same
     instant), ``point-to-plane`` otherwise (real Kinect v1 recordings: 7-Scenes, whose
     ground truth follows the depth while the colour is exposed at other times, TUM RGB-D;
     noise-free synthetic scenes, whose colour needs no model)."""
-    from ctcvo.data.errors import ConfigError
-    from ctcvo.teacher.colour import dense_method
-
-    if cfg.dense_method not in ("auto", "hybrid", "point-to-plane"):
-        raise ConfigError(f"dense_method must be auto, hybrid or point-to-plane, got {cfg.dense_method!r}")
-    return dense_method(cfg, colour_camera_for(seq, cfg))
-
-
-def _from_rendered_sensor(seq_dir: Path, read: Callable[[dict], object], default: object) -> object:
-    """``read`` of the sensor model of the synthetic scene whose 7-Scenes-layout folder is
-    ``seq_dir`` (the renderer's ``config.json`` one level up); ``default`` for a real 7-Scenes
-    folder (no such file, or not a synthetic scene's config)."""
-    rendered = Path(seq_dir).parent / "config.json"
-    if rendered.is_file():
-        try:
-            return read(json.loads(rendered.read_text())["config"]["sensor"])
-        except (ValueError, KeyError, TypeError):
-            pass  # not a synthetic scene's config: a real 7-Scenes folder
-    return default
-
-
-def colour_camera_of_folder(seq_dir: Path) -> ColourCamera | None:
-    """``auto``'s choice for a 7-Scenes-layout sequence folder (see :func:`colour_camera_for`)."""
-    def read(sensor: dict) -> ColourCamera | None:
-        if sensor["noise_free"]:
-            return None
-        return ColourCamera(float(sensor["rgb_focal_scale"]), tuple(map(float, sensor["rgb_shift_px"])),
-                            float(sensor["rgb_baseline_m"]), synchronous=True)
-
-    return _from_rendered_sensor(seq_dir, read, KINECT_V1_COLOUR)
+    return dense_method(cfg, colour_camera_for(sensor, cfg))
 
 
 def chain_trajectory(ids: NDArray[np.int64], edges: list[EdgeEstimate]) -> tuple[NDArray[np.float64], list[dict]]:
@@ -407,7 +349,7 @@ def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
         "edge_paths": dict(sorted(Counter(e.diag.path for e in run.edges).items())),
         "gap1_edge_paths": dict(sorted(Counter(e.diag.path for e in run.edges
                                                if _gap(seq, e) == 1).items())),
-        "dense_method": dense_method_for(seq, cfg) if cfg.dense else "none",
+        "dense_method": dense_method_for(seq.sensor, cfg) if cfg.dense else "none",
         "fps": n / run.seconds if run.seconds > 0 else float("nan"),
         "seconds": run.seconds,
     }

@@ -27,7 +27,6 @@ import sys
 import time
 import uuid
 from pathlib import Path
-from typing import Optional
 
 import cv2
 import numpy as np
@@ -39,6 +38,7 @@ from ctcvo.data.errors import ConfigError, DataError
 from ctcvo.data.geometry import relative_pose, se3_log
 from ctcvo.data.io import ensure_dir, git_revision, write_json, write_text
 from ctcvo.data.sequence import Sequence
+from ctcvo.data.sevenscenes import SevenScenesSequence
 from ctcvo.data.synthetic.config import (
     PRESETS,
     RENDER_VERSION,
@@ -97,8 +97,6 @@ def synthetic_sequence(name: str, cache_dir: Path | None = None, config: SceneCo
     ``config`` overrides the preset's config (the cache folder is still named after ``name``
     plus the config hash). Unknown names raise :class:`DataError` listing the known ones.
     """
-    from ctcvo.data.sevenscenes import SevenScenesSequence
-
     if config is None:
         try:
             config = resolve_preset(name)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from ctcvo.data.synthetic import textures as tx
+import ctcvo.data.synthetic.textures as tx
 from ctcvo.data.synthetic.textures import Material
 
 

@@ -1,4 +1,7 @@
-"""The colour camera model of an RGB-D sensor, and the dense method it implies."""
+"""What a reader knows about the camera that recorded a sequence (:class:`Sensor`): how
+its colour pixels map onto the depth camera's, how long its rows take to read out, whether
+colour and depth are exposed together, and the raw depth units per metre. Each reader sets
+``Sequence.sensor``; the stages read it instead of guessing from the folder."""
 
 from __future__ import annotations
 
@@ -7,8 +10,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-
-from ctcvo.teacher.config import TeacherConfig
 
 
 @dataclass(frozen=True)
@@ -67,18 +68,21 @@ class ColourCamera:
 #: synthetic sensor model (data/synthetic/config.py: ``rgb_focal_scale``, ``rgb_shift_px``,
 #: ``rgb_baseline_m``)
 KINECT_V1_COLOUR = ColourCamera(0.91, (-3.5, -1.0), 0.016)
-
-
 #: Kinect v1's row readout, top to bottom (s): its free-running 30 Hz sensors read out over
 #: most of the frame period; the synthetic sensor model's ``rolling_shutter_s``
 #: (``TeacherConfig.rolling_shutter_s``'s auto value for real recordings)
 KINECT_V1_READOUT_S = 0.027
 
 
-def dense_method(cfg: TeacherConfig, colour: ColourCamera | None) -> str:
-    """``cfg.dense_method`` resolved for a colour camera model: ``auto`` is ``hybrid`` for a
-    synchronous one (:attr:`ColourCamera.synchronous`), else ``point-to-plane``."""
-    if cfg.dense_method != "auto":
-        return cfg.dense_method
-    return "hybrid" if colour is not None and colour.synchronous else "point-to-plane"
+@dataclass(frozen=True)
+class Sensor:
+    """The camera of a sequence, as its reader knows it."""
 
+    colour: ColourCamera | None
+    """How colour pixels map onto the depth camera's; None: colour registered to depth."""
+    readout_s: float
+    """Rolling-shutter readout of the rows, top to bottom, seconds (0: a global shutter)."""
+    synchronous: bool
+    """Colour and depth are exposed at the same instant (a synthetic scene's renderer)."""
+    depth_scale: float
+    """Raw depth units per metre in the recorded depth images."""
