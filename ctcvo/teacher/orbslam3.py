@@ -255,7 +255,7 @@ def edges_from(result: OrbResult, gaps: int = 5, use: str = "causal") -> list[Or
     poses = result.poses(use)
     ok, seg = result.ok, result.segments()
     have = np.isfinite(poses).all(axis=(1, 2))
-    changes = np.concatenate([[0], np.cumsum(result.map_changed)])  # map changes reported after frames < k
+    changes = np.concatenate([[0], np.cumsum(result.map_changed)])  # changes[k]: map changes reported after frames < k
     ids, n = result.frame_ids, len(result.states)
     edges = []
     for a in range(n):
@@ -265,7 +265,7 @@ def edges_from(result: OrbResult, gaps: int = 5, use: str = "causal") -> list[Or
                 break
             pts = int(min(result.tracked_points[a], result.tracked_points[b]))
             status = _status(result.states, ok, seg, a, b)
-            if status == "ok" and use == "causal" and changes[b] != changes[a]:
+            if status == "ok" and use == "causal" and changes[b + 1] != changes[a]:  # a change after a, .., b
                 status = "map_changed"
             if status == "ok" and not (have[a] and have[b]):
                 status = "no_final_pose"
