@@ -147,9 +147,10 @@ def test_bad_inputs_are_one_line_errors(tmp_path, monkeypatch):
 
 
 # ---------------------------------------------------------------------------------- ORB-SLAM3 itself
-#: measured on synthetic/tiny (20 frames) with a k 6, L 3 vocabulary of its frames 0, 4, .. 16:
-#: ATE of the final trajectory about 1-2 mm over 4 runs; the bound leaves room for run-to-run spread
-TINY_ATE_BOUND_M = 0.01
+#: measured on synthetic/tiny (20 frames, its noisy sensor model) with a k 6, L 3 vocabulary of its
+#: frames 0, 4, .. 16: final-trajectory ATE 13.9-16.6 mm over 4 SLAM runs, 9.2 mm in localization
+#: mode (every run); about twice the worst, for ORB-SLAM3's run-to-run spread
+TINY_ATE_BOUND_M = 0.03
 #: measured on redkitchen 0:100 with a k 6, L 3 vocabulary of frames 0, 10, .. 90: ATE about 11 mm
 REDKITCHEN_ATE_BOUND_M = 0.03
 

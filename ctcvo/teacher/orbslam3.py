@@ -172,13 +172,23 @@ def run_orbslam3(seq: Sequence, vocabulary: Path, mode: str = "slam", settings: 
         slam = P.Slam(str(vocabulary), str(yaml), P.Sensor.RGBD, use_viewer=False)
         res = _track(slam, seq, mode)
         slam.shutdown()
-        res.T_world_cam_final = _final_poses(slam, Path(tmp) / "final.tum", res)
+        if _has_keyframes(res.states):
+            res.T_world_cam_final = _final_poses(slam, Path(tmp) / "final.tum", res)
     res.seconds = time.perf_counter() - start
     res.log = out.text
     if not res.ok.any():
         raise VOError(f"{seq.name}: ORB-SLAM3 never initialised ({len(seq)} frames; states "
                       f"{dict(Counter(res.states))})")
+    if not np.isfinite(res.T_world_cam_final).any():
+        log.warning("%s: ORB-SLAM3 ended without a map (reset after a loss): no final trajectory", seq.name)
     return res
+
+
+def _has_keyframes(states: list[str]) -> bool:
+    """Whether ORB-SLAM3 surely ends with keyframes: a frame tracked OK after the last fresh start
+    (saving a trajectory without any keyframe crashes it)."""
+    fresh = [k for k, s in enumerate(states) if s in _FRESH]
+    return "OK" in states[(fresh[-1] + 1) if fresh else 0:]
 
 
 def _track(slam, seq: Sequence, mode: str) -> OrbResult:
