@@ -134,6 +134,8 @@ def _edited(lines: list[str], line: int, field: int | None, value: str | None) -
     (3, 1, "2", "leaf flag"),
     (2, 0, "7", "parent id"),
     (3, 0, "x", "integers"),
+    (3, 0, "-1", "integers"),
+    (3, 34, "w", "weight must be a number"),
     (3, 34, "nan", "finite"),
 ])
 def test_malformed_files_give_one_line_format_errors(orb_vocab, tmp_path, line, field, value, why):

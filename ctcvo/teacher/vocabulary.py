@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import os
+import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -229,26 +230,28 @@ def read_vocabulary(path: Path) -> Vocabulary:
         raise FormatError(f"{path}:1: k {k} must be 1..{MAX_K}, L {levels} 1..{MAX_LEVELS}, scoring 0..5, weighting 0..3")
     if len(lines) < 2:
         raise FormatError(f"{path}: no nodes after the header")
-    rows = []
+    weights_text = []
     for lineno, line in enumerate(lines[1:], 2):
         toks = line.split()
         if len(toks) != _FIELDS:
             why = " (an empty last line: DBoW2 reads a trailing newline as a bogus node)" if not toks else ""
             raise FormatError(f"{path}:{lineno}: a node needs {_FIELDS} fields 'parent isLeaf d0..d31 weight', "
                               f"got {len(toks)}{why}")
-        rows.append(toks)
-    table = np.array(rows)
+        if not "".join(toks[:-1]).isdigit():
+            raise FormatError(f"{path}:{lineno}: parent, leaf flag and descriptor bytes must be integers >= 0")
+        weights_text.append(toks[-1])
     try:
-        ints = table[:, :-1].astype(np.int64)
-        weights = table[:, -1].astype(np.float64)
+        weights = np.array([float(t) for t in weights_text])
     except ValueError:
-        bad = next(n for n, r in enumerate(rows) if not _numeric(r))
-        raise FormatError(f"{path}:{bad + 2}: parent, leaf flag and descriptor bytes must be integers, "
-                          "the weight a number") from None
-    ids = np.arange(1, len(rows) + 1)
+        bad = next(n for n, t in enumerate(weights_text) if not _is_float(t))
+        raise FormatError(f"{path}:{bad + 2}: the weight must be a number, got {weights_text[bad]!r}") from None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # numpy's note on a token it cannot read
+        ints = np.fromstring(" ".join(line.rsplit(None, 1)[0] for line in lines[1:]), dtype=np.int64, sep=" ")
+    ints = ints.reshape(len(lines) - 1, _FIELDS - 1)
+    ids = np.arange(1, len(lines))
     checks = [
         (ints[:, 0] >= ids, "parent id must be a node before this one"),
-        ((ints[:, 0] < 0), "parent id must be >= 0"),
         ((ints[:, 1] != 0) & (ints[:, 1] != 1), "leaf flag must be 0 or 1"),
         (((ints[:, 2:] < 0) | (ints[:, 2:] > 255)).any(axis=1), "descriptor bytes must be 0..255"),
         (~np.isfinite(weights) | (weights < 0), "weight must be a finite number >= 0"),
@@ -263,10 +266,9 @@ def read_vocabulary(path: Path) -> Vocabulary:
     return Vocabulary(k, levels, parents, is_leaf, descriptors, np.concatenate([[0.0], weights]), scoring, weighting)
 
 
-def _numeric(toks: list[str]) -> bool:
+def _is_float(t: str) -> bool:
     try:
-        [int(t) for t in toks[:-1]]
-        float(toks[-1])
+        float(t)
     except ValueError:
         return False
     return True
