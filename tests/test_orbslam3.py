@@ -198,3 +198,15 @@ def test_orbslam3_on_real_redkitchen(redkitchen, tmp_path):
     assert run.ok.all()
     rep = O.build_report(seq, run, O.edges_from(run, gaps=5, use="final"), "final")
     assert rep["ate_rmse_m"] < REDKITCHEN_ATE_BOUND_M and rep["failed_edges"] == 0
+
+
+def test_final_trajectory_rows_match_frames_by_timestamp(tmp_path):
+    path = tmp_path / "final.tum"
+    path.write_text("# ORB-SLAM3\n1.000000 0 0 0 0 0 0 1\n2.000000 1 0 0 0 0 0 1\n2.000000 2 0 0 0 0 0 1\n"
+                    "3.000001 0 1 0 0 0 0 1\n3.000001 0 1 0 0 0 0 1")
+    poses = O._match_rows(path, np.array([1.0, 2.0, 3.0000012, 4.0]))
+    assert np.isfinite(poses[[0, 2]]).all() and np.isnan(poses[[1, 3]]).all()  # 2.0: listed twice, differently
+    assert poses[2, 1, 3] == 1.0
+    path.write_text("1.0 0 0 0 0 0 1")
+    with pytest.raises(FormatError, match="8 finite numbers"):
+        O._match_rows(path, np.array([1.0]))

@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from ctcvo.data import geometry as geo
 from ctcvo.data.errors import ConfigError, DataError, FormatError, VOError
-from ctcvo.data.formats import Edge, Trajectory, read_tum_rows, write_edges_csv, write_g2o, write_tum
+from ctcvo.data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
 from ctcvo.data.io import ensure_dir, git_revision, json_safe, write_json
 from ctcvo.data.metrics import relative_pose_error, trajectory_report
 from ctcvo.data.sequence import Sequence
@@ -238,15 +238,22 @@ def _final_poses(slam, path: Path, res: OrbResult) -> NDArray[np.float64]:
 
 
 def _match_rows(path: Path, timestamps: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Poses of ORB-SLAM3's TUM file at ``timestamps`` (it writes them with 6 decimals)."""
-    rows = read_tum_rows(path, "timestamp tx ty tz qx qy qz qw", "poses", numbers=8)
-    t = np.array([v[0] for _, _, v in rows])
+    """Poses of ORB-SLAM3's TUM file at ``timestamps`` (it writes them with 6 decimals), NaN for a
+    frame it lacks, or lists twice with different poses (seen once on fr1/xyz)."""
+    try:
+        rows = np.loadtxt(path, ndmin=2, comments="#")
+    except ValueError as exc:
+        raise FormatError(f"ORB-SLAM3's trajectory {path}: {exc}") from None
+    if rows.size and (rows.shape[1] != 8 or not np.isfinite(rows).all()):
+        raise FormatError(f"ORB-SLAM3's trajectory {path}: rows must be 8 finite numbers 'timestamp tx ty tz qx qy qz qw'")
+    rows = rows[np.argsort(rows[:, 0], kind="stable")] if rows.size else np.zeros((0, 8))
+    lo = np.searchsorted(rows[:, 0], timestamps - 5e-6)
+    hi = np.searchsorted(rows[:, 0], timestamps + 5e-6)
     poses = np.full((len(timestamps), 4, 4), np.nan)
-    at = np.clip(np.searchsorted(t, timestamps), 0, len(t) - 1)
-    for k, ts in enumerate(timestamps):
-        for c in (at[k] - 1, at[k]):
-            if 0 <= c < len(t) and abs(t[c] - ts) < 5e-6:
-                poses[k] = geo.orthonormalize(geo.tum_to_T(rows[c][2][1:]))
+    for k in np.flatnonzero(hi > lo):
+        match = rows[lo[k]:hi[k], 1:]
+        if np.all(match == match[0]):
+            poses[k] = geo.orthonormalize(geo.tum_to_T(match[0]))
     return poses
 
 
