@@ -132,7 +132,7 @@ def test_bad_inputs_are_one_line_errors(tmp_path, monkeypatch):
     V.write_vocabulary(V.build_vocabulary([np.arange(64, dtype=np.uint8).reshape(2, 32)], k=2, levels=1), vocab)
     with pytest.raises(ConfigError, match="mode"):
         O.run_orbslam3(seq, vocab, mode="mapping")
-    with pytest.raises(DataError, match="no valid depth"):
+    with pytest.raises(DataError, match="no valid depth in the first 10 frames"):
         O.run_orbslam3(_flat_sequence(depth=0.0), vocab)
     real_import = builtins.__import__
 

@@ -49,6 +49,8 @@ _FRESH = ("NOT_INITIALIZED", "NO_IMAGES_YET", "SYSTEM_NOT_READY")
 #: how long to wait, after shutdown, for the final trajectory to stop changing: ORB-SLAM3
 #: v1.0's shutdown returns before its threads finish (/work/shared/ORBSLAM3.md)
 FINAL_WAIT_S, FINAL_POLL_S = 30.0, 0.5
+#: frames looked at for valid depth before starting (a recording without depth is an error)
+DEPTH_CHECK_FRAMES = 10
 
 # Per-gap covariance model, a diagonal in the project tangent order (v, w): sigma(g) =
 # sigma_gap1 * g ** GAP_EXPONENT, times sqrt(POINTS_REF / tracked map points) clipped to
@@ -164,8 +166,9 @@ def run_orbslam3(seq: Sequence, vocabulary: Path, mode: str = "slam", settings: 
     read_vocabulary(vocabulary)  # a malformed file would crash ORB-SLAM3's reader
     if settings is not None and not Path(settings).is_file():
         raise ConfigError(f"ORB-SLAM3 settings file {settings} not found")
-    if not np.any(seq.depth(0) > 0):
-        raise DataError(f"{seq.name}: the first frame has no valid depth (ORB-SLAM3 RGB-D needs depth)")
+    if not any(np.any(seq.depth(k) > 0) for k in range(min(len(seq), DEPTH_CHECK_FRAMES))):
+        raise DataError(f"{seq.name}: no valid depth in the first {min(len(seq), DEPTH_CHECK_FRAMES)} frames "
+                        "(ORB-SLAM3 RGB-D needs depth)")
     P = _import_pyorbslam3()
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="orbslam3-") as tmp, _Stdout() as out:
@@ -173,8 +176,10 @@ def run_orbslam3(seq: Sequence, vocabulary: Path, mode: str = "slam", settings: 
         if settings is None:
             yaml.write_text(settings_yaml(seq, n_features))
         slam = P.Slam(str(vocabulary), str(yaml), P.Sensor.RGBD, use_viewer=False)
-        res = _track(slam, seq, mode)
-        slam.shutdown()
+        try:
+            res = _track(slam, seq, mode)
+        finally:
+            slam.shutdown()
         if _has_keyframes(res.states):
             res.T_world_cam_final = _final_poses(slam, Path(tmp) / "final.tum", res)
     res.seconds = time.perf_counter() - start
