@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from ctcvo.data import geometry as geo
 from ctcvo.data.errors import ConfigError, DataError, FormatError, VOError
 from ctcvo.data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
-from ctcvo.data.io import ensure_dir, git_revision, json_safe, write_json
+from ctcvo.data.io import ensure_dir, git_revision, json_safe, write_json, write_text
 from ctcvo.data.metrics import relative_pose_error, trajectory_report
 from ctcvo.data.sequence import Sequence
 from ctcvo.teacher.orbslam3_settings import settings_yaml
@@ -385,7 +385,7 @@ def write_outputs(out_dir: Path, seq: Sequence, result: OrbResult, edges: list[O
     gt = seq.groundtruth()
     if gt is not None:
         write_tum(out / "groundtruth.tum", Trajectory(times, gt))
-    (out / "orbslam3.log").write_text(result.log)
+    write_text(out / "orbslam3.log", result.log)
     write_json(out / "config.json", {"backend": "orbslam3", "mode": result.mode, "labels": use,
                                      "git_revision": git_revision(), **(extra or {})})
     report = build_report(seq, result, edges, use)
