@@ -31,8 +31,8 @@ log = logging.getLogger(__name__)
 DESCRIPTOR_BYTES = 32
 #: DBoW2's limits on the branching factor and depth (``loadFromTextFile`` refuses more)
 MAX_K, MAX_LEVELS = 20, 10
-#: most Lloyd iterations of one k-medians step; a step that has not converged by then
-#: takes its last centroids' nearest assignment (measured: most steps converge in < 20)
+#: most Lloyd iterations of one k-medians step (DBoW2 has no cap); a step that has not
+#: converged by then takes its last centroids' nearest assignment, so descent still agrees
 MAX_ITERATIONS = 50
 _FIELDS = 2 + DESCRIPTOR_BYTES + 1  # parent, leaf flag, descriptor bytes, weight
 
