@@ -210,3 +210,44 @@ def test_final_trajectory_rows_match_frames_by_timestamp(tmp_path):
     path.write_text("1.0 0 0 0 0 0 1")
     with pytest.raises(FormatError, match="8 finite numbers"):
         O._match_rows(path, np.array([1.0]))
+
+
+@pytest.mark.slow
+def test_cli_builds_a_vocabulary_labels_with_orbslam3_and_keeps_a_finished_run(tiny, tmp_path, capsys):
+    from ctcvo.cli import main
+
+    voc = tmp_path / "voc.txt"
+    assert main(["teacher", "vocabulary", "--scene", "synthetic/tiny", "--frames", "0:20:4", "--out", str(voc),
+                 "--k", "6", "--levels", "3"]) == 0
+    assert V.read_vocabulary(voc).words > 6 and not voc.read_bytes().endswith(b"\n")
+    src = json.loads((tmp_path / "voc.txt.json").read_text())["sources"]
+    assert src == [{"scene": "synthetic/tiny", "sequence": src[0]["sequence"], "frames": "0..16 (5 frames, step 4)"}]
+
+    out = tmp_path / "orb"
+    argv = ["teacher", "generate", "--scene", "synthetic/tiny", "--backend", "orbslam3", "--vocabulary", str(voc),
+            "--gaps", "3", "--out", str(out)]
+    assert main(argv) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["backend"] == "orbslam3" and rep["labels"] == "final" and rep["deterministic"] is False
+    assert rep["ate_rmse_m"] < TINY_ATE_BOUND_M
+    edges, _ = read_g2o(out / "edges.g2o")
+    assert {e.j - e.i for e in edges} == {1, 2, 3}
+    before = {f.name: f.stat().st_mtime_ns for f in out.iterdir()}
+    assert main(argv) == 0  # a finished run of the same inputs is kept, not redone
+    assert {f.name: f.stat().st_mtime_ns for f in out.iterdir()} == before
+
+
+def test_cli_orbslam3_bad_input_is_one_line(tmp_path, capsys):
+    from ctcvo.cli import main
+
+    base = ["teacher", "generate", "--scene", "synthetic/tiny", "--backend", "orbslam3", "--out", str(tmp_path / "o")]
+    assert main(base) == 1
+    assert capsys.readouterr().err.strip() == ("error: --backend orbslam3 needs --vocabulary FILE "
+                                               "(build one with `ctcvo teacher vocabulary`)")
+    bad = tmp_path / "voc.txt"
+    bad.write_text("10 5 0 0\n0 0 1 2 3")
+    assert main([*base, "--vocabulary", str(bad)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and str(bad) in err[0]
+    assert main(["teacher", "generate", "--scene", "synthetic/tiny", "--vocabulary", str(bad)]) == 1
+    assert "options of --backend orbslam3" in capsys.readouterr().err

@@ -1,4 +1,5 @@
-"""``teacher`` console script: a thin wrapper around teacher.generate.generate."""
+"""``ctcvo teacher``: thin wrappers around teacher.generate.generate (our odometry), the
+ORB-SLAM3 backend and the ORB vocabulary builder (teacher.orbslam3_generate)."""
 
 from __future__ import annotations
 
@@ -36,11 +37,39 @@ def build_parser() -> argparse.ArgumentParser:
                    help="worker processes (default: the preset's, 2)")
     g.add_argument("--overwrite", action="store_true",
                    help="replace outputs of other inputs instead of stopping with an error")
+    orb = g.add_argument_group("ORB-SLAM3 backend (--backend orbslam3; needs `pip install ctcvo[orbslam3]`, GPL-3.0)")
+    orb.add_argument("--backend", default="ours", choices=["ours", "orbslam3"],
+                     help="ours: this project's odometry; orbslam3: ORB-SLAM3 RGB-D through pyorbslam3")
+    orb.add_argument("--vocabulary", type=Path, help="DBoW2 text vocabulary (`ctcvo teacher vocabulary`, or ORBvoc.txt)")
+    orb.add_argument("--mode", default="slam", choices=["slam", "localization"],
+                     help="localization: mapping stops after the first tracked frame")
+    orb.add_argument("--labels", default="final", choices=["final", "causal"],
+                     help="relative poses from the keyframe-refined trajectory or the per-frame causal poses "
+                          "(final: better on fr3/teddy, level on redkitchen 350:450)")
+    orb.add_argument("--orb-settings", type=Path, help="your own ORB-SLAM3 YAML (default: from the sequence)")
+    orb.add_argument("--orb-features", type=int, default=1000, help="ORB features per frame")
     add_topic_options(g)
+    v = add_command(sub, "vocabulary", "build an ORB vocabulary (DBoW2 text format) from training frames",
+                    "Build a DBoW2 text vocabulary (ORB-SLAM's ORBvoc.txt format) by hierarchical k-medians on the ORB "
+                    "descriptors of the given frames. Never build it from test frames: it is a trained model.")
+    v.add_argument("--scene", action="append", required=True, help="a scene (repeat for several)")
+    v.add_argument("--frames", action="append", default=None,
+                   help="frame range START:STOP[:STEP], once for every scene or once per --scene (default: all)")
+    v.add_argument("--out", type=Path, required=True, help="vocabulary file to write")
+    v.add_argument("--k", type=int, default=10, help="branching factor (DBoW2 allows <= 20)")
+    v.add_argument("--levels", type=int, default=5, help="depth of the tree (DBoW2 allows <= 10)")
+    v.add_argument("--features", type=int, default=1000, help="ORB features per frame")
+    v.add_argument("--seed", type=int, default=0, help="seed of the k-means++ seeding")
     return p
 
 
 def _generate(args: argparse.Namespace) -> int:
+    if args.backend == "orbslam3":
+        return _generate_orbslam3(args)
+    if args.vocabulary is not None or args.orb_settings is not None:
+        from ctcvo.data.errors import ConfigError
+
+        raise ConfigError("--vocabulary and --orb-settings are options of --backend orbslam3")
     cfg = PRESETS[args.preset]
     if args.gaps is not None:
         cfg = dataclasses.replace(cfg, gaps=args.gaps)
@@ -55,9 +84,30 @@ def _generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _generate_orbslam3(args: argparse.Namespace) -> int:
+    from ctcvo.data.errors import ConfigError
+    from ctcvo.teacher.orbslam3_generate import generate_orbslam3
+
+    if args.vocabulary is None:
+        raise ConfigError("--backend orbslam3 needs --vocabulary FILE (build one with `ctcvo teacher vocabulary`)")
+    args.scene = scene_with_topics(args.scene, args)
+    generate_orbslam3(args.scene, args.vocabulary, args.out, args.split, args.frames,
+                      args.gaps if args.gaps is not None else PRESETS[args.preset].gaps, args.mode, args.labels,
+                      args.orb_settings, args.orb_features, args.overwrite)
+    return 0
+
+
+def _vocabulary(args: argparse.Namespace) -> int:
+    from ctcvo.teacher.orbslam3_generate import build_vocabulary_file
+
+    build_vocabulary_file(args.scene, args.out, args.frames or [None], args.k, args.levels, args.features, args.seed)
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return run(args, _generate, "interrupted (finished sequences are kept; rerun to resume)", fmt="%(message)s")
+    body = {"generate": _generate, "vocabulary": _vocabulary}[args.command]
+    return run(args, body, "interrupted (finished sequences are kept; rerun to resume)", fmt="%(message)s")
 
 
 if __name__ == "__main__":
