@@ -14,6 +14,7 @@ from ctcvo.data import geometry as geo
 from ctcvo.data.errors import ConfigError, DataError, FormatError, VOError
 from ctcvo.data.formats import read_edges_csv, read_g2o, read_tum
 from ctcvo.data.scenes import open_scene
+from ctcvo.data.sensor import Sensor
 from ctcvo.data.sequence import Intrinsics, Sequence
 from ctcvo.teacher import orbslam3 as O
 from ctcvo.teacher import vocabulary as V
@@ -26,7 +27,7 @@ class _ArraySequence(Sequence):
     def __init__(self, rgb: list[np.ndarray], depth: list[np.ndarray], fps: float = 30.0, gt=None):
         h, w = depth[0].shape
         super().__init__("arrays", Intrinsics(500.0, 501.0, w / 2, h / 2, w, h), np.arange(len(rgb)) / fps,
-                         np.arange(len(rgb)), gt)
+                         np.arange(len(rgb)), gt, sensor=Sensor(None, 0.0, True, 1.0))
         self._rgb, self._depth = rgb, depth
 
     def _read_rgb(self, pos: int) -> np.ndarray:
