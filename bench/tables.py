@@ -231,17 +231,38 @@ def summary_table(records: dict[str, dict]) -> list[str]:
                      f"{big['poses']} poses / {big['edges']} edges solved in {big['full_s']:.1f} s"])
     on = select(records, "online")
     if on:
-        x = next(iter(on.values()))["figures"]["rows"][0]
+        r = next(iter(on.values()))
+        x = r["figures"]["rows"][0]
         rows.append(["`ctcvo online`", "frames as they arrive -> a pose per frame, ISAM2-smoothed",
-                     f"{x['scene']}, gaps {x['online_gaps']}: {num(x['online_fps'])} fps, "
+                     f"{x['scene']}{frames_label(r['config'])}, gaps {x['online_gaps']}: {num(x['online_fps'])} fps, "
                      f"latency p95 {x['online_latency_ms']['p95']:.0f} ms"])
     return markdown(["command", "what it does", "measured (bench/results/)"], rows)
+
+
+def results_table(records: dict[str, dict]) -> list[str]:
+    """README.md's table of current results: the teacher beside its peers on the real recordings."""
+    recs = {n: r for n, r in select(records, "teacher").items()
+            if not r["figures"]["rows"][0]["scene"].startswith("synthetic/")}
+    if not recs:
+        return missing("python -m bench.teacher")
+    rows = []
+    for r in recs.values():
+        by = {x["method"].split()[0]: x for x in r["figures"]["rows"]}
+        cells = [f"{mm(x['rpe_trans_rmse_m'], 2)} / {num(x['rpe_rot_rmse_deg'], 3)} / {mm(x['ate_rmse_m'])}"
+                 if x else "-" for x in (by.get("this"), by.get("Open3D"), by.get("cv2.Odometry"))]
+        me = by["this"]
+        rows.append([scene_label(me["scene"]) + frames_label(r["config"]), *cells,
+                     f"{num(me['fps'])} ({num(me.get('fps_vs_open3d'))}x)"])
+    head = ["recording, frames", "teacher: gap-1 mm / deg / ATE mm", "Open3D hybrid", "OpenCV RGB_DEPTH",
+            "teacher fps (x Open3D)"]
+    return markdown(head, rows) + ["", "Records: " + ", ".join(f"`{n}`" for n in recs) + " (bench/README.md)."]
 
 
 TABLES: dict[str, Callable[[dict[str, dict]], list[str]]] = {
     "teacher": teacher_table, "online": online_table, "posegraph": posegraph_table, "learner": learner_table,
     "render": render_table, "synthetic-realism": realism_table, "ablation": ablation_table,
     "teacher-noise": noise_table, "demo": demo_table, "summary": summary_table,
+    "results": results_table,
 }
 
 
