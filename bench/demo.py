@@ -2,10 +2,12 @@
 its own, timed, with the test room's pose-graph rows recorded.
 
     .venv/bin/python -m bench.demo              # runs/bench/demo/runs/synthetic-*/..., from scratch
+    .venv/bin/python -m bench.demo --cache runs/bench/demo/cache   # as on a fresh machine: renders too
     .venv/bin/python -m bench.demo --keep       # keep that folder's finished stages (a rerun: seconds)
 
-The demo renders the synthetic rooms into the render cache (``$VO_CACHE_DIR``) when they are
-missing there; the record says which were. The record is ``bench/results/<name>.json``
+The demo renders the synthetic rooms into the render cache (``--cache``, default
+``$VO_CACHE_DIR`` or ``~/.cache/ctcvo``) when they are missing there; the record says which
+were there. The record is ``bench/results/<name>.json``
 (bench/record.py): wall and CPU time of the whole command and every row of the test room's
 ``posegraph/report.json``.
 """
@@ -15,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import resource
 import shutil
 import subprocess
@@ -28,24 +31,26 @@ ROOMS = ("office", "lab", "kitchen")
 ROW_KEYS = ("ate_rmse_m", "rpe_g1_trans_m", "rpe_g1_rot_deg", "rpe_1s_trans_m", "rpe_1s_rot_deg", "se3_l2_mean")
 
 
-def cached_rooms() -> list[str]:
-    """The demo's rooms already in the render cache."""
-    cache = Path(os.environ.get("VO_CACHE_DIR", Path.home() / ".cache" / "ctcvo")) / "synthetic"
-    return [r for r in ROOMS if any(cache.glob(f"{r}-*"))]
+def cached_rooms(cache: Path) -> list[str]:
+    """The demo's rooms already rendered in the render cache ``cache`` (``<room>-<8 hex digits>``)."""
+    names = [p.name for p in (cache / "synthetic").glob("*")] if (cache / "synthetic").is_dir() else []
+    return [r for r in ROOMS if any(re.fullmatch(rf"{r}-[0-9a-f]{{8}}", n) for n in names)]
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, help="working folder of the demo (default runs/bench/NAME)")
     ap.add_argument("--keep", action="store_true", help="keep the stages already finished there")
+    ap.add_argument("--cache", type=Path, default=Path(os.environ.get("VO_CACHE_DIR", Path.home() / ".cache" / "ctcvo")),
+                    help="render cache of the run (default $VO_CACHE_DIR or ~/.cache/ctcvo)")
     record.add_arguments(ap, "demo")
     args = ap.parse_args()
     work = args.out or record.RUNS / args.name
     if not args.keep:
         shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True, exist_ok=True)
-    rec = record.from_args(args, out=work, rooms_in_render_cache=cached_rooms())
-    env = {**os.environ, "PYTHONPATH": str(record.REPO)}
+    rec = record.from_args(args, out=work, rooms_in_render_cache=cached_rooms(args.cache))
+    env = {**os.environ, "PYTHONPATH": str(record.REPO), "VO_CACHE_DIR": str(args.cache.resolve())}
     t0, c0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
     with open(work / "demo.log", "w") as log:
         done = subprocess.run([sys.executable, "-m", "ctcvo", "demo"], cwd=work, env=env, stdout=log, stderr=log)
