@@ -229,9 +229,8 @@ def summary_table(records: dict[str, dict]) -> list[str]:
         big = max(pg["figures"]["sizes"], key=lambda x: (x["solver"] == "lm", x["poses"]))
         rows.append(["`ctcvo posegraph optimize`", "teacher + learner edges -> fused trajectory, ATE / RPE report",
                      f"{big['poses']} poses / {big['edges']} edges solved in {big['full_s']:.1f} s"])
-    on = select(records, "online")
-    if on:
-        r = next(iter(on.values()))
+    r = records.get("online-low-latency")
+    if r:
         x = r["figures"]["rows"][0]
         rows.append(["`ctcvo online`", "frames as they arrive -> a pose per frame, ISAM2-smoothed",
                      f"{x['scene']}{frames_label(r['config'])}, gaps {x['online_gaps']}: {num(x['online_fps'])} fps, "
