@@ -1,7 +1,5 @@
-"""Benchmarks (results and commands in bench/README.md).
+"""Benchmarks: each script writes its record ``bench/results/<name>.json`` (:mod:`bench.record`),
+and :mod:`bench.tables` makes bench/README.md's tables from those records.
 
-Run each as a module from the repository root, e.g. ``.venv/bin/python -m bench.teacher``:
-as modules of this package the scripts never shadow the packages they measure (a script
-run by path puts its folder first on ``sys.path``, where ``bench/teacher.py`` would hide
-the ``teacher`` package).
+Run each as a module from the repository root, e.g. ``.venv/bin/python -m bench.teacher``.
 """

@@ -13,19 +13,21 @@ Columns (all against the ground truth, metrics from :mod:`data.metrics` / evo):
 paper's ATE: mean and standard deviation of the ATE RMSE of sub-trajectories of
 ``--sub-length`` frames every ``--sub-stride`` frames, each aligned on its own (SE(3)
 Umeyama, no scale); gap-1 RPE; the paper's se(3) L2 error of the gap-1 relative poses; the
-MC-dropout covariance calibration keys of ``learner predict``. Results go to
-``--out``/ablation.json (with the load average after each variant) and are printed as
-Markdown tables. Beside every learned row stand the trivial baselines of
+MC-dropout covariance calibration keys of ``learner predict``. The runs go to ``--out``
+(default ``runs/bench/<name>``); the record ``bench/results/<name>.json`` (bench/record.py,
+rewritten after each variant, with the load average then) holds the rows, and stdout gets
+them as Markdown tables. Beside every learned row stand the trivial baselines of
 :func:`data.metrics.baseline_trajectories` on the test frames (computed once from the test
 ground truth): results ``zero_motion`` (the camera never moves) and ``constant_velocity``
 (each step repeats the previous true step), with the trajectory columns only.
 
-    .venv/bin/python -m bench.ablation --scene ../shared/data/7scenes/redkitchen/seq-sample \\
-        --test-frames 450:600 --teacher /tmp/rk/teacher --teacher-eval /tmp/rk/teacher \\
-        --val-scene ../shared/data/7scenes/redkitchen/seq-sample --val-frames 350:450 --frames 0:350 \\
-        --out /tmp/rk/runs
+    S=../shared/data/7scenes/redkitchen/seq-sample
+    .venv/bin/python -m ctcvo teacher generate --scene $S --out runs/rk/teacher
+    .venv/bin/python -m bench.ablation --scene $S --frames 0:350 --test-frames 450:600 \\
+        --teacher runs/rk/teacher --teacher-eval runs/rk/teacher --val-scene $S --val-frames 350:450 \\
+        --name ablation-redkitchen
     .venv/bin/python -m bench.ablation --scene synthetic/office --scene synthetic/lab \\
-        --test-scene synthetic/kitchen --steps 300 --out runs/ablation-synth
+        --test-scene synthetic/kitchen --steps 300 --name ablation-synthetic
 
 ``--init CKPT`` fine-tunes every variant from a checkpoint (e.g. one pretrained on the
 synthetic corpus) instead of training it from scratch.
@@ -42,8 +44,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bench import record
 from ctcvo.data.formats import Trajectory, read_tum
-from ctcvo.data.io import write_json
 from ctcvo.data.metrics import BASELINE_KEYS, associate, ate_rmse, baseline_trajectories, trajectory_report
 from ctcvo.data.scenes import open_scene
 from ctcvo.learner.config import INPUTS, VARIANTS, PredictConfig
@@ -123,8 +125,10 @@ def main() -> None:
     ap.add_argument("--reverse-prob", type=float, help="time-reversal augmentation (default: the preset's)")
     ap.add_argument("--sub-length", type=int, default=30, help="frames per sub-trajectory of the ATE mean +- std")
     ap.add_argument("--sub-stride", type=int, default=15, help="frames between sub-trajectory starts")
-    ap.add_argument("--out", type=Path, default=Path("runs/ablation"))
+    ap.add_argument("--out", type=Path, help="the variants' runs (default runs/bench/NAME)")
+    record.add_arguments(ap, "ablation")
     args = ap.parse_args()
+    args.out = args.out or record.RUNS / args.name
     if args.teacher is not None and len(args.scene) > 1:
         ap.error("--teacher needs a single --scene (several scenes read runs/<scene-slug>/teacher)")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -134,8 +138,7 @@ def main() -> None:
     if args.teacher_eval is not None:
         rows["teacher"] = teacher_row(args.teacher_eval, gt, args.sub_length, args.sub_stride)
     rows.update(baseline_rows(gt, args.sub_length, args.sub_stride))
-    meta = {"args": {k: str(x) for k, x in vars(args).items()}, "started": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
-            "torch_threads": torch.get_num_threads()}
+    rec = record.from_args(args, torch_threads=torch.get_num_threads())
     for v in args.variants:
         run = args.out / v
         t0, c0 = time.perf_counter(), time.process_time()
@@ -156,8 +159,8 @@ def main() -> None:
                    "final_loss": res.history[-1].get("windows_loss", res.history[-1].get("pairs_loss")),
                    "loadavg_1_5_15": [round(x, 2) for x in os.getloadavg()],
                    "finished": time.strftime("%H:%M:%S", time.gmtime())}
-        write_json(args.out / "ablation.json", {**meta, "results": rows})
-    write_json(args.out / "ablation.json", {**meta, "results": rows})
+        rec.finish({"rows": rows})
+    rec.finish({"rows": rows})
     print("| variant | ATE m (whole) | ATE m (sub-traj. mean +- std) | RPE trans m | RPE rot deg | se(3) L2 |")
     print("|---|---|---|---|---|---|")
     for v, r in rows.items():

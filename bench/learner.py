@@ -2,7 +2,7 @@
 MC-dropout prediction with K=10 >= 100 pairs/s). Random frames; no data needed.
 
     .venv/bin/python -m bench.learner                       # cpu preset, all cores
-    .venv/bin/python -m bench.learner --threads 1 --steps 8 --json out.json
+    .venv/bin/python -m bench.learner --threads 1 --steps 8 --name learner-cpu-1thread
     .venv/bin/python -m bench.learner --input flow           # with the optical-flow input
 
 Training runs the real training step of ``learner fit`` (:func:`learner.batches.pairs_step`
@@ -19,20 +19,20 @@ and counts encoder pairs per second. Prediction counts edges per second of
 samples of the heads). Each figure is given per wall-clock second and per CPU second
 of this process (``time.process_time``; on a busy machine the wall figure drops while the
 CPU figure holds, and ``threads x`` the CPU figure bounds what an idle machine gives).
+The record is ``bench/results/<name>.json`` (bench/record.py).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from bench import record
 from ctcvo.learner import loss as L
 from ctcvo.learner.batches import pair_batches, pairs_step, window_batches, windows_step
 from ctcvo.learner.config import FLOW_U_CHANNEL, INPUTS, PRESETS, PredictConfig
@@ -79,13 +79,14 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=200, help="frames of the random sequence")
     ap.add_argument("--samples", type=int, default=10, help="K, MC-dropout samples")
     ap.add_argument("--input", choices=list(INPUTS), help="encoder input (default: the preset's)")
-    ap.add_argument("--json", type=Path, help="also write the results here")
+    record.add_arguments(ap, "learner-cpu")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     p = PRESETS[args.preset]
     if args.input:
         p = dataclasses.replace(p, model=dataclasses.replace(p.model, input=args.input))
     m, t = p.model, p.train
+    rec = record.from_args(args, model=m, train=t)
     torch.manual_seed(0)
     net = CTCNet(m)
     with torch.no_grad():
@@ -139,9 +140,10 @@ def main() -> None:
     out.update(predict_pairs_per_s=len(edges.i) / wall, predict_pairs_per_cpu_s=len(edges.i) / cpu,
                predict_samples=args.samples, predict_edges=len(edges.i))
     res = {k: (round(v, 1) if isinstance(v, float) else v) for k, v in out.items()}
-    print(json.dumps(res, indent=2))
-    if args.json:
-        args.json.write_text(json.dumps(res, indent=2) + "\n")
+    print("| figure | pairs / s | pairs / CPU s |\n|---|---|---|")
+    for k in ("train_phase1", "train_phase2", "predict"):
+        print(f"| {k} | {res[f'{k}_pairs_per_s']} | {res[f'{k}_pairs_per_cpu_s']} |")
+    rec.finish(res)
 
 
 if __name__ == "__main__":

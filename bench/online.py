@@ -1,8 +1,8 @@
-"""Online mode benchmark: ``vo-online`` against the batch stages, side by side in one run.
+"""Online mode benchmark: ``ctcvo online`` against the batch stages, side by side in one run.
 
 For each scene, on the same frames:
 
-* **batch teacher** (``teacher generate``'s :func:`teacher.generate.run_sequence`, its
+* **batch teacher** (``ctcvo teacher generate``'s :func:`teacher.generate.run_sequence`, its
   default 2 worker processes): frames per second;
 * **online, teacher only, as fast as frames come** (every frame already on disk): sustained
   frames per second and per-frame latency (frame handed over by the source -> its pose
@@ -17,15 +17,17 @@ For each scene, on the same frames:
   it arrived), ISAM2 after the last frame, final (ISAM2 then the batch solve warm-started
   from it) - against batch ``posegraph optimize`` on the same edges (the online run's
   ``teacher/`` folder), as ratios; with a cheaper online teacher (``--gaps``) also against
-  batch ``posegraph optimize`` on the batch teacher's
-  own edges (``teacher generate``'s default), the figure the online run stands in for.
+  batch ``posegraph optimize`` on the batch teacher's own edges (``ctcvo teacher generate``'s
+  default), the figure the online run stands in for.
 
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.online [--checkpoint CKPT] [--frames 0:300]
-    OMP_NUM_THREADS=1 .venv/bin/python -m bench.online --frames 0:150 --gaps 3 --pose-after-gap1
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.online --frames 0:150 --gaps 3 --pose-after-gap1 --name online-low-latency
 
-Results go to stdout (a Markdown table) and to ``--json`` if given, with the machine's 1-min
-load average at the start and end of each scene and the cores the online run got (its CPU
-time over its wall time): on a shared machine the figures mean little without them.
+The record is ``bench/results/<name>.json`` (bench/record.py), with the machine's 1-min load
+average at the start and end of each scene and the cores the online run got (its CPU time
+over its wall time): on a shared machine the figures mean little without them. The runs'
+outputs go to ``--out`` (default ``runs/bench/<name>``; each scene's folder there is emptied
+first); stdout gets a Markdown table.
 """
 
 from __future__ import annotations
@@ -33,28 +35,25 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
-import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
-
-REPO = Path(__file__).resolve().parents[1]
 
 if __name__ == "__main__":  # as `teacher generate` does: its worker imports while this process does
     from ctcvo.teacher import processes
 
     processes.start()
 
-
+from bench import record  # noqa: E402
 from ctcvo.data import live  # noqa: E402
 from ctcvo.data.scenes import open_scene  # noqa: E402
 from ctcvo.data.sensor import KINECT_V1_READOUT_S  # noqa: E402
 from ctcvo.pipeline import online  # noqa: E402
 from ctcvo.teacher.config import DEFAULT  # noqa: E402
 
-SCENES = [str(REPO.parent / "shared" / "data" / "7scenes" / "redkitchen" / "seq-sample"),
-          str(REPO.parent / "shared" / "data" / "tum" / "images" / "rgbd_dataset_freiburg1_xyz")]
+SCENES = [str(record.REDKITCHEN), str(record.TUM_XYZ)]
 
 
 class Paced(live.FrameSource):
@@ -95,8 +94,9 @@ def bench_scene(spec: str, frames: str, checkpoint: Path | None, tmp: Path, tcfg
     from ctcvo.teacher.generate import run_sequence, write_outputs
 
     seq = open_scene(spec, frames=frames)[0]
+    shutil.rmtree(tmp / seq.name, ignore_errors=True)  # every run measured afresh
     row: dict = {"scene": seq.name, "frames": len(seq), "load_avg_1min": [os.getloadavg()[0]],
-                 "online_teacher": {k: getattr(tcfg, k) for k in ("gaps",)},
+                 "online_gaps": tcfg.gaps,
                  "pose_after_gap1": ocfg.pose_after_gap1}
     run = run_sequence(seq, DEFAULT, progress=False)  # batch, 2 processes
     row["batch_fps"] = len(seq) / run.seconds
@@ -172,8 +172,7 @@ def table(rows: list[dict]) -> str:
             + f" | {1000 * a['final']:.1f} / {1000 * a['isam2']:.1f} / "
             f"{1000 * a['causal']:.1f} mm vs {1000 * b:.1f} mm ({a['final'] / b:.2f}x / {a['isam2'] / b:.2f}x / "
             f"{a['causal'] / b:.2f}x) | {lrn} |"
-            + (f" gaps {r['online_teacher']['gaps']}"
-               f"{', pose after gap 1' if r.get('pose_after_gap1') else ''}; "
+            + (f" gaps {r['online_gaps']}{', pose after gap 1' if r.get('pose_after_gap1') else ''}; "
                f"{1000 * a['final']:.1f} vs {1000 * r['batch_teacher_posegraph_ate_m']:.1f} mm "
                f"({a['final'] / r['batch_teacher_posegraph_ate_m']:.2f}x) |" if "batch_teacher_posegraph_ate_m" in r
                else ""))
@@ -189,19 +188,19 @@ def main() -> int:
     ap.add_argument("--frames", default="0:300")
     ap.add_argument("--checkpoint", type=Path, help="learner checkpoint for the runs with the learner")
     ap.add_argument("--gaps", type=int, default=DEFAULT.gaps, help="the online teacher's K (batch: the default's)")
-    ap.add_argument("--pose-after-gap1", action="store_true", help="vo-online --pose-after-gap1 in the online runs")
-    ap.add_argument("--json", type=Path)
+    ap.add_argument("--pose-after-gap1", action="store_true", help="ctcvo online --pose-after-gap1 in the online runs")
+    ap.add_argument("--out", type=Path, help="the runs' outputs (default runs/bench/NAME)")
+    record.add_arguments(ap, "online")
     args = ap.parse_args()
     tcfg = replace(DEFAULT, gaps=args.gaps)
+    ocfg = online.OnlineConfig(pose_after_gap1=args.pose_after_gap1)
+    out = args.out or record.RUNS / args.name
+    rec = record.from_args(args, out=out, teacher=tcfg, online=ocfg)
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        for spec in args.scenes:
-            rows.append(bench_scene(spec, args.frames, args.checkpoint, Path(tmp), tcfg,
-                                    online.OnlineConfig(pose_after_gap1=args.pose_after_gap1)))
-            print(json.dumps(rows[-1]), file=sys.stderr)
+    for spec in args.scenes:
+        rows.append(bench_scene(spec, args.frames, args.checkpoint, out, tcfg, ocfg))
+        rec.finish({"rows": rows})
     print(table(rows))
-    if args.json:
-        args.json.write_text(json.dumps(rows, indent=2))
     return 0
 
 

@@ -20,16 +20,18 @@ is per size. Reported per size and solver:
 Target: 10k poses / 50k edges, LM in under 5 s.
 
     .venv/bin/python -m bench.posegraph                 # 1k, 10k, 50k; ISAM2 up to 10k
-    .venv/bin/python -m bench.posegraph --sizes 1000 --isam2-max 1000
+    .venv/bin/python -m bench.posegraph --sizes 1000 --isam2-max 1000 --name posegraph-1k
 
 Fusion (``--case``, issue 12): ``posegraph optimize`` on teacher + learner folders of a test
 range, one table per case with every row of the report (teacher chained, teacher graph,
 learner chained, fused, zero motion, constant velocity) and the check "fused <= teacher
 graph" on ATE and 1 s RPE. A case is ``NAME:TEACHER:LEARNER[:TEACHER_CALIBRATION[:A-B]]``;
 ``A-B`` drops every teacher edge that touches a frame strictly between positions A and B
-(a stretch where the teacher failed; its trajectory bridges it at constant velocity):
+(a stretch where the teacher failed; its trajectory bridges it at constant velocity).
+Outputs go to ``--out`` (default ``runs/bench/<name>``); the record is
+``bench/results/<name>.json`` (bench/record.py):
 
-    .venv/bin/python -m bench.posegraph --out /tmp/fusion \
+    .venv/bin/python -m bench.posegraph --name posegraph-fusion-kitchen \
         --case kitchen:runs/synthetic-kitchen/teacher:runs/synthetic-kitchen/learner:cal.json \
         --case kitchen-hole:runs/synthetic-kitchen/teacher:runs/synthetic-kitchen/learner:cal.json:120-160
 """
@@ -47,6 +49,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from bench import record
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -204,21 +208,24 @@ def main() -> None:
     p.add_argument("--one", nargs=2, metavar=("N", "SOLVER"), help=argparse.SUPPRESS)
     p.add_argument("--case", action="append", default=[],
                    help="fusion case NAME:TEACHER:LEARNER[:TEACHER_CALIBRATION[:A-B]] (repeatable; no timing run)")
-    p.add_argument("--out", type=Path, default=Path("/tmp/bench_fusion"), help="fusion outputs")
+    p.add_argument("--out", type=Path, help="fusion outputs (default runs/bench/NAME)")
     p.add_argument("--learner-edges", nargs="+", default=["bridge"], choices=["bridge", "all"],
                    help="posegraph learner_edges setting(s) each case runs with")
+    record.add_arguments(p, "posegraph")
     args = p.parse_args()
+    if args.one:
+        print(json.dumps(run_one(int(args.one[0]), args.gaps, args.one[1], marginals=args.marginals)))
+        return
+    rec = record.from_args(args)
     if args.case:
+        args.out = args.out or record.RUNS / args.name
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         results = []
         for spec in args.case:
             for mode in args.learner_edges:
                 results.append(run_case(spec, args.out, mode))
                 print_case(results[-1])
-        (args.out / "fusion.json").write_text(json.dumps(results, indent=1))
-        return
-    if args.one:
-        print(json.dumps(run_one(int(args.one[0]), args.gaps, args.one[1], marginals=args.marginals)))
+        rec.finish({"cases": results})
         return
     rows = []
     for n in args.sizes:
@@ -239,7 +246,7 @@ def main() -> None:
                   f"full {r['full_s']:.2f} s (cpu {r['full_cpu_s']:.2f}, {r['full_iterations']} it, "
                   f"{r['outliers']} outliers), +{r['rss_mb']:.0f} MB peak RSS, end error {r['end_error_m']:.3f} m",
                   flush=True)
-    print(json.dumps(rows, indent=1))
+    rec.finish({"sizes": rows})
 
 
 if __name__ == "__main__":

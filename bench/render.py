@@ -1,31 +1,29 @@
 """Benchmark: rendering speed of the synthetic scenes (decode/encode included).
 
-Renders presets into a temporary folder exactly as ``--scene synthetic/NAME`` does (scene
+Renders presets into ``--out`` (default ``runs/bench/<name>``) exactly as ``--scene synthetic/NAME`` does (scene
 build, trajectory, ray casting, shading, sensor model, JPEG / PNG encoding and writing), then reads
-every frame back through the 7-Scenes reader, and prints frames/s (wall clock), CPU seconds
-per frame, and a per-stage CPU breakdown of single-threaded frames.
+every frame back through the 7-Scenes reader, and records frames/s (wall clock), CPU seconds
+per frame, and a per-stage CPU breakdown of single-threaded frames in
+``bench/results/<name>.json`` (bench/record.py). On a shared machine wall-clock frames/s drop
+with other jobs while CPU seconds per frame stay comparable; the record has the load average.
 
     .venv/bin/python -m bench.render                       # office, kitchen, lab
-    .venv/bin/python -m bench.render --presets tiny --frames 60 --workers 1
-
-The machine's load average is printed too: on a shared machine, wall-clock frames/s drop
-with other jobs while CPU seconds per frame stay comparable.
+    .venv/bin/python -m bench.render --presets lab --frames 60 --name render-lab60
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import os
 import resource
-import tempfile
+import shutil
 import time
 from pathlib import Path
 
 import numpy as np
 
 import ctcvo.data.synthetic as syn
+from bench import record
 from ctcvo.data.sevenscenes import SevenScenesSequence
 from ctcvo.data.synthetic.config import PRESETS
 
@@ -72,42 +70,36 @@ def main() -> None:
     ap.add_argument("--presets", nargs="+", default=["office", "kitchen", "lab"])
     ap.add_argument("--frames", type=int, default=None, help="override the presets' frame count")
     ap.add_argument("--workers", type=int, default=None, help="render threads (default: cores, at most 4)")
-    ap.add_argument("--json", type=Path, default=None, help="also write the results here")
+    ap.add_argument("--out", type=Path, help="render folder, one sub-folder per preset (default runs/bench/NAME)")
+    record.add_arguments(ap, "render")
     args = ap.parse_args()
-
-    print(f"cores: {os.cpu_count()}, load average before: {os.getloadavg()[0]:.2f}")
+    root = args.out or record.RUNS / args.name
+    rec = record.from_args(args, out=root)
     results = {}
-    with tempfile.TemporaryDirectory(prefix="bench-render-") as tmp:
-        for name in args.presets:
-            cfg = PRESETS[name]
-            if args.frames:
-                cfg = dataclasses.replace(cfg, frames=args.frames)
-            out = Path(tmp) / name
-            w0, c0 = time.perf_counter(), _cpu()
-            syn.render_scene(cfg, out, workers=args.workers)
-            w1, c1 = time.perf_counter(), _cpu()
-            seq = SevenScenesSequence(out / "seq-01")
-            for k in range(len(seq)):
-                seq.rgb(k), seq.depth(k)
-            w2 = time.perf_counter()
-            size_mb = sum(p.stat().st_size for p in (out / "seq-01").iterdir()) / 1e6
-            res = {
-                "frames": cfg.frames, "render_s": round(w1 - w0, 2), "render_fps": round(cfg.frames / (w1 - w0), 2),
-                "cpu_ms_per_frame": round(1000 * (c1 - c0) / cfg.frames, 1),
-                "decode_fps": round(cfg.frames / (w2 - w1), 1), "disk_mb": round(size_mb, 1),
-                "load_average": round(os.getloadavg()[0], 2),
-                "stages_cpu_ms": stage_breakdown(cfg),
-            }
-            results[name] = res
-            print(f"{name:8s} {cfg.frames:4d} frames  render {res['render_s']:6.1f} s = {res['render_fps']:5.1f} frames/s  "
-                  f"({res['cpu_ms_per_frame']:.0f} CPU ms/frame), read back {res['decode_fps']:.0f} frames/s, "
-                  f"{res['disk_mb']:.0f} MB, load {res['load_average']:.2f}")
-            print(f"         stages (CPU ms/frame, 1 thread): {res['stages_cpu_ms']}")
-    total_frames = sum(r["frames"] for r in results.values())
-    total_s = sum(r["render_s"] for r in results.values())
-    print(f"all: {total_frames} frames in {total_s:.1f} s = {total_frames / total_s:.1f} frames/s")
-    if args.json:
-        args.json.write_text(json.dumps(results, indent=2) + "\n")
+    print("| preset | frames | render frames/s | CPU ms/frame | read back frames/s |\n|---|---|---|---|---|")
+    for name in args.presets:
+        cfg = PRESETS[name]
+        if args.frames:
+            cfg = dataclasses.replace(cfg, frames=args.frames)
+        out = root / name
+        shutil.rmtree(out, ignore_errors=True)  # a fresh render, not the cached one
+        w0, c0 = time.perf_counter(), _cpu()
+        syn.render_scene(cfg, out, workers=args.workers)
+        w1, c1 = time.perf_counter(), _cpu()
+        seq = SevenScenesSequence(out / "seq-01")
+        for k in range(len(seq)):
+            seq.rgb(k), seq.depth(k)
+        w2 = time.perf_counter()
+        size_mb = sum(p.stat().st_size for p in (out / "seq-01").iterdir()) / 1e6
+        res = {
+            "frames": cfg.frames, "render_s": round(w1 - w0, 2), "render_fps": round(cfg.frames / (w1 - w0), 2),
+            "cpu_ms_per_frame": round(1000 * (c1 - c0) / cfg.frames, 1),
+            "decode_fps": round(cfg.frames / (w2 - w1), 1), "disk_mb": round(size_mb, 1),
+            "stages_cpu_ms": stage_breakdown(cfg),
+        }
+        results[name] = res
+        print(f"| {name} | {cfg.frames} | {res['render_fps']} | {res['cpu_ms_per_frame']} | {res['decode_fps']} |")
+    rec.finish({"presets": results})
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Benchmark: is the synthetic default a faithful stand-in for real data?
 
-Runs the teacher (``teacher generate``, default config) on the real redkitchen sample and on
-each synthetic preset, and prints, per scene, the teacher's label error against ground
+Runs the teacher (``ctcvo teacher generate``, default config) on the real redkitchen sample and on
+each synthetic preset, and records, per scene, the teacher's label error against ground
 truth: gap-1 RMSE and median (translation mm, rotation deg), gap-5 RMSE, the RPE of the
 chained gap-1 trajectory over 1 s (30 frames), and the ratio of each synthetic number to the
 real one. The issue's target: gap-1 RMSE of every preset within 0.5-2x of the real one.
@@ -9,10 +9,10 @@ real one. The issue's target: gap-1 RMSE of every preset within 0.5-2x of the re
     .venv/bin/python -m bench.synthetic_realism                  # real + office kitchen lab
     .venv/bin/python -m bench.synthetic_realism --presets office --reuse   # read old outputs
 
-Outputs go to ``--out`` (default ``/tmp/synthetic-realism/<scene>/``); ``--reuse`` only
-reads folders already there. The real ground truth (KinectFusion) carries ~1.5-2 mm of
-frame-to-frame jitter per axis, which inflates the real gap-1 error; the medians and the
-longer gaps are less affected (see ../shared/data/README.md).
+Outputs go to ``--out`` (default ``runs/bench/<name>/<scene>/``); ``--reuse`` only reads
+folders already there. The record is ``bench/results/<name>.json`` (bench/record.py).
+The real ground truth (KinectFusion) carries ~1.5-2 mm of frame-to-frame jitter per axis,
+which inflates the real gap-1 error; the medians and the longer gaps are less affected (see ../shared/data/README.md).
 """
 
 from __future__ import annotations
@@ -23,11 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
+from bench import record
 from ctcvo.data import geometry as geo
 from ctcvo.data.formats import read_edges_csv, read_g2o, read_tum
 from ctcvo.data.metrics import relative_pose_error, rpe_rmse
-
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "7scenes" / "redkitchen" / "seq-sample"
 
 
 def edge_errors(folder: Path) -> dict[int, np.ndarray]:
@@ -65,11 +64,13 @@ def summary(folder: Path) -> dict[str, float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--presets", nargs="*", default=["office", "kitchen", "lab"])
-    ap.add_argument("--real", type=Path, default=REAL, help="real 7-Scenes sequence folder")
-    ap.add_argument("--out", type=Path, default=Path("/tmp/synthetic-realism"))
+    ap.add_argument("--real", type=Path, default=record.REDKITCHEN, help="real 7-Scenes sequence folder")
+    ap.add_argument("--out", type=Path, help="teacher outputs (default runs/bench/NAME)")
     ap.add_argument("--reuse", action="store_true", help="read existing teacher outputs, run nothing")
-    ap.add_argument("--json", type=Path, default=None, help="also write the results here")
+    record.add_arguments(ap, "synthetic-realism")
     args = ap.parse_args()
+    args.out = args.out or record.RUNS / args.name
+    rec = record.from_args(args)
 
     scenes = {"redkitchen": str(args.real)} | {p: f"synthetic/{p}" for p in args.presets}
     results = {}
@@ -87,10 +88,10 @@ def main() -> None:
     print("| scene | " + " | ".join(k for k, _ in keys) + " | failed gap-1 | ratio gap-1 trans / rot |")
     print("|---" * (len(keys) + 3) + "|")
     for name, r in results.items():
-        ratio = f"{r['gap1_trans_rmse_mm'] / real['gap1_trans_rmse_mm']:.2f} / {r['gap1_rot_rmse_deg'] / real['gap1_rot_rmse_deg']:.2f}"
+        ratio = (f"{r['gap1_trans_rmse_mm'] / real['gap1_trans_rmse_mm']:.2f} / "
+                 f"{r['gap1_rot_rmse_deg'] / real['gap1_rot_rmse_deg']:.2f}")
         print(f"| {name} | " + " | ".join(f.format(r[k]) for k, f in keys) + f" | {r['failed_gap1']} | {ratio} |")
-    if args.json:
-        args.json.write_text(json.dumps(results, indent=2) + "\n")
+    rec.finish({"scenes": results})
 
 
 if __name__ == "__main__":

@@ -10,23 +10,22 @@ error, fps).
 
     .venv/bin/python -m bench.teacher          # every synthetic preset, stress scenes included,
                                                # redkitchen and TUM fr1/xyz images; teacher + Open3D
-    .venv/bin/python -m bench.teacher --scenes synthetic/lab --frames 0:300 --peers open3d cv2
+    .venv/bin/python -m bench.teacher --scenes ../shared/data/7scenes/redkitchen/seq-sample --frames 450:600 \
+        --peers open3d cv2 --name teacher-redkitchen-test
     .venv/bin/python -m bench.teacher --scenes synthetic/stress-far --synthetic-frames 60   # a 60-frame walk
 
-Results go to stdout (a Markdown table) and to ``--json`` if given.
+The record is ``bench/results/<name>.json`` (bench/record.py), rewritten after every scene so
+that a run cut short keeps what it measured; stdout gets a Markdown table.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
 from collections import Counter
 from pathlib import Path
-
-REPO = Path(__file__).resolve().parents[1]
 
 if __name__ == "__main__":  # as `teacher generate` does: its worker imports while this process does
     from ctcvo.teacher import processes
@@ -37,6 +36,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
+from bench import record  # noqa: E402
 from ctcvo.data import geometry as geo  # noqa: E402
 from ctcvo.data.chain import chain_steps  # noqa: E402
 from ctcvo.data.formats import Trajectory  # noqa: E402
@@ -45,8 +45,6 @@ from ctcvo.data.scenes import open_scene  # noqa: E402
 from ctcvo.teacher.config import TeacherConfig  # noqa: E402
 from ctcvo.teacher.generate import run_sequence  # noqa: E402
 
-REDKITCHEN = REPO.parent / "shared" / "data" / "7scenes" / "redkitchen" / "seq-sample"
-TUM_IMAGES = REPO.parent / "shared" / "data" / "tum" / "images" / "rgbd_dataset_freiburg1_xyz"
 SYNTHETIC = ["synthetic/office", "synthetic/lab", "synthetic/kitchen", "synthetic/stress-lowfreq",
              "synthetic/stress-repetitive", "synthetic/stress-far", "synthetic/stress-fast", "synthetic/stress-blur",
              "synthetic/stress-textureless"]
@@ -155,22 +153,23 @@ def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frame
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenes", nargs="+", default=SYNTHETIC + [str(REDKITCHEN), str(TUM_IMAGES)])
+    ap.add_argument("--scenes", nargs="+", default=SYNTHETIC + [str(record.REDKITCHEN), str(record.TUM_XYZ)],
+                    help="synthetic/NAME or a sequence folder (default: every synthetic preset, redkitchen, TUM fr1/xyz)")
     ap.add_argument("--frames", default=None, help="frame range START:STOP of every scene")
     ap.add_argument("--peers", nargs="*", default=["open3d"], choices=["open3d", "cv2"],
                     help="methods run beside the teacher (default: Open3D's hybrid odometry)")
     ap.add_argument("--synthetic-frames", type=int, default=None,
                     help="render each synthetic preset with this many frames instead of its own (a shorter walk)")
-    ap.add_argument("--json", type=Path, default=None)
+    record.add_arguments(ap, "teacher")
     args = ap.parse_args()
+    rec = record.from_args(args, teacher=TeacherConfig())
     results = []
     for spec in args.scenes:
         if not spec.startswith("synthetic/") and not Path(spec).exists():
             print(f"skipping {spec}: not found", file=sys.stderr)
             continue
         results += bench_scene(spec, args.frames, args.peers, args.synthetic_frames)
-        if args.json:  # after every scene, so a long run that is cut short keeps what it measured
-            args.json.write_text(json.dumps(results, indent=2))
+        rec.finish({"rows": results})  # after every scene, so a long run that is cut short keeps what it measured
     print("| scene | frames | method | fps | fps / Open3D | gap-1 fails | CV bridges | RPE trans (mm) | RPE / Open3D "
           "| RPE rot (deg) | ATE (mm) | se(3) L2 | teacher gap-1 paths |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
@@ -181,8 +180,6 @@ def main() -> None:
               f"{r['gap1_failures']} | {r.get('cv_bridges', '')} | {1000 * r['rpe_trans_rmse_m']:.2f} | "
               f"{r.get('rpe_vs_open3d', float('nan')):.2f} | {r['rpe_rot_rmse_deg']:.3f} | {1000 * r['ate_rmse_m']:.1f} | "
               f"{r['se3_l2_mean']:.5f} | {paths} |")
-    if args.json:
-        args.json.write_text(json.dumps(results, indent=2))
 
 
 if __name__ == "__main__":

@@ -30,13 +30,16 @@ NAME/VARIANT=PATH`` takes one from elsewhere), so an interrupted sweep resumes a
 it the learner beats its teacher), one panel per protocol.
 
     S=../shared/data/7scenes/redkitchen/seq-sample
-    .venv/bin/teacher generate --scene $S --out /tmp/i12/default
-    .venv/bin/teacher generate --scene $S --preset paper --out /tmp/i12/paper
-    .venv/bin/python -m bench.teacher_noise noisy --scene $S --teacher /tmp/i12/default \\
-        --calib-frames 0:450 --target 0.0052 --out /tmp/i12/noisy52
+    .venv/bin/python -m ctcvo teacher generate --scene $S --out runs/i12/default
+    .venv/bin/python -m ctcvo teacher generate --scene $S --preset paper --out runs/i12/paper
+    .venv/bin/python -m bench.teacher_noise noisy --scene $S --teacher runs/i12/default \\
+        --calib-frames 0:450 --target 0.0052 --out runs/i12/noisy52
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.teacher_noise run --scene $S --frames 0:450 \\
-        --test-frames 450:600 --teacher default=/tmp/i12/default --teacher paper=/tmp/i12/paper \\
-        --teacher noisy52=/tmp/i12/noisy52 --variants ctc cnn-unsup lstm-unsup --out /tmp/i12/sweep
+        --test-frames 450:600 --teacher default=runs/i12/default --teacher paper=runs/i12/paper \\
+        --teacher noisy52=runs/i12/noisy52 --variants ctc cnn-unsup lstm-unsup --out runs/i12/sweep
+
+``run`` also writes the record ``bench/results/<name>.json`` (bench/record.py; default name
+``teacher-noise``): its figures are the teachers', learners' and baselines' rows of sweep.json.
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench import record
 from ctcvo.data import geometry as geo
 from ctcvo.data.errors import VOError
 from ctcvo.data.formats import Edge, Trajectory, read_g2o, read_tum, write_g2o, write_tum
@@ -175,7 +179,7 @@ def crossover(points: list[tuple[float, float]]) -> str:
     teachers sorted by x; or which side of y = x all points lie on."""
     pts = sorted(points)
     d = [y - x for x, y in pts]
-    for (x0, y0), (x1, y1), d0, d1 in zip(pts, pts[1:], d, d[1:]):
+    for (x0, _), (x1, _), d0, d1 in zip(pts, pts[1:], d, d[1:]):
         if d0 == 0:
             return f"at teacher error {x0:.5f}"
         if d0 * d1 < 0:
@@ -269,7 +273,8 @@ def tables(res: dict) -> str:
                 if row["teacher"] == tname and name in row:
                     q = row[name]
                     lines.append(f"| {row['variant']} | {tname} | {q['se3_l2_mean']:.5f} | **{q['vs_teacher']:.2f}** | "
-                                 f"{q['se3_l2_mean'] / zm:.2f} | {1e3 * q['rpe_trans_rmse_m']:.2f} / {q['rpe_rot_rmse_deg']:.3f} |")
+                                 f"{q['se3_l2_mean'] / zm:.2f} | {1e3 * q['rpe_trans_rmse_m']:.2f} / "
+                                 f"{q['rpe_rot_rmse_deg']:.3f} |")
         if name == "transductive":
             direct = [f"{r['teacher']}/{r['variant']} {r['train_eval']['direct']:.5f} "
                       f"({r['train_eval']['direct'] / res['teachers'][r['teacher']][name]['se3_l2_mean']:.2f}x its teacher)"
@@ -340,6 +345,7 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--no-train", action="store_true", help="report only the runs that exist")
     r.add_argument("--out", type=Path, required=True)
+    record.add_arguments(r, "teacher-noise")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
@@ -350,7 +356,10 @@ def main(argv: list[str] | None = None) -> int:
             for t in args.teacher:
                 if "=" not in t:
                     ap.error(f"--teacher {t}: expected NAME=FOLDER")
-            print(tables(run_sweep(args)))
+            rec = record.from_args(args)
+            res = run_sweep(args)
+            print(tables(res))
+            rec.finish({k: res[k] for k in ("ranges", "baselines", "teachers", "learners", "crossover")})
     except VOError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

@@ -1,0 +1,300 @@
+"""The tables of bench/README.md and README.md, generated from the records in bench/results/.
+
+Each table sits between ``<!-- table: NAME -->`` and ``<!-- /table -->``; everything else in
+the documents is written by hand. A table lists the records it was made from (revision,
+date, cores, load average), so a stale number shows up as a stale file.
+
+    .venv/bin/python -m bench.tables           # rewrite the tables in both documents
+    .venv/bin/python -m bench.tables --check   # exit 1 when a document is not what the records make
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from bench import record
+from ctcvo.data.io import write_text
+
+DOCUMENTS = (record.REPO / "bench" / "README.md", record.REPO / "README.md")
+BLOCK = re.compile(r"(<!-- table: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /table -->)", re.S)
+
+
+# ----------------------------------------------------------------------------------
+# formatting
+# ----------------------------------------------------------------------------------
+def num(x: float | None, digits: int = 1) -> str:
+    return "-" if x is None else f"{x:.{digits}f}"
+
+
+def mm(x: float | None, digits: int = 1) -> str:
+    return "-" if x is None else f"{1000 * x:.{digits}f}"
+
+
+def scene_label(spec: str) -> str:
+    """A reader's name for a scene argument: ``redkitchen/seq-sample``, ``TUM fr1/xyz``, ``synthetic/lab``."""
+    if spec.startswith("synthetic/"):
+        return spec
+    p = Path(spec)
+    tum = re.match(r"rgbd_dataset_freiburg(\d)_(\w+)", p.name)
+    return f"TUM fr{tum[1]}/{tum[2]}" if tum else f"{p.parent.name}/{p.name}"
+
+
+def frames_label(config: dict) -> str:
+    return f" {config['frames']}" if isinstance(config.get("frames"), str) else ""
+
+
+def markdown(header: list[str], rows: list[list[str]]) -> list[str]:
+    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + ["| " + " | ".join(r) + " |" for r in rows]
+
+
+def provenance(recs: dict[str, dict]) -> str:
+    """One line naming the records of a table, each with its revision, date, cores and load."""
+    parts = []
+    for name, r in recs.items():
+        m = r["machine"]
+        load = f"{m['load_average_start'][0]:.1f}-{m['load_average_end'][0]:.1f}"
+        parts.append(f"`{name}` ({r['revision']}, {r['date_utc'][:10]}, {m['cpu_count']} cores, load {load})")
+    return "Records: " + "; ".join(parts) + "."
+
+
+def select(records: dict[str, dict], prefix: str) -> dict[str, dict]:
+    return {n: r for n, r in records.items() if n == prefix or n.startswith(prefix + "-")}
+
+
+def missing(command: str) -> list[str]:
+    return [f"No record yet: `{command}`."]
+
+
+# ----------------------------------------------------------------------------------
+# the tables
+# ----------------------------------------------------------------------------------
+def teacher_table(records: dict[str, dict]) -> list[str]:
+    recs = select(records, "teacher")
+    if not recs:
+        return missing("python -m bench.teacher")
+    rows = []
+    for r in recs.values():
+        for x in r["figures"]["rows"]:
+            rows.append([scene_label(x["scene"]) + frames_label(r["config"]), str(x["frames"]), x["method"],
+                         num(x["fps"]), f"{num(x.get('fps_vs_open3d'))}x", str(x["gap1_failures"]),
+                         mm(x["rpe_trans_rmse_m"], 2), num(x["rpe_rot_rmse_deg"], 3), mm(x["ate_rmse_m"]),
+                         num(x["se3_l2_mean"], 5)])
+    head = ["scene", "frames", "method", "fps", "fps / Open3D", "gap-1 fails", "gap-1 RPE mm", "gap-1 RPE deg",
+            "ATE mm", "se(3) L2"]
+    return markdown(head, rows) + ["", provenance(recs)]
+
+
+def online_table(records: dict[str, dict]) -> list[str]:
+    recs = select(records, "online")
+    if not recs:
+        return missing("python -m bench.online --frames 0:150")
+    rows = []
+    for r in recs.values():
+        for x in r["figures"]["rows"]:
+            a, b = x["ate_m"], x["batch_teacher_posegraph_ate_m"]
+            lat, work, paced = x["online_latency_ms"], x["online_work_to_pose_ms"], x["online_30hz_latency_ms"]
+            rows.append([f"{x['scene']}{frames_label(r['config'])}",
+                         f"gaps {x['online_gaps']}" + (", pose after gap 1" if x["pose_after_gap1"] else ""),
+                         num(x["batch_fps"]), f"{num(x['online_fps'])} ({x['online_fps'] / x['batch_fps']:.2f}x)",
+                         f"{lat['p50']:.0f} / {lat['p95']:.0f}", f"{work['p50']:.0f} / {work['p95']:.0f}",
+                         f"{paced['p50']:.0f} / {paced['p95']:.0f}",
+                         f"{mm(a['final'])} / {mm(a['causal'])} vs {mm(a['batch_posegraph'])}", mm(b)])
+    head = ["scene", "online settings", "batch teacher fps", "online fps (ratio)", "latency p50 / p95 ms",
+            "own work until the pose p50 / p95 ms", "paced 30 Hz latency p50 / p95 ms",
+            "ATE mm final / causal vs batch pose graph (same edges)", "batch pose graph ATE mm (default teacher)"]
+    return markdown(head, rows) + ["", provenance(recs)]
+
+
+def posegraph_table(records: dict[str, dict]) -> list[str]:
+    recs = {n: r for n, r in select(records, "posegraph").items() if "sizes" in r["figures"]}
+    if not recs:
+        return missing("python -m bench.posegraph")
+    rows = [[str(x["poses"]), str(x["edges"]), x["solver"].upper(), f"{x['build_s']:.2f} ({x['build_cpu_s']:.2f})",
+             f"{x['solve_s']:.2f} ({x['solve_cpu_s']:.2f}), {x['iterations']}",
+             f"{x['full_s']:.2f} ({x['full_cpu_s']:.2f})", f"{x['rss_mb']:.0f}", str(x["outliers"]),
+             f"{x['end_error_m']:.3f}"]
+            for r in recs.values() for x in r["figures"]["sizes"]]
+    head = ["poses", "edges", "solver", "build s (CPU)", "optimiser s (CPU), iterations", "whole solve() s (CPU)",
+            "peak RSS + MB", "outliers", "end-pose error m"]
+    return markdown(head, rows) + ["", provenance(recs)]
+
+
+def learner_table(records: dict[str, dict]) -> list[str]:
+    recs = select(records, "learner")
+    if not recs:
+        return missing("python -m bench.learner")
+    rows = []
+    for r in recs.values():
+        x = r["figures"]
+        rows.append([x["preset"], x["input"], str(x["threads"]), x["size"]]
+                    + [f"{x[f'{k}_pairs_per_s']:.0f} ({x[f'{k}_pairs_per_cpu_s']:.0f})"
+                       for k in ("train_phase1", "train_phase2", "predict")])
+    head = ["preset", "input", "threads", "size", "training, pairs / s (per CPU s)", "training with windows (CTC)",
+            "MC-dropout prediction, K=10"]
+    return markdown(head, rows) + ["", provenance(recs)]
+
+
+def render_table(records: dict[str, dict]) -> list[str]:
+    recs = select(records, "render")
+    if not recs:
+        return missing("python -m bench.render")
+    rows = [[f"synthetic/{name}", str(x["frames"]), num(x["render_fps"]), num(x["cpu_ms_per_frame"], 0),
+             num(x["decode_fps"], 0), num(x["disk_mb"])]
+            for r in recs.values() for name, x in r["figures"]["presets"].items()]
+    head = ["preset", "frames", "render frames / s", "CPU ms / frame", "read back frames / s", "disk MB"]
+    return markdown(head, rows) + ["", provenance(recs)]
+
+
+def realism_table(records: dict[str, dict]) -> list[str]:
+    recs = select(records, "synthetic-realism")
+    if not recs:
+        return missing("python -m bench.synthetic_realism")
+    rows = []
+    for r in recs.values():
+        scenes = r["figures"]["scenes"]
+        real = scenes["redkitchen"]
+        for name, x in scenes.items():
+            rows.append([name if name == "redkitchen" else f"synthetic/{name}",
+                         f"{x['gap1_trans_rmse_mm']:.2f} / {x['gap1_rot_rmse_deg']:.3f}",
+                         f"{x['gap1_trans_median_mm']:.2f} / {x['gap1_rot_median_deg']:.3f}",
+                         f"{x['gap5_trans_rmse_mm']:.2f} / {x['gap5_rot_rmse_deg']:.3f}",
+                         f"{x['rpe30_trans_rmse_mm']:.1f} / {x['rpe30_rot_rmse_deg']:.2f}",
+                         f"{x['gap1_trans_rmse_mm'] / real['gap1_trans_rmse_mm']:.2f} / "
+                         f"{x['gap1_rot_rmse_deg'] / real['gap1_rot_rmse_deg']:.2f}"])
+    head = ["scene", "gap-1 RMSE mm / deg", "gap-1 median mm / deg", "gap-5 RMSE mm / deg", "1 s RPE mm / deg",
+            "gap-1 RMSE / real"]
+    return markdown(head, rows) + ["", provenance(recs)]
+
+
+def ablation_table(records: dict[str, dict]) -> list[str]:
+    recs = select(records, "ablation")
+    if not recs:
+        return missing("python -m bench.ablation --scene S --frames 0:350 --val-scene S --val-frames 350:450 "
+                       "--test-frames 450:600 --teacher T --teacher-eval T --name ablation-redkitchen")
+    rows = [[name, r.get("label", v), num(r["se3_l2_mean"], 5), mm(r["rpe_trans_rmse_m"], 2),
+             num(r["rpe_rot_rmse_deg"], 3), mm(r["ate_rmse_m"])]
+            for name, rec in recs.items() for v, r in rec["figures"]["rows"].items()]
+    return markdown(["record", "row", "se(3) L2", "gap-1 RPE mm", "gap-1 RPE deg", "ATE mm"], rows) + ["", provenance(recs)]
+
+
+def noise_table(records: dict[str, dict]) -> list[str]:
+    recs = select(records, "teacher-noise")
+    if not recs:
+        return missing("python -m bench.teacher_noise run ... (its docstring)")
+    rows = []
+    for rec in recs.values():
+        f = rec["figures"]
+        for key, x in f["learners"].items():
+            t = f["teachers"][x["teacher"]]["held-out"]["se3_l2_mean"]
+            rows.append([key, num(t, 5), num(x["held-out"]["se3_l2_mean"], 5), num(x["held-out"]["vs_teacher"], 2)])
+    head = ["teacher / variant", "teacher se(3) L2 (held out)", "learner se(3) L2", "learner / teacher"]
+    return markdown(head, rows) + ["", provenance(recs)]
+
+
+def demo_table(records: dict[str, dict]) -> list[str]:
+    r = records.get("demo")
+    if not r:
+        return missing("python -m bench.demo")
+    f = r["figures"]
+    rows = [[x["label"], mm(x["ate_rmse_m"]), f"{mm(x['rpe_g1_trans_m'], 2)} / {num(x['rpe_g1_rot_deg'], 3)}",
+             mm(x["rpe_1s_trans_m"]), num(x["se3_l2_mean"], 4)] for x in f["rows"].values()]
+    head = [f"{f['test_scene']}, {f['frames']} frames", "ATE mm", "gap-1 RPE mm / deg", "RPE 1 s mm", "se(3) L2"]
+    return markdown(head, rows) + ["", f"`ctcvo demo` took {f['wall_s'] / 60:.0f} min ({f['cpu_s'] / 60:.0f} min of CPU; "
+                                       f"rooms already rendered: {', '.join(r['config']['rooms_in_render_cache']) or 'none'}). "
+                                       + provenance({"demo": r})]
+
+
+def summary_table(records: dict[str, dict]) -> list[str]:
+    """README.md's table of what each stage does, one measured figure each."""
+    rows = []
+    t = records.get("teacher-redkitchen-test")
+    if t:
+        me, o3d = t["figures"]["rows"][0], t["figures"]["rows"][1]
+        rows.append(["`ctcvo teacher generate`", "RGB-D frames -> relative-pose labels of gaps 1-5 with 6x6 covariances",
+                     f"redkitchen 450:600: gap-1 error {mm(me['rpe_trans_rmse_m'], 2)} mm / "
+                     f"{num(me['rpe_rot_rmse_deg'], 3)} deg (Open3D {mm(o3d['rpe_trans_rmse_m'], 2)} / "
+                     f"{num(o3d['rpe_rot_rmse_deg'], 3)}), {num(me['fps'])} fps ({num(me['fps_vs_open3d'])}x Open3D)"])
+    lr = records.get("learner-cpu")
+    if lr:
+        x = lr["figures"]
+        rows.append(["`ctcvo learner fit` / `predict`", "labels -> CNN+LSTM relative poses with MC-dropout covariances",
+                     f"cpu preset: trains {x['train_phase1_pairs_per_s']:.0f} pairs/s, predicts "
+                     f"{x['predict_pairs_per_s']:.0f} pairs/s (K=10) on {lr['machine']['cpu_count']} cores"])
+    pg = records.get("posegraph")
+    if pg:
+        big = max(pg["figures"]["sizes"], key=lambda x: (x["solver"] == "lm", x["poses"]))
+        rows.append(["`ctcvo posegraph optimize`", "teacher + learner edges -> fused trajectory, ATE / RPE report",
+                     f"{big['poses']} poses / {big['edges']} edges solved in {big['full_s']:.1f} s"])
+    r = records.get("online-low-latency")
+    if r:
+        x = r["figures"]["rows"][0]
+        rows.append(["`ctcvo online`", "frames as they arrive -> a pose per frame, ISAM2-smoothed",
+                     f"{x['scene']}{frames_label(r['config'])}, gaps {x['online_gaps']}: {num(x['online_fps'])} fps, "
+                     f"latency p95 {x['online_latency_ms']['p95']:.0f} ms"])
+    return markdown(["command", "what it does", "measured (bench/results/)"], rows)
+
+
+def results_table(records: dict[str, dict]) -> list[str]:
+    """README.md's table of current results: the teacher beside its peers on the real recordings."""
+    recs = {n: r for n, r in select(records, "teacher").items()
+            if not r["figures"]["rows"][0]["scene"].startswith("synthetic/")}
+    if not recs:
+        return missing("python -m bench.teacher")
+    rows = []
+    for r in recs.values():
+        by = {x["method"].split()[0]: x for x in r["figures"]["rows"]}
+        cells = [f"{mm(x['rpe_trans_rmse_m'], 2)} / {num(x['rpe_rot_rmse_deg'], 3)} / {mm(x['ate_rmse_m'])}"
+                 if x else "-" for x in (by.get("this"), by.get("Open3D"), by.get("cv2.Odometry"))]
+        me = by["this"]
+        rows.append([scene_label(me["scene"]) + frames_label(r["config"]), *cells,
+                     f"{num(me['fps'])} ({num(me.get('fps_vs_open3d'))}x)"])
+    head = ["recording, frames", "teacher: gap-1 mm / deg / ATE mm", "Open3D hybrid", "OpenCV RGB_DEPTH",
+            "teacher fps (x Open3D)"]
+    return markdown(head, rows) + ["", "Records: " + ", ".join(f"`{n}`" for n in recs) + " (bench/README.md)."]
+
+
+TABLES: dict[str, Callable[[dict[str, dict]], list[str]]] = {
+    "teacher": teacher_table, "online": online_table, "posegraph": posegraph_table, "learner": learner_table,
+    "render": render_table, "synthetic-realism": realism_table, "ablation": ablation_table,
+    "teacher-noise": noise_table, "demo": demo_table, "summary": summary_table,
+    "results": results_table,
+}
+
+
+def update(text: str, records: dict[str, dict]) -> str:
+    """``text`` with every table block regenerated from ``records``."""
+
+    def block(m: re.Match) -> str:
+        name = m["name"]
+        if name not in TABLES:
+            raise SystemExit(f"unknown table {name!r} (known: {', '.join(TABLES)})")
+        return m.group(1) + "\n".join(TABLES[name](records)) + "\n" + m.group(4)
+
+    return BLOCK.sub(block, text)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--check", action="store_true", help="change nothing; exit 1 when a document is stale")
+    ap.add_argument("--results", type=Path, default=record.RESULTS)
+    args = ap.parse_args(argv)
+    records = record.load(args.results)
+    stale = []
+    for doc in DOCUMENTS:
+        text = doc.read_text()
+        new = update(text, records)
+        if new != text:
+            stale.append(doc)
+            if not args.check:
+                write_text(doc, new)
+    for doc in stale:
+        print(f"{'stale' if args.check else 'updated'}: {doc.relative_to(record.REPO)}", file=sys.stderr)
+    return 1 if args.check and stale else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,44 @@
+"""bench/tables.py: the documents' tables are what the committed records make."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench import record, tables
+
+
+@pytest.mark.parametrize("doc", tables.DOCUMENTS, ids=lambda p: p.relative_to(record.REPO).as_posix())
+def test_document_tables_are_not_stale(doc):
+    text = doc.read_text()
+    assert text.count("<!-- table: ") == text.count("<!-- /table -->") > 0
+    assert tables.update(text, record.load()) == text, f"{doc.name} is stale: run python -m bench.tables"
+
+
+def test_document_lengths():
+    assert len((record.REPO / "README.md").read_text().splitlines()) <= 150
+    assert len((record.REPO / "bench" / "README.md").read_text().splitlines()) <= 400
+
+
+def test_at_least_five_records_each_with_its_table():
+    recs = record.load()
+    assert len(recs) >= 5
+    text = "\n".join(doc.read_text() for doc in tables.DOCUMENTS)
+    for name in recs:
+        assert f"`{name}`" in text, f"no table names the record {name}"
+
+
+def test_update_rewrites_only_between_the_markers():
+    rec = {"learner-cpu": {"revision": "abc1234", "date_utc": "2026-01-01T00:00:00Z",
+                           "machine": {"cpu_count": 2, "load_average_start": [1.0, 1, 1], "load_average_end": [2.0, 1, 1]},
+                           "figures": {"preset": "cpu", "input": "flow", "threads": 2, "size": "64x48",
+                                       **{f"{k}_pairs_per{s}": 10.0 for k in ("train_phase1", "train_phase2", "predict")
+                                          for s in ("_s", "_cpu_s")}}}}
+    text = "before\n<!-- table: learner -->\nold\n<!-- /table -->\nafter\n<!-- table: teacher -->\n<!-- /table -->\n"
+    new = tables.update(text, rec)
+    assert new.startswith("before\n<!-- table: learner -->\n| preset |") and "old" not in new
+    assert "| cpu | flow | 2 | 64x48 | 10 (10) | 10 (10) | 10 (10) |" in new
+    assert "`learner-cpu` (abc1234, 2026-01-01, 2 cores, load 1.0-2.0)" in new
+    assert "<!-- /table -->\nafter\n<!-- table: teacher -->\nNo record yet: `python -m bench.teacher`.\n<!-- /table -->" in new
+    assert tables.update(new, rec) == new
+    with pytest.raises(SystemExit, match="unknown table"):
+        tables.update("<!-- table: nope -->\n<!-- /table -->", rec)
