@@ -1,6 +1,6 @@
 # Two commands do all set-up on a fresh machine (each creates/refreshes .venv itself):
 #   make demo   - the main job on the built-in synthetic default, end to end
-#   make test   - the test suite
+#   make test   - the linter (ruff) and the test suite
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
@@ -20,6 +20,7 @@ demo: $(STAMP)
 	$(PY) -m ctcvo demo
 
 test: $(STAMP)
+	$(PY) -m ruff check .
 	$(PY) -m pytest -q -p no:dash
 
 bench: $(STAMP)
