@@ -22,6 +22,7 @@ def tiny_teacher(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_noisy_teacher_hits_its_target_and_widens_the_covariances(tiny_teacher, tmp_path):
     ids, gt = tn.groundtruth("synthetic/tiny", "0:12")
     src, _ = read_g2o(tiny_teacher / "edges.g2o")

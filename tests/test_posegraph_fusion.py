@@ -228,6 +228,7 @@ def test_learner_no_better_than_constant_velocity_does_not_bridge(tmp_path):
     assert rep["rows"]["fused"]["ate_rmse_m"] == pytest.approx(rep["rows"]["teacher_graph"]["ate_rmse_m"], abs=1e-9)
 
 
+@pytest.mark.slow
 def test_cli_calibrate_then_optimize_with_teacher_calibration(tmp_path, capsys):
     """`posegraph calibrate` on one folder's overconfident teacher edges, applied by
     `posegraph optimize --teacher-calibration` to another folder: the teacher's NEES/6

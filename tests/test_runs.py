@@ -130,6 +130,7 @@ def tiny_run(tmp_path, monkeypatch):
     torch.set_num_threads(before)
 
 
+@pytest.mark.slow
 def test_fit_labels_every_range_reruns_and_predict_keeps_out_of_the_run(tiny_run, caplog) -> None:
     """With teacher labels over 0:20 in the default folder, fit on 0:8 validating on 8:20
     of the same sequence reads both ranges' labels from it. A second identical fit is kept;

@@ -372,6 +372,7 @@ def test_corpus_spec(tmp_path: Path, monkeypatch):
     assert open_scene("synthetic/corpus-2x3", cache_dir=tmp_path) == ["room-0x3", "room-1x3"] == opened
 
 
+@pytest.mark.slow
 def test_depth_time_offsets_are_drawn_written_and_read_back(tmp_path: Path):
     """``depth_time_offset_s``: per-frame offsets uniform in the range, deterministic for the
     seed, written as ``depth-offsets.txt`` and read back as the depth timestamps; the depth

@@ -707,6 +707,7 @@ def test_failed_edges_are_bridged_and_counted(office_clean, tmp_path):
 STRESS = ["stress-lowfreq", "stress-repetitive", "stress-far", "stress-fast", "stress-blur", "stress-textureless"]
 
 
+@pytest.mark.slow  # renders four stress scenes
 @pytest.mark.parametrize("name", STRESS)
 def test_teacher_tracks_the_stress_scenes(name, tmp_path):
     """Each stress preset (8 frames of it): no failed gap-1 edge and no constant-velocity
@@ -1321,6 +1322,7 @@ def test_adjoint_moves_a_right_perturbation():
     np.testing.assert_allclose(T @ geo.se3_exp(d) @ geo.inv_T(T), geo.se3_exp(geo.adjoint(T) @ d), atol=1e-12)
 
 
+@pytest.mark.slow
 def test_colour_depth_offsets_compensated_on_a_synthetic_walk(tmp_path):
     """A walk whose depth images are taken 0-17 ms before their colour images (the sensor
     model's ``depth_time_offset_s``, TUM-like; the poses are the colour moments'): with
