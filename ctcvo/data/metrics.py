@@ -9,6 +9,7 @@ so no association is needed; :func:`associate` handles foreign files).
 from __future__ import annotations
 
 import copy
+from collections.abc import Iterable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -90,6 +91,24 @@ def relative_pose_error(T_ref_rel: NDArray[np.float64], T_est_rel: NDArray[np.fl
     rotation deg) of ``inv(T_ref_rel) @ T_est_rel`` (what evo's RPE measures per pair)."""
     d = geo.inv_T(T_ref_rel) @ np.asarray(T_est_rel, dtype=np.float64)
     return float(np.linalg.norm(d[:3, 3])), geo.rotation_angle_deg(d)
+
+
+def label_errors_by_gap(edges: Iterable[tuple[int, int, NDArray[np.float64]]], gt: NDArray[np.float64],
+                        ids: NDArray[np.int64]) -> dict[str, dict[str, float]]:
+    """RMS error per gap of relative-pose labels ``(i, j, T_i_j)`` (frame ids) against the
+    ground truth ``gt`` (N, 4, 4) of the frames ``ids``: ``{"g": {edges, trans_rmse_m,
+    rot_rmse_deg}}``, the gap counted in frames of the sequence."""
+    pos = {int(f): p for p, f in enumerate(ids)}
+    by_gap: dict[int, list[tuple[float, float]]] = {}
+    for i, j, T in edges:
+        a, b = pos[i], pos[j]
+        by_gap.setdefault(b - a, []).append(relative_pose_error(geo.relative_pose(gt[a], gt[b]), T))
+    out = {}
+    for g, errs in sorted(by_gap.items()):
+        e = np.array(errs)
+        out[str(g)] = {"edges": len(e), "trans_rmse_m": float(np.sqrt(np.mean(e[:, 0] ** 2))),
+                       "rot_rmse_deg": float(np.sqrt(np.mean(e[:, 1] ** 2)))}
+    return out
 
 
 def se3_l2_errors(gt_rel: NDArray[np.float64], est_rel: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -35,12 +35,11 @@ from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
-from ctcvo.data import geometry as geo
 from ctcvo.data.chain import chain_edges
 from ctcvo.data.errors import ConfigError
 from ctcvo.data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
 from ctcvo.data.io import ensure_dir, git_revision, json_safe, write_json
-from ctcvo.data.metrics import relative_pose_error, trajectory_report
+from ctcvo.data.metrics import label_errors_by_gap, trajectory_report
 from ctcvo.data.open3d_import import openmp_threads
 from ctcvo.data.runs import Fingerprint, claim, frames_id, output_folder, scene_id, stage_dir, write_fingerprint
 from ctcvo.data.scenes import open_scene
@@ -314,22 +313,6 @@ def _dense_cells(e: EdgeEstimate) -> dict:
     return {"dense_fitness": float(d.fitness), "dense_shift_m": float(d.shift_m) if d.accepted else 0.0}
 
 
-def _label_errors(edges: list[EdgeEstimate], gt: NDArray, ids: NDArray) -> dict:
-    """Per-gap RMS error of the good labels against ground truth (trans m, rot deg)."""
-    pos = {int(f): p for p, f in enumerate(ids)}
-    by_gap: dict[int, list[tuple[float, float]]] = {}
-    for e in edges:
-        if e.ok:
-            a, b = pos[e.i], pos[e.j]
-            by_gap.setdefault(b - a, []).append(relative_pose_error(geo.relative_pose(gt[a], gt[b]), e.T_i_j))
-    out = {}
-    for g, errs in sorted(by_gap.items()):
-        a = np.array(errs)
-        out[str(g)] = {"edges": len(a), "trans_rmse_m": float(np.sqrt(np.mean(a[:, 0] ** 2))),
-                       "rot_rmse_deg": float(np.sqrt(np.mean(a[:, 1] ** 2)))}
-    return out
-
-
 def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
     """``report.json`` content (keys documented in docs/formats.md)."""
     n = len(seq)
@@ -357,7 +340,7 @@ def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
     if gt is not None and n >= 2:
         times = seq.times()
         rep.update(trajectory_report(Trajectory(times, gt), Trajectory(times, run.poses)))
-        rep["label_error_by_gap"] = _label_errors(run.edges, gt, seq.ids())
+        rep["label_error_by_gap"] = label_errors_by_gap([(e.i, e.j, e.T_i_j) for e in run.edges if e.ok], gt, seq.ids())
     return rep
 
 

@@ -32,7 +32,7 @@ from ctcvo.data import geometry as geo
 from ctcvo.data.errors import ConfigError, DataError, FormatError, VOError
 from ctcvo.data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
 from ctcvo.data.io import ensure_dir, git_revision, json_safe, write_json, write_text
-from ctcvo.data.metrics import relative_pose_error, trajectory_report
+from ctcvo.data.metrics import label_errors_by_gap, trajectory_report
 from ctcvo.data.sequence import Sequence
 from ctcvo.teacher.orbslam3_settings import settings_yaml
 from ctcvo.teacher.vocabulary import read_vocabulary
@@ -348,23 +348,8 @@ def build_report(seq: Sequence, result: OrbResult, edges: list[OrbEdge], use: st
     if gt is not None and have.sum() >= 2:
         times = seq.times()
         rep.update(trajectory_report(Trajectory(times[have], gt[have]), Trajectory(times[have], poses[have])))
-        rep["label_error_by_gap"] = _label_errors(edges, gt, seq.ids())
+        rep["label_error_by_gap"] = label_errors_by_gap([(e.i, e.j, e.T_i_j) for e in edges if e.good], gt, seq.ids())
     return rep
-
-
-def _label_errors(edges: list[OrbEdge], gt: NDArray[np.float64], ids: NDArray[np.int64]) -> dict:
-    """Per-gap RMS error of the good labels against ground truth (trans m, rot deg)."""
-    pos = {int(f): p for p, f in enumerate(ids)}
-    by_gap: dict[int, list[tuple[float, float]]] = {}
-    for e in edges:
-        if e.good:
-            by_gap.setdefault(e.gap, []).append(relative_pose_error(geo.relative_pose(gt[pos[e.i]], gt[pos[e.j]]), e.T_i_j))
-    out = {}
-    for g, errs in sorted(by_gap.items()):
-        a = np.array(errs)
-        out[str(g)] = {"edges": len(a), "trans_rmse_m": float(np.sqrt(np.mean(a[:, 0] ** 2))),
-                       "rot_rmse_deg": float(np.sqrt(np.mean(a[:, 1] ** 2)))}
-    return out
 
 
 def write_outputs(out_dir: Path, seq: Sequence, result: OrbResult, edges: list[OrbEdge], use: str = DEFAULT_LABELS,
