@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -83,6 +84,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 def _optimize(args: argparse.Namespace) -> int:
     from ctcvo.posegraph.optimize import optimize
+    from ctcvo.posegraph.report import summary_text
 
     if args.command == "calibrate":
         return _calibrate(args)
@@ -94,7 +96,8 @@ def _optimize(args: argparse.Namespace) -> int:
                     out=args.out, cfg=cfg, split=args.split, frames=args.frames, overwrite=args.overwrite,
                     teacher_calibration=args.teacher_calibration)
     for o in outs:
-        print(o / "report.md")
+        print(summary_text(json.loads((o / "report.json").read_text())))
+        print(f"full report: {o / 'report.md'}")
     return 0
 
 
