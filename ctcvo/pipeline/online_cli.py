@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -76,6 +77,8 @@ def _configs(args: argparse.Namespace) -> tuple:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.verbose, "%(message)s")
+    if not args.verbose:  # the final smoothing's solver lines (scales, re-solves, LM): -v shows them
+        logging.getLogger("ctcvo.posegraph.graph").setLevel(logging.WARNING)
     try:
         scene = scene_with_topics(args.scene, args)
         tcfg, pcfg, ocfg = _configs(args)
