@@ -58,9 +58,10 @@ def _parser() -> argparse.ArgumentParser:
     o.add_argument("--no-plots", dest="plots", action="store_false", default=None, help="write no PNG figures")
     add_topic_options(o)
     o.add_argument("--teacher-calibration", type=Path,
-                   help="per-gap teacher covariance scales from `posegraph calibrate` (fitted on validation data)")
+                   help="per-gap teacher covariance scales from `posegraph calibrate` (fitted on validation data; "
+                        "default: none, the teacher's covariances as written)")
     c = add_command(sub, "calibrate", "fit per-gap covariance scales of teacher edges from their own "
-                                      "multi-gap consistency (no ground truth), on validation ranges")
+                                      "multi-gap consistency or against ground truth, on validation ranges")
     c.add_argument("--teacher", type=Path, nargs="+", required=True,
                    help="teacher output folder(s) of validation ranges or scenes (never the test data)")
     c.add_argument("--out", type=Path, required=True, help="calibration JSON to write")
