@@ -35,7 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="ctcvo online", description=DESCRIPTION, formatter_class=HelpFormatter)
     p.add_argument("--scene", required=True, help="sequence folder, ROS bag or synthetic/NAME; with --follow "
                    "a 7-Scenes-layout or TUM RGB-D folder being written")
-    p.add_argument("--checkpoint", type=Path, help="learner checkpoint: add its MC-dropout edges (default: none, teacher edges only)")
+    p.add_argument("--checkpoint", type=Path,
+                   help="learner checkpoint: add its MC-dropout edges (default: none, teacher edges only)")
     p.add_argument("--out", type=Path, help="output folder (default runs/<scene>/online)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the outputs of other inputs in --out instead of stopping with an error")
