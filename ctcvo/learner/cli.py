@@ -24,6 +24,8 @@ PRESET_HELP = ("presets: 'paper' - the paper's network (320x240 VGG-11-BN widths
 VARIANT_HELP = ("variants: cnn-* train the direct head on pairs, lstm-* and ctc also the LSTM on windows; *-gt on "
                 "ground-truth labels, *-unsup on the teacher's, *-aug on teacher labels redrawn from their "
                 "covariances; ctc adds the composite transformation constraints")
+log = logging.getLogger(__name__)
+
 DEVICE_HELP = "auto: CUDA when available, else the CPU"
 
 
@@ -139,6 +141,7 @@ def _mc_options(p: argparse.ArgumentParser) -> None:
 
 
 def _fit(args: argparse.Namespace) -> int:
+    log.info("learner fit: %s (loading PyTorch ...)", ", ".join(args.scene or ["resuming " + str(args.out)]))
     from ctcvo.learner.train import FitInterrupted, fit
 
     if not args.scene and not args.resume:
@@ -154,11 +157,12 @@ def _fit(args: argparse.Namespace) -> int:
     except FitInterrupted as exc:
         print(exc, file=sys.stderr)
         return 130
-    logging.getLogger("learner").info("checkpoint: %s", res.checkpoint)
+    log.info("checkpoint: %s", res.checkpoint)
     return 0
 
 
 def _calibrate(args: argparse.Namespace) -> int:
+    log.info("learner calibrate: %s on %s (loading PyTorch ...)", args.checkpoint, ", ".join(args.scene))
     from ctcvo.learner.calibrate import calibrate
 
     cfg = PredictConfig(samples=args.samples, drop=args.drop, max_gap=args.max_gap)
@@ -169,6 +173,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 
 def _predict(args: argparse.Namespace) -> int:
+    log.info("learner predict: %s on %s (loading PyTorch ...)", args.checkpoint, args.scene)
     from ctcvo.learner.predict import predict
 
     cfg = PredictConfig(samples=args.samples, drop=args.drop, max_gap=args.max_gap)
