@@ -7,6 +7,8 @@ skip with a reason when it is absent, and fail when ``VO_REQUIRE_REAL_DATA=1``.
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -46,11 +48,23 @@ def tum_images() -> Path:
     return require_real_data(TUM_IMAGES)
 
 
+def pytest_configure(config) -> None:
+    """Synthetic renders go to a per-session temporary cache, never to the user's
+    ``~/.cache/ctcvo``: set before any fixture of any scope, test module or subprocess
+    (which inherit the environment) can render."""
+    os.environ["VO_CACHE_DIR"] = config._ctcvo_cache = tempfile.mkdtemp(prefix="ctcvo-test-cache-")
+
+
+def pytest_unconfigure(config) -> None:
+    cache = getattr(config, "_ctcvo_cache", None)
+    if cache:
+        shutil.rmtree(cache, ignore_errors=True)
+
+
 @pytest.fixture(autouse=True)
-def _isolated_cache(tmp_path_factory, monkeypatch):
-    """Synthetic renders go to a per-session temporary cache, never to the user's."""
-    cache = tmp_path_factory.getbasetemp() / "vo-cache"
-    monkeypatch.setenv("VO_CACHE_DIR", str(cache))
+def _isolated_cache(monkeypatch):
+    """Each test sees the session's temporary cache, even after another test changed it."""
+    monkeypatch.setenv("VO_CACHE_DIR", os.environ["VO_CACHE_DIR"])
 
 
 @pytest.fixture(scope="module")

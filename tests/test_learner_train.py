@@ -766,6 +766,38 @@ def test_no_skill_warning(caplog) -> None:
     assert [r.levelname for r in caplog.records] == ["WARNING"] and "training" in caplog.text
 
 
+def test_no_skill_warning_against_constant_velocity(caplog) -> None:
+    """Better than zero motion but not than constant velocity: the fit warns about that
+    too, naming the reference both figures are against."""
+    import logging
+
+    from ctcvo.learner.evaluate import warn_if_no_skill
+
+    entry = {"val_se3_l2": 0.008, "val_zero_motion_se3_l2": 0.011, "val_constant_velocity_se3_l2": 0.006,
+             "val_reference": "ground truth"}
+    with caplog.at_level(logging.INFO, logger="ctcvo.learner.evaluate"):
+        warn_if_no_skill(entry)
+    assert [r.levelname for r in caplog.records] == ["INFO", "WARNING"]
+    assert "NOT better than constant velocity on its validation frames" in caplog.records[1].getMessage()
+    assert all("against ground truth" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="ctcvo.learner.evaluate"):
+        warn_if_no_skill({**entry, "val_constant_velocity_se3_l2": 0.009})
+    assert [r.levelname for r in caplog.records] == ["INFO"]
+
+
+def test_epoch_line_names_its_reference_and_an_untrained_lstm() -> None:
+    from ctcvo.learner.evaluate import epoch_line
+
+    entry = {"phase": "pairs", "pairs_reg": 0.5, "val_se3_l2": 0.01, "val_direct_se3_l2": 0.008,
+             "val_lstm_se3_l2": 0.01, "val_zero_motion_se3_l2": 0.01, "val_constant_velocity_se3_l2": 0.007,
+             "val_reference": "teacher"}
+    line = epoch_line(entry)
+    assert "val se(3) L2 vs teacher" in line and "not trained yet" in line
+    assert "loss x zero motion on the labels: pairs_reg=0.5" in line
+    assert "not trained yet" not in epoch_line({**entry, "phase": "pairs+windows"})
+
+
 @pytest.mark.slow
 def test_init_fine_tunes_from_another_checkpoint(fixture_seq, tmp_path) -> None:
     """``init``: a second fit starts from the first one's weights (its output scale kept)
@@ -818,3 +850,21 @@ def test_flow_cache_gives_the_same_input_and_is_shared() -> None:
     finally:
         D.FLOW_CACHE_PAIRS = old
     assert len(f.flow_cache) == 2
+
+
+def test_phase_progress_counts_the_steps_of_each_phase() -> None:
+    """One bar per training phase, its total that phase's optimiser steps (a resumed run
+    starts at the steps already done); nothing at all when not enabled."""
+    from ctcvo.learner.batches import PhaseProgress
+    from ctcvo.learner.config import TrainConfig
+
+    cfg = TrainConfig(steps=10, pretrain_steps=4, eval_every=2)
+    bars = PhaseProgress(cfg, enabled=True)
+    bars.step("pairs", 2, {})
+    assert (bars.bar.total, bars.bar.n) == (4, 3)
+    bars.step("windows", 4, {})
+    assert (bars.bar.total, bars.bar.n, bars.bar.desc.startswith("phase 2")) == (6, 1, True)
+    bars.close()
+    quiet = PhaseProgress(cfg, enabled=False)
+    quiet.step("pairs", 0, {})
+    assert quiet.bar is None

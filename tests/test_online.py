@@ -546,3 +546,34 @@ def test_follow_picks_the_layout_and_waits_for_one(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(DataError, match="no frame arrived within 0.2 s"):
         online.open_source(str(tmp_path / "empty"), follow=True, cfg=cfg)
+
+
+@pytest.mark.slow
+def test_ctrl_c_gives_one_line_and_exit_130(tmp_path, redkitchen):
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) mid-run: exit 130, one
+    line after the progress lines, and no Open3D memory listing at exit."""
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "o"
+    argv = [sys.executable, "-m", "ctcvo", "online", "--scene", str(redkitchen), "--frames", "0:600", "--out", str(out)]
+    proc = subprocess.Popen(argv, cwd=Path(__file__).resolve().parents[1], env={**os.environ, "OMP_NUM_THREADS": "1"},
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            traj = out / online_outputs.TRAJECTORY
+            if traj.is_file() and len(traj.read_text().splitlines()) >= 30:
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, "the run ended before it could be interrupted"
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err[-2000:]
+    assert "Open3D" not in err
+    after = [line for line in err.splitlines() if " online: " not in line]
+    assert len(after) <= 2 and after[-1].startswith("interrupted after "), after

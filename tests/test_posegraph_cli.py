@@ -241,3 +241,40 @@ def test_overconfident_learner_scale_in_report(dirs, tmp_path, capsys):
     # as given, nearly every learner edge is an outlier; calibrated, nearly none is
     assert sum(o["source"] == "learner" for o in raw["outliers"]) >= 0.9 * (4 * N - 10)
     assert sum(o["source"] == "learner" for o in rep["outliers"]) <= 4
+
+
+def test_optimize_prints_the_table_and_the_edges_used(dirs, tmp_path, capsys):
+    """`posegraph optimize` prints the report's table (not only its path) and the header says
+    how many edges of each source the fused graph used, and why any were not."""
+    t, l = dirs
+    out = tmp_path / "out"
+    rc = main(["optimize", "--teacher", str(t), "--learner", str(l), "--out", str(out), "--no-plots"])
+    printed = capsys.readouterr().out
+    assert rc == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert "| fused (graph) |" in printed and "| teacher (chained) |" in printed
+    assert f"full report: {out / 'report.md'}" in printed
+    n_t, n_l = rep["edges_per_source"]["teacher"], rep["edges_per_source"]["learner"]
+    line = next(s for s in printed.splitlines() if s.startswith("Edges used in the fused graph:"))
+    assert line in (out / "report.md").read_text()
+    if rep["config"]["learner_edges"] == "bridge":
+        used = rep["edges_total"] - n_t
+        assert f"teacher {n_t} of {n_t}, learner {used} of {n_l} (only edges that join frames" in line
+    else:
+        assert line == f"Edges used in the fused graph: teacher {n_t} of {n_t}, learner {n_l} of {n_l}."
+
+
+def test_edge_use_says_why_edges_were_left_out():
+    base = {"edges_per_source": {"teacher": 735, "learner": 735}, "graph_sources": ["teacher", "learner"],
+            "edges_total": 735, "config": {"learner_edges": "bridge"},
+            "skill_gate": {"learner": {"gated_gaps": [1, 2], "no_better_than_cv": [3], "scale": 1e4}}}
+    line = report.edge_use(base)
+    assert line.startswith("Edges used in the fused graph: teacher 735 of 735, learner 0 of 735 (only edges that "
+                           "join frames the teacher's edges leave apart enter (--learner-edges bridge); none at gap(s) "
+                           "1, 2: no better than zero motion on its validation pairs; none at gap(s) 3: no better "
+                           "than constant velocity")
+    every = {**base, "config": {"learner_edges": "all"}, "edges_total": 735 + 12}
+    line = report.edge_use(every)
+    assert "learner 12 of 735 (gap(s) 1, 2 no better than zero motion on its validation pairs: left out" in line
+    assert report.edge_use({**every, "skill_gate": {}, "edges_total": 1470}) == \
+        "Edges used in the fused graph: teacher 735 of 735, learner 735 of 735."

@@ -34,7 +34,7 @@ REPO = Path(__file__).resolve().parents[1]
 # ----------------------------------------------------------------------------------
 def test_stage_dir_is_the_one_layout() -> None:
     assert stage_dir("synthetic/office", "teacher") == Path("runs/synthetic-office/teacher")
-    assert stage_dir("/data/7scenes/redkitchen/seq-01", "predict") == Path("runs/seq-01/predict")
+    assert stage_dir("/data/7scenes/redkitchen/seq-01", "predict") == Path("runs/seq-01/predict")  # not a sequence
     with pytest.raises(ValueError):
         stage_dir("synthetic/office", "nope")
 
@@ -257,3 +257,27 @@ def test_posegraph_imports_neither_learner_nor_teacher_nor_torch() -> None:
             "assert not bad, bad")
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+def test_sequences_of_two_scenes_never_share_a_default_folder(tmp_path) -> None:
+    """7-Scenes chess/seq-01 and office/seq-01: two default folders, named as the logs name
+    the sequences (``chess-seq-01``); synthetic/NAME and other folders keep their names."""
+    seqs = []
+    for scene in ("chess", "office"):
+        d = tmp_path / "7scenes" / scene / "seq-01"
+        d.mkdir(parents=True)
+        (d / "frame-000000.depth.png").touch()
+        seqs.append(d)
+    dirs = [stage_dir(str(d), "teacher") for d in seqs]
+    assert dirs == [Path("runs/chess-seq-01/teacher"), Path("runs/office-seq-01/teacher")]
+    assert stage_dir(str(tmp_path / "7scenes" / "chess"), "teacher") == Path("runs/chess/teacher")
+    assert stage_dir("synthetic/lab", "teacher") == Path("runs/synthetic-lab/teacher")
+
+
+
+def test_slug_is_the_name_the_logs_use(redkitchen) -> None:
+    from ctcvo.data.scenes import open_scene
+
+    [seq] = open_scene(str(redkitchen), frames="0:3")
+    assert stage_dir(str(redkitchen), "teacher") == Path("runs") / seq.name / "teacher"
+    assert seq.name == "redkitchen-seq-sample"

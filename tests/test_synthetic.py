@@ -401,3 +401,21 @@ def test_depth_time_offsets_are_drawn_written_and_read_back(tmp_path: Path):
             base.sensor, depth_time_offset_s=(-0.01, 0.0))), 4)
     with pytest.raises(ConfigError, match="within one frame"):
         syn.depth_time_offsets(dataclasses.replace(cfg, sensor=dataclasses.replace(sensor, depth_time_offset_s=(0.01, -0.01))), 4)
+
+
+@pytest.fixture(scope="module")
+def _module_scoped_cache() -> Path:
+    return syn.default_cache_dir()
+
+
+def test_tests_never_use_the_users_cache(_module_scoped_cache) -> None:
+    """Every fixture scope and every subprocess sees the session's temporary cache."""
+    import subprocess
+    import sys
+
+    user = Path.home() / ".cache" / "ctcvo"
+    code = "from ctcvo.data.synthetic import default_cache_dir; print(default_cache_dir())"
+    child = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                           cwd=Path(__file__).resolve().parents[1]).stdout.strip()
+    assert _module_scoped_cache == syn.default_cache_dir() == Path(child) != user
+    assert "ctcvo-test-cache-" in str(child)

@@ -23,7 +23,8 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefau
 
     def _get_help_string(self, action: argparse.Action) -> str:
         h = action.help or ""
-        if "%(default)" in h or "default" in h or action.default in (None, False, argparse.SUPPRESS) \
+        if "%(default)" in h or "default" in h or action.default is None or action.default is False \
+                or action.default is argparse.SUPPRESS \
                 or isinstance(action, (argparse._HelpAction, argparse._VersionAction)):
             return h
         if isinstance(action, argparse._StoreFalseAction):

@@ -130,12 +130,18 @@ def git_revision() -> str:
 PACKAGES = ("ctcvo",)
 
 
+#: every log line starts with the wall-clock time (a long run shows when each step happened)
+TIME_FORMAT = "%H:%M:%S"
+
+
 def setup_logging(verbose: bool = False, fmt: str = "%(levelname)s %(name)s: %(message)s") -> None:
     """Log this project's messages at INFO (DEBUG with ``verbose``), other libraries' at WARNING.
+
+    Every line is prefixed with the time (``HH:MM:SS``).
 
     Libraries log INFO lines of their own at import (numexpr, pulled in by evo's pandas:
     "NumExpr defaulting to 2 threads."), which are not the tools' output.
     """
-    logging.basicConfig(level=logging.WARNING, format=fmt)
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s " + fmt, datefmt=TIME_FORMAT)
     for name in PACKAGES:
         logging.getLogger(name).setLevel(logging.DEBUG if verbose else logging.INFO)

@@ -88,13 +88,20 @@ class StaleOutputError(ConfigError):
 
 
 def scene_slug(spec: str) -> str:
-    """A folder-friendly name for ``spec`` (``synthetic/office`` -> ``synthetic-office``)."""
+    """A folder-friendly name for ``spec``, the name the logs give its sequence:
+    ``synthetic/office`` -> ``synthetic-office``; a 7-Scenes sequence folder (it holds
+    ``frame-*.depth.png``) -> ``<scene>-<sequence>`` (``chess/seq-01`` -> ``chess-seq-01``,
+    so two scenes' ``seq-01`` never share a folder); a bag -> its stem; another folder
+    (a TUM sequence, a 7-Scenes scene) -> its name."""
     if spec.startswith(SYNTHETIC_PREFIX):
         return "synthetic-" + spec[len(SYNTHETIC_PREFIX):]
     path = Path(spec.partition("?")[0])  # a bag's topic options are not part of its name
     if path.suffix == ".bag":
         return path.stem or "scene"
-    return path.resolve().name or "scene"
+    path = path.resolve()
+    if path.parent.name and path.is_dir() and next(path.glob("frame-*.depth.png"), None) is not None:
+        return f"{path.parent.name}-{path.name}"
+    return path.name or "scene"
 
 
 def stage_dir(scene: str, stage: str, root: Path | None = None) -> Path:

@@ -70,9 +70,12 @@ def add_topic_options(parser) -> None:
     (ROS bag scenes) to an argparse parser; :func:`scene_with_topics` applies them."""
     g = parser.add_argument_group("ROS bag topics (a --scene that is a .bag file or a ROS2 bag folder; "
                                   "detected when unambiguous)")
-    g.add_argument("--rgb-topic", help="colour topic (sensor_msgs/Image rgb8/bgr8/mono8 or CompressedImage)")
-    g.add_argument("--depth-topic", help="depth topic (sensor_msgs/Image 16UC1 mm or 32FC1 m)")
-    g.add_argument("--camera-info-topic", help="sensor_msgs/CameraInfo topic with the intrinsics")
+    g.add_argument("--rgb-topic", help="colour topic (sensor_msgs/Image rgb8/bgr8/mono8 or CompressedImage; "
+                                       "default: the bag's one such topic)")
+    g.add_argument("--depth-topic", help="depth topic (sensor_msgs/Image 16UC1 mm or 32FC1 m; default: the bag's "
+                                         "one such topic)")
+    g.add_argument("--camera-info-topic", help="sensor_msgs/CameraInfo topic with the intrinsics (default: the "
+                                               "bag's one such topic)")
     g.add_argument("--gt-topic", help="ground truth: a PoseStamped or TransformStamped topic, or TOPIC:PARENT:CHILD "
                                       "of a tf topic (default: none)")
 

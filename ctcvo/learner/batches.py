@@ -10,6 +10,7 @@ import math
 import numpy as np
 import torch
 from torch import Tensor
+from tqdm import tqdm
 
 from ctcvo.learner import loss as L
 from ctcvo.learner.augment import augment, draw_labels, reversed_pairs
@@ -29,6 +30,37 @@ def lr_at(cfg: TrainConfig, step: int) -> float:
     span = max(cfg.steps - cfg.warmup_steps - 1, 1)
     t = min(max(step - cfg.warmup_steps, 0) / span, 1.0)
     return cfg.lr * (LR_FINAL + (1.0 - LR_FINAL) * 0.5 * (1.0 + math.cos(math.pi * t)))
+
+
+class PhaseProgress:
+    """One progress bar per training phase, counting its optimiser steps (rate and ETA of the
+    phase, across epochs; a resumed run starts at the steps done). Quiet unless ``enabled``
+    (the command passes whether stderr is a terminal)."""
+
+    def __init__(self, cfg: TrainConfig, enabled: bool) -> None:
+        self.cfg, self.enabled = cfg, enabled
+        self.bar: tqdm | None = None
+        self.phase = ""
+
+    def step(self, phase: str, step: int, postfix: dict[str, str]) -> None:
+        """Count optimiser step ``step`` (0-based) of ``phase`` ("pairs" or "windows")."""
+        if not self.enabled:
+            return
+        if phase != self.phase:
+            self.close()
+            p1 = min(self.cfg.pretrain_steps, self.cfg.steps)
+            first, total = (0, p1) if phase == "pairs" else (p1, self.cfg.steps - p1)
+            desc = "phase 1 (pairs, direct head)" if phase == "pairs" else "phase 2 (windows, LSTM + CTC)"
+            self.bar = tqdm(total=total, initial=step - first, desc=desc, unit="step", leave=False)
+            self.phase = phase
+        assert self.bar is not None
+        self.bar.update(1)
+        self.bar.set_postfix(postfix, refresh=False)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar, self.phase = None, ""
 
 
 def window_length(cfg: TrainConfig, epoch: int) -> int:

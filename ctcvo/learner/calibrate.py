@@ -410,8 +410,8 @@ def calibrate(checkpoint: Path, scenes: str | Sequence[str], *, frames: str | No
     cal.info["fingerprint"] = fp.to_dict()  # in the file itself: written in the same atomic step
     report = cal.to_dict()
     write_json(path, report)
-    log.info("calibration of %s on %d validation pairs: 1-sigma coverage %.3f -> %.3f, 2-sigma %.3f -> %.3f "
-             "(against teacher labels), se(3) L2 %.3gx zero motion's -> %s", checkpoint, len(res.r),
+    log.info("calibration of %s on %d validation pairs: 1-sigma coverage %.3f -> %.3f, 2-sigma %.3f -> %.3f, "
+             "se(3) L2 %.3gx zero motion's (all against teacher labels) -> %s", checkpoint, len(res.r),
              v["before"]["coverage_1sigma"], v["after"]["coverage_1sigma"], v["before"]["coverage_2sigma"],
              v["after"]["coverage_2sigma"], v["skill"]["ratio"], path)
     return CalibrationResult(path, cal, report)

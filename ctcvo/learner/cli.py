@@ -24,6 +24,8 @@ PRESET_HELP = ("presets: 'paper' - the paper's network (320x240 VGG-11-BN widths
 VARIANT_HELP = ("variants: cnn-* train the direct head on pairs, lstm-* and ctc also the LSTM on windows; *-gt on "
                 "ground-truth labels, *-unsup on the teacher's, *-aug on teacher labels redrawn from their "
                 "covariances; ctc adds the composite transformation constraints")
+log = logging.getLogger(__name__)
+
 DEVICE_HELP = "auto: CUDA when available, else the CPU"
 
 
@@ -46,7 +48,7 @@ def _fit_options(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--scene", action="append", help="training scene: a 7-Scenes or TUM folder or synthetic/NAME "
                    "(repeatable; required unless --resume)")
     f.add_argument("--val-scene", action="append", help="validation scene (repeatable): per-epoch validation and the "
-                   "covariance calibration; never a test scene")
+                   "covariance calibration; never a test scene (default: none, then no calibration)")
     f.add_argument("--frames", help="frame range START:STOP[:STEP] of every training sequence (default: all frames)")
     f.add_argument("--val-frames", help="frame range of the validation sequences (default: --frames); "
                    "a training sequence may validate on a disjoint range")
@@ -83,7 +85,7 @@ def _fit_options(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--pretrained", type=Path, help="local torchvision vgg11_bn state-dict file to start the "
                    "encoder from (default: random initialisation)")
     f.add_argument("--init", type=Path, help="fine-tune: start from the weights of this learner checkpoint "
-                   "(same preset shape and --input), with a fresh optimiser and schedule")
+                   "(same preset shape and --input), with a fresh optimiser and schedule (default: none)")
     f.add_argument("--teacher", type=Path,
                    help="teacher output folder to read labels from (`ctcvo teacher generate --out`; "
                         "default: runs/<scene>/teacher)")
@@ -125,7 +127,7 @@ def _predict_options(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="replace outputs of other inputs in --out instead of stopping with an error")
     _mc_options(p)
-    p.add_argument("--preset", choices=list(PRESETS), help="fail unless the checkpoint has this preset")
+    p.add_argument("--preset", choices=list(PRESETS), help="fail unless the checkpoint has this preset (default: any)")
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help=DEVICE_HELP)
     p.add_argument("--no-calibration", dest="calibration", action="store_false",
                    help="ignore the calibration.json beside the checkpoint")
@@ -139,6 +141,7 @@ def _mc_options(p: argparse.ArgumentParser) -> None:
 
 
 def _fit(args: argparse.Namespace) -> int:
+    log.info("learner fit: %s (loading PyTorch ...)", ", ".join(args.scene or ["resuming " + str(args.out)]))
     from ctcvo.learner.train import FitInterrupted, fit
 
     if not args.scene and not args.resume:
@@ -154,11 +157,12 @@ def _fit(args: argparse.Namespace) -> int:
     except FitInterrupted as exc:
         print(exc, file=sys.stderr)
         return 130
-    logging.getLogger("learner").info("checkpoint: %s", res.checkpoint)
+    log.info("checkpoint: %s", res.checkpoint)
     return 0
 
 
 def _calibrate(args: argparse.Namespace) -> int:
+    log.info("learner calibrate: %s on %s (loading PyTorch ...)", args.checkpoint, ", ".join(args.scene))
     from ctcvo.learner.calibrate import calibrate
 
     cfg = PredictConfig(samples=args.samples, drop=args.drop, max_gap=args.max_gap)
@@ -169,6 +173,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 
 def _predict(args: argparse.Namespace) -> int:
+    log.info("learner predict: %s on %s (loading PyTorch ...)", args.checkpoint, args.scene)
     from ctcvo.learner.predict import predict
 
     cfg = PredictConfig(samples=args.samples, drop=args.drop, max_gap=args.max_gap)

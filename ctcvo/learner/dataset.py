@@ -22,6 +22,7 @@ import hashlib
 import json
 import logging
 import shlex
+import sys
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -32,6 +33,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 from torch import Tensor
+from tqdm import tqdm
 
 from ctcvo.data import geometry as geo
 from ctcvo.data.errors import DataError, MissingInputError, VOError
@@ -200,13 +202,15 @@ def _cached(seq: Sequence, what: str, shape: tuple[int, ...], cache_dir: Path,
         try:
             arr = np.load(path, mmap_mode="r")
             if arr.shape == (len(ids), *shape) and arr.dtype == np.uint8:
+                log.debug("%s of %s from the cache %s", what, seq.name, path)
                 return arr
         except (OSError, ValueError):
             pass
         log.warning("ignoring unreadable cache %s", path)
     log.info("caching %s of %d frames of %s (%s)", what, len(ids), seq.name, size)
     with ThreadPoolExecutor(max_workers=4) as pool:
-        arr = np.stack(list(pool.map(make, range(len(seq)))))
+        arr = np.stack(list(tqdm(pool.map(make, range(len(seq))), total=len(seq), desc=f"caching {what}",
+                                 unit="frame", leave=False, disable=not sys.stderr.isatty())))
     with atomic_write(path, "wb") as fh:
         np.save(fh, np.ascontiguousarray(arr))
     return np.load(path, mmap_mode="r")
@@ -409,6 +413,9 @@ def load_sequences(spec: str, seqs: list[Sequence], *, width: int, height: int, 
             labels, mask, chol = teacher_labels(g2o, seq.ids(), max_gap)
         else:
             labels, mask = torch.zeros(max_gap + 1, n, 6), torch.zeros(max_gap + 1, n, dtype=torch.bool)
+        log.debug("%s: %d frames (ids %d..%d), labels from %s%s: %s", seq.name, n, seq.ids()[0], seq.ids()[-1],
+                  label_source, f" ({g2o})" if g2o is not None else "",
+                  ", ".join(f"gap {g} {int(mask[g].sum())}" for g in range(1, max_gap + 1)))
         out.append(SequenceData(seq.name, seq.ids(), seq.times(), load_frames(seq, width, height, cache_dir, mode),
                                 labels, mask, chol, gt))
     return out

@@ -98,27 +98,45 @@ class Evaluator:
 
 
 def epoch_line(entry: dict) -> str:
+    """The epoch's log line: the loss terms (1.0 = zero motion on the training labels), then
+    each set's se(3) L2 beside zero motion and constant velocity, naming the reference; an
+    LSTM head not trained yet (phase 1, pairs only) is marked so."""
     parts = [", ".join(f"{k}={entry[k]:.4g}" for k in ("pairs_reg", "windows_reg", "windows_ctc") if k in entry)]
+    if parts[0]:
+        parts[0] = "loss x zero motion on the labels: " + parts[0]
+    lstm_untrained = "windows" not in str(entry.get("phase", "windows"))
     for name in ("train", "val"):
         if f"{name}_se3_l2" in entry:
-            heads = (f"direct {entry[f'{name}_direct_se3_l2']:.5f}, lstm {entry[f'{name}_lstm_se3_l2']:.5f}"
-                     if f"{name}_lstm_se3_l2" in entry else f"{entry[f'{name}_se3_l2']:.5f}")
-            parts.append(f"{name} se(3) L2 {heads} (zero motion "
+            lstm = f"lstm {entry[f'{name}_lstm_se3_l2']:.5f}" if f"{name}_lstm_se3_l2" in entry else ""
+            if lstm and lstm_untrained:
+                lstm += " (not trained yet: phase 1 trains the direct head)"
+            heads = (f"direct {entry[f'{name}_direct_se3_l2']:.5f}, {lstm}" if lstm
+                     else f"{entry[f'{name}_se3_l2']:.5f}")
+            parts.append(f"{name} se(3) L2 vs {entry[f'{name}_reference']} {heads} (zero motion "
                          f"{entry[f'{name}_zero_motion_se3_l2']:.5f}, constant velocity "
-                         f"{entry[f'{name}_constant_velocity_se3_l2']:.5f}; vs {entry[f'{name}_reference']})")
+                         f"{entry[f'{name}_constant_velocity_se3_l2']:.5f})")
     return " | ".join(parts)
 
 
 def warn_if_no_skill(entry: dict) -> None:
-    """Say loudly when the trained model is no better than a camera that never moves."""
+    """Say loudly when the trained model is no better than a camera that never moves, or
+    than one that repeats its previous step (constant velocity), on its validation frames
+    (without them, its training frames)."""
     for name in ("val", "train"):
         err, zero = entry.get(f"{name}_se3_l2"), entry.get(f"{name}_zero_motion_se3_l2")
         if err is None or zero is None or not (math.isfinite(err) and math.isfinite(zero)):
             continue
+        where = "validation" if name == "val" else "training"
+        ref = entry.get(f"{name}_reference", "the reference")
+        cv = entry.get(f"{name}_constant_velocity_se3_l2")
         if err >= zero:
             log.warning("!!! the trained model is NOT better than zero motion on its %s frames: se(3) L2 %.5f vs "
-                        "%.5f for a camera that never moves. Its predictions carry no usable motion.",
-                        "validation" if name == "val" else "training", err, zero)
-        else:
-            log.info("%s se(3) L2 %.5f = %.2fx zero motion (%.5f)", name, err, err / zero, zero)
+                        "%.5f for a camera that never moves (both against %s). Its predictions carry no usable "
+                        "motion.", where, err, zero, ref)
+            return
+        log.info("%s se(3) L2 %.5f = %.2fx zero motion (%.5f), against %s", name, err, err / zero, zero, ref)
+        if cv is not None and math.isfinite(cv) and err >= cv:
+            log.warning("!!! the trained model is NOT better than constant velocity on its %s frames: se(3) L2 "
+                        "%.5f vs %.5f for a camera that repeats its previous step (both against %s).",
+                        where, err, cv, ref)
         return

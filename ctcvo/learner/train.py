@@ -35,7 +35,6 @@ from typing import Any
 import numpy as np
 import torch
 from torch import Tensor
-from tqdm import tqdm
 
 from ctcvo.data.errors import ConfigError, DataError, VOError
 from ctcvo.data.io import git_revision, write_json
@@ -56,7 +55,7 @@ from ctcvo.data.runs import (
 from ctcvo.data.scenes import open_scene
 from ctcvo.data.sequence import frame_ranges_overlap
 from ctcvo.learner import loss as L
-from ctcvo.learner.batches import lr_at, pair_batches, pairs_step, window_batches, window_length, windows_step
+from ctcvo.learner.batches import PhaseProgress, lr_at, pair_batches, pairs_step, window_batches, window_length, windows_step
 from ctcvo.learner.calibrate import CALIBRATION_FILE
 from ctcvo.learner.calibrate import calibrate as run_calibration
 from ctcvo.learner.checkpoint import CHECKPOINT, load_checkpoint, save_checkpoint
@@ -496,10 +495,11 @@ def train_loop(model: CTCNet, opt: torch.optim.Optimizer, train_data: list[Seque
             model, device_ids=[dd.device.index] if dd.device.type == "cuda" else None, find_unused_parameters=True)
     aug = spec.label_source == "aug"
     epoch = start_epoch
+    bars = PhaseProgress(cfg, progress and dd.main)
     try:
         for epoch in range(start_epoch, cfg.epochs):
             history.append(_train_epoch(net, model, opt, train_data, scale, evaluator, spec, dd, epoch, aug,
-                                        ckpt_path, progress))
+                                        ckpt_path, bars))
             if dd.main:
                 log.info("epoch %d/%d (step %d): %s", epoch + 1, cfg.epochs, history[-1]["steps"],
                          epoch_line(history[-1]))
@@ -508,12 +508,14 @@ def train_loop(model: CTCNet, opt: torch.optim.Optimizer, train_data: list[Seque
             dd.barrier()
     except KeyboardInterrupt:
         raise FitInterrupted(epoch + 1, run_dir) from None
+    finally:
+        bars.close()
     return history
 
 
 def _train_epoch(net: torch.nn.Module, model: CTCNet, opt: torch.optim.Optimizer, train_data: list[SequenceData],
                  scale: Tensor, evaluator: Evaluator, spec: FitSpec, dd: Dist, epoch: int, aug: bool,
-                 ckpt_path: Path, progress: bool) -> dict[str, Any]:
+                 ckpt_path: Path, bars: PhaseProgress) -> dict[str, Any]:
     """One epoch of ``eval_every`` optimiser steps; its history entry."""
     cfg = spec.preset.train
     first, last = epoch * cfg.eval_every, min((epoch + 1) * cfg.eval_every, cfg.steps)
@@ -535,9 +537,7 @@ def _train_epoch(net: torch.nn.Module, model: CTCNet, opt: torch.optim.Optimizer
     net.train()
     t_epoch = time.perf_counter()
     sums: dict[str, dict[str, float]] = {}
-    bar = tqdm(plan, desc=f"epoch {epoch + 1}/{cfg.epochs}" + (f" W={W}" if W else ""),
-               disable=not (progress and dd.main), leave=False)
-    for i, (phase, batch) in enumerate(bar):
+    for i, (phase, batch) in enumerate(plan):
         step = first + i
         for group in opt.param_groups:
             group["lr"] = lr_at(cfg, step)
@@ -560,7 +560,8 @@ def _train_epoch(net: torch.nn.Module, model: CTCNet, opt: torch.optim.Optimizer
         for k in items:
             acc[k] += items[k]
         acc["steps"] += 1
-        bar.set_postfix({k: f"{v:.3g}" for k, v in items.items()})
+        bars.step(phase, step, {"epoch": f"{epoch + 1}/{cfg.epochs}", **({"W": str(W)} if W else {}),
+                                **{k: f"{v:.3g}" for k, v in items.items()}})
     entry: dict[str, Any] = {"epoch": epoch + 1, "steps": last, "phase": "+".join(sums), "window": W,
                              "lr": lr_at(cfg, last - 1), "train_seconds": round(time.perf_counter() - t_epoch, 2)}
     for phase, acc in sums.items():  # losses are normalised: 1.0 = zero motion on the labels

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -34,7 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="ctcvo online", description=DESCRIPTION, formatter_class=HelpFormatter)
     p.add_argument("--scene", required=True, help="sequence folder, ROS bag or synthetic/NAME; with --follow "
                    "a 7-Scenes-layout or TUM RGB-D folder being written")
-    p.add_argument("--checkpoint", type=Path, help="learner checkpoint: add its MC-dropout edges")
+    p.add_argument("--checkpoint", type=Path,
+                   help="learner checkpoint: add its MC-dropout edges (default: none, teacher edges only)")
     p.add_argument("--out", type=Path, help="output folder (default runs/<scene>/online)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the outputs of other inputs in --out instead of stopping with an error")
@@ -52,7 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "the ones in between (bounded latency, fewer frames)")
     p.add_argument("--samples", type=int, help="MC-dropout passes K (default 10)")
     p.add_argument("--max-gap", type=int, help="learner edges to the last frames (default 5)")
-    p.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"], help="learner device")
+    p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
+                   help="learner device; auto: CUDA when available, else the CPU")
     p.add_argument("-v", "--verbose", action="store_true")
     add_topic_options(p)
     return p
@@ -76,6 +79,8 @@ def _configs(args: argparse.Namespace) -> tuple:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.verbose, "%(message)s")
+    if not args.verbose:  # the final smoothing's solver lines (scales, re-solves, LM): -v shows them
+        logging.getLogger("ctcvo.posegraph.graph").setLevel(logging.WARNING)
     try:
         scene = scene_with_topics(args.scene, args)
         tcfg, pcfg, ocfg = _configs(args)

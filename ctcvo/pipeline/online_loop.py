@@ -164,6 +164,15 @@ class Prefetcher:
                     except queue.Empty:
                         pass
 
+    def drain(self) -> None:
+        """Drop the frames prepared but not taken (an interrupted run): their Open3D buffers
+        would otherwise outlive the interpreter, and Open3D lists each one at exit."""
+        while True:
+            try:
+                self.queue.get_nowait()
+            except queue.Empty:
+                return
+
     def get(self, asked: threading.Event) -> tuple | None:
         """The next prepared frame (None: the source has no more); raises what the helper
         thread raised, and KeyboardInterrupt once ``asked`` is set."""
@@ -296,6 +305,7 @@ def drive(source: FrameSource, est: Estimator, cfg: OnlineConfig, max_frames: in
             if bar is not None:
                 bar.close()
             pre.thread.join(timeout=5.0)
+            pre.drain()
     return interrupted, time.perf_counter() - t_start, source.skipped + pre.replaced
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -57,9 +58,10 @@ def _parser() -> argparse.ArgumentParser:
     o.add_argument("--no-plots", dest="plots", action="store_false", default=None, help="write no PNG figures")
     add_topic_options(o)
     o.add_argument("--teacher-calibration", type=Path,
-                   help="per-gap teacher covariance scales from `posegraph calibrate` (fitted on validation data)")
+                   help="per-gap teacher covariance scales from `posegraph calibrate` (fitted on validation data; "
+                        "default: none, the teacher's covariances as written)")
     c = add_command(sub, "calibrate", "fit per-gap covariance scales of teacher edges from their own "
-                                      "multi-gap consistency (no ground truth), on validation ranges")
+                                      "multi-gap consistency or against ground truth, on validation ranges")
     c.add_argument("--teacher", type=Path, nargs="+", required=True,
                    help="teacher output folder(s) of validation ranges or scenes (never the test data)")
     c.add_argument("--out", type=Path, required=True, help="calibration JSON to write")
@@ -83,6 +85,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 def _optimize(args: argparse.Namespace) -> int:
     from ctcvo.posegraph.optimize import optimize
+    from ctcvo.posegraph.report import summary_text
 
     if args.command == "calibrate":
         return _calibrate(args)
@@ -94,7 +97,8 @@ def _optimize(args: argparse.Namespace) -> int:
                     out=args.out, cfg=cfg, split=args.split, frames=args.frames, overwrite=args.overwrite,
                     teacher_calibration=args.teacher_calibration)
     for o in outs:
-        print(o / "report.md")
+        print(summary_text(json.loads((o / "report.json").read_text())))
+        print(f"full report: {o / 'report.md'}")
     return 0
 
 

@@ -186,11 +186,80 @@ def report_markdown(report: dict) -> str:
              f"({', '.join(f'{k}: {v}' for k, v in report['edges_per_source'].items())}), "
              f"solver {report['solver']['name']}, kernel {report['config']['kernel']}; "
              f"ground truth: {'yes' if report['has_groundtruth'] else 'no'}.", ""]
+    use = edge_use(report)
+    if use:
+        lines += [use, ""]
     lines += _md_table(report) + _md_skill(report) + _md_calibration(report) + _md_outliers(report)
     lines += ["", "## Solver", "", f"- initial error {report['solver']['initial_error']:.6g}, final "
               f"{report['solver']['final_error']:.6g}, {report['solver']['iterations']} iterations/updates, "
               f"{report['solver']['time_s']:.2f} s", f"- git {report['git']}", ""]
     return "\n".join(lines)
+
+
+def _used_counts(report: dict) -> dict[str, int | None]:
+    """Edges of each source in the fused graph: every edge of a source the graph takes as
+    given; the one source it selects from (the learner, by ``learner_edges`` and its skill
+    gate) gets the rest of ``edges_total``; ``None`` where that cannot be told."""
+    given = report.get("edges_per_source") or {}
+    gates = report.get("skill_gate") or {}
+    bridge = _bridge_mode(report)
+    selected = [n for n in given if (bridge and n != "teacher") or (gates.get(n) or {}).get("gated_gaps")]
+    used: dict[str, int | None] = {n: v for n, v in given.items() if n not in selected}
+    rest = report.get("edges_total", 0) - sum(v for v in used.values() if v is not None)
+    for n in selected:
+        used[n] = rest if len(selected) == 1 else None
+    return {n: used[n] for n in given}
+
+
+def _bridge_mode(report: dict) -> bool:
+    sources = report.get("graph_sources") or list(report.get("edges_per_source") or {})
+    return (report.get("config") or {}).get("learner_edges") == "bridge" and "teacher" in sources and len(sources) > 1
+
+
+def _why_unused(report: dict, name: str) -> str:
+    """Why some of ``name``'s edges are not in the fused graph (see posegraph.fusion)."""
+    gate = (report.get("skill_gate") or {}).get(name) or {}
+    gated, no_cv = gate.get("gated_gaps") or [], gate.get("no_better_than_cv") or []
+    why = []
+    if _bridge_mode(report):
+        why.append("only edges that join frames the teacher's edges leave apart enter (--learner-edges bridge)")
+        if gated:
+            why.append(f"none at gap(s) {', '.join(map(str, gated))}: no better than zero motion on its validation pairs")
+        if no_cv:
+            why.append(f"none at gap(s) {', '.join(map(str, no_cv))}: no better than constant velocity on its "
+                       "validation pairs")
+    elif gated:
+        why.append(f"gap(s) {', '.join(map(str, gated))} no better than zero motion on its validation pairs: left out "
+                   "except where they join frames the other edges leave apart (then weighed "
+                   f"{gate.get('scale', 0):.0e} times less)")
+    return "; ".join(why)
+
+
+def edge_use(report: dict) -> str:
+    """One line: how many edges of each source the fused graph used, and why any were not."""
+    given = report.get("edges_per_source") or {}
+    if not given:
+        return ""
+    used = _used_counts(report)
+    parts = []
+    for n, total in given.items():
+        u = used[n]
+        part = f"{n} {'?' if u is None else u} of {total}"
+        if u is None or u < total:
+            why = _why_unused(report, n)
+            if u == 0 and _bridge_mode(report) and not (report.get("skill_gate") or {}).get(n, {}).get("gated_gaps"):
+                why += "; the teacher's edges leave no frames apart here"
+            part += f" ({why})" if why else ""
+        parts.append(part)
+    return "Edges used in the fused graph: " + ", ".join(parts) + "."
+
+
+def summary_text(report: dict) -> str:
+    """What ``posegraph optimize`` prints: the title, the edges used and the table."""
+    table = _md_table(report)
+    table = table[:table.index("")] if "" in table else table
+    md = report_markdown(report)
+    return md[:md.index("\n| ")] + "\n" + "\n".join(table) + "\n"
 
 
 def _md_table(report: dict) -> list[str]:

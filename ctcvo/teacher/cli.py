@@ -40,7 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
     orb = g.add_argument_group("ORB-SLAM3 backend (--backend orbslam3; needs `pip install ctcvo[orbslam3]`, GPL-3.0)")
     orb.add_argument("--backend", default="ours", choices=["ours", "orbslam3"],
                      help="ours: this project's odometry; orbslam3: ORB-SLAM3 RGB-D through pyorbslam3")
-    orb.add_argument("--vocabulary", type=Path, help="DBoW2 text vocabulary (`ctcvo teacher vocabulary`, or ORBvoc.txt)")
+    orb.add_argument("--vocabulary", type=Path, help="DBoW2 text vocabulary (`ctcvo teacher vocabulary`, or ORBvoc.txt; "
+                     "required with --backend orbslam3, default: none)")
     orb.add_argument("--mode", default="slam", choices=["slam", "localization"],
                      help="localization: mapping stops after the first tracked frame")
     orb.add_argument("--labels", default="final", choices=["final", "causal"],

@@ -15,6 +15,8 @@ the covariance is in the project tangent order (v, w), right perturbation at ``T
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -28,11 +30,38 @@ from ctcvo.teacher.record import EdgeEstimate
 from ctcvo.teacher.sparse import MIN_MATCHES, sparse_estimate
 from ctcvo.teacher.timing import cov_to_depth_moments, depth_moved, rolling_shutter_views, to_colour_moments, to_depth_moments
 
+log = logging.getLogger(__name__)
+
 
 def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
                   cfg: TeacherConfig, dt: float, T_pred: NDArray | None = None,
                   tracks: NDArray[np.int64] | None = None,
                   T_alt: NDArray | None = None, span: float | None = None) -> EdgeEstimate:
+    """:func:`_estimate_edge`, with a debug line per edge (``-v``): how it was made."""
+    res = _estimate_edge(i, j, fi, fj, intr, cfg, dt, T_pred, tracks, T_alt, span)
+    if log.isEnabledFor(logging.DEBUG):
+        log.debug("edge %d->%d: %s", i, j, describe(res))
+    return res
+
+
+def describe(res: EdgeEstimate) -> str:
+    """One line on an edge: status, matches, inliers, the path (which fallback), why the
+    steps before it did not take it, and the dense step's fitness."""
+    d = res.diag
+    parts = [res.status, f"{res.matches} matches, {res.inliers} inliers", f"path {d.path}"]
+    parts += [f"{k} {v}" for k, v in (("keypoints", d.sparse_status), ("depth step", d.depth_step),
+                                      ("rgbd fallback", d.rgbd_fallback), ("dense fallback", d.dense_fallback),
+                                      ("error", d.error)) if v]
+    if d.dense is not None:
+        parts.append(f"dense step {'taken' if d.dense.accepted else 'rejected'}, fitness {d.dense.fitness:.3f}, "
+                     f"moved {1000 * d.dense.shift_m:.1f} mm / {d.dense.shift_deg:.2f} deg")
+    return ", ".join(parts)
+
+
+def _estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
+                   cfg: TeacherConfig, dt: float, T_pred: NDArray | None = None,
+                   tracks: NDArray[np.int64] | None = None,
+                   T_alt: NDArray | None = None, span: float | None = None) -> EdgeEstimate:
     """Estimate ``T_i_j`` between two frames (ids ``i``, ``j``, ``dt`` seconds apart).
 
     ``dt`` bounds the keypoint estimates' plausibility tests (``cfg.max_speed`` /
