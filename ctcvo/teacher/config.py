@@ -53,6 +53,9 @@ class TeacherConfig:
     reductions), so it is part of the outputs' fingerprint."""
     chunk_frames: int = 150
     """Frames per chunk of a worker; it shapes the edges through the chunk bounds."""
+    keyframes: bool = False
+    """Also estimate edges between keyframes reaching back seconds, and verified loop edges
+    (:mod:`teacher.keyframes`); off until validation data favours it (bench/README.md)."""
 
     def __post_init__(self) -> None:
         for name in ("gaps", "n_features", "workers", "threads", "chunk_frames"):
