@@ -123,6 +123,22 @@ def posegraph_table(records: dict[str, dict]) -> list[str]:
     return markdown(head, rows) + ["", provenance(recs)]
 
 
+def keyframes_table(records: dict[str, dict]) -> list[str]:
+    recs = select(records, "keyframes")
+    if not recs:
+        return missing("python -m bench.keyframes")
+    rows = []
+    for r in recs.values():
+        for scene, row in r["figures"]["scenes"].items():
+            for variant, x in row.items():
+                kinds = ", ".join(f"{k} {v}" for k, v in sorted(x["edges_by_kind"].items()))
+                rows.append([scene, variant, mm(x["ate_m"]), mm(x["rpe_gap1_m"], 2), mm(x["rpe_1s_m"]),
+                             mm(x["chain_ate_m"]), kinds, num(x["teacher_seconds"])])
+    head = ["validation range", "edges", "graph ATE mm", "gap-1 RPE mm", "1 s RPE mm", "chain ATE mm",
+            "edges by kind", "teacher s"]
+    return markdown(head, rows) + ["", provenance(recs)]
+
+
 def learner_table(records: dict[str, dict]) -> list[str]:
     recs = select(records, "learner")
     if not recs:
@@ -258,7 +274,8 @@ def results_table(records: dict[str, dict]) -> list[str]:
 
 
 TABLES: dict[str, Callable[[dict[str, dict]], list[str]]] = {
-    "teacher": teacher_table, "online": online_table, "posegraph": posegraph_table, "learner": learner_table,
+    "teacher": teacher_table, "online": online_table, "posegraph": posegraph_table, "keyframes": keyframes_table,
+    "learner": learner_table,
     "render": render_table, "synthetic-realism": realism_table, "ablation": ablation_table,
     "teacher-noise": noise_table, "demo": demo_table, "summary": summary_table,
     "results": results_table,

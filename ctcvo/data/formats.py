@@ -293,10 +293,10 @@ def _pose_from_vals(vals: NDArray[np.float64], where: str) -> NDArray[np.float64
 # ----------------------------------------------------------------------------------
 EDGE_CSV_COLUMNS = [
     "i", "j", "t_i", "t_j", "status", "matches", "inliers", "inlier_ratio", "rmse_px",
-    "trans_m", "rot_deg", "dense_fitness", "dense_shift_m", "path",
+    "trans_m", "rot_deg", "dense_fitness", "dense_shift_m", "path", "kind",
 ]
 #: edges.csv columns read as strings (every other column but the integer ones is a float)
-EDGE_CSV_STRINGS = ("status", "path")
+EDGE_CSV_STRINGS = ("status", "path", "kind")
 
 
 def write_edges_csv(path: Path, rows: Iterable[dict]) -> None:

@@ -35,6 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--preset", default="default", choices=sorted(PRESETS), help="teacher preset, see above")
     g.add_argument("--workers", type=int, default=None,
                    help="worker processes (default: the preset's, 2)")
+    g.add_argument("--keyframes", action="store_true",
+                   help="also estimate keyframe edges reaching back seconds and verified loop edges")
     g.add_argument("--overwrite", action="store_true",
                    help="replace outputs of other inputs instead of stopping with an error")
     orb = g.add_argument_group("ORB-SLAM3 backend (--backend orbslam3; needs `pip install ctcvo[orbslam3]`, GPL-3.0)")
@@ -76,6 +78,8 @@ def _generate(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, gaps=args.gaps)
     if args.workers is not None:
         cfg = dataclasses.replace(cfg, workers=args.workers)
+    if args.keyframes:
+        cfg = dataclasses.replace(cfg, keyframes=True)
     if cfg.workers > 1:
         processes.start()  # the workers import Open3D and the teacher while this process does
     from ctcvo.teacher.generate import generate

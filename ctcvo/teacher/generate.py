@@ -48,6 +48,7 @@ from ctcvo.data.sequence import Sequence
 from ctcvo.teacher import processes
 from ctcvo.teacher.config import TeacherConfig, dense_method
 from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb
+from ctcvo.teacher.keyframes import keyframe_edges
 from ctcvo.teacher.maps import PhotoMaps
 from ctcvo.teacher.record import EdgeEstimate
 from ctcvo.teacher.window import EdgeWindow
@@ -65,6 +66,8 @@ class TeacherRun:
     poses: NDArray[np.float64]  # (N, 4, 4) chained T_world_cam, frame 0 at the identity
     bridges: list[dict]
     seconds: float
+    kinds: dict[tuple[int, int], str] = dataclasses.field(default_factory=dict)
+    """``keyframe`` or ``loop`` for the edges :mod:`teacher.keyframes` added; others are ``window``."""
 
 
 def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> TeacherRun:
@@ -90,7 +93,23 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> Te
     bar.close()
     edges.sort(key=lambda e: (e.i, e.j))
     poses, bridges = chain_trajectory(seq.ids(), edges)
-    return TeacherRun(edges, poses, bridges, time.perf_counter() - t0)
+    kinds: dict[tuple[int, int], str] = {}
+    if cfg.keyframes and n >= 2:
+        have = {(e.i, e.j) for e in edges}
+        for e, kind in keyframe_edges(seq, cfg, poses, _features_of(seq, cfg)):
+            if (e.i, e.j) not in have:
+                have.add((e.i, e.j))
+                edges.append(e)
+                kinds[(e.i, e.j)] = kind
+        edges.sort(key=lambda e: (e.i, e.j))
+    return TeacherRun(edges, poses, bridges, time.perf_counter() - t0, kinds)
+
+
+def _features_of(seq: Sequence, cfg: TeacherConfig) -> Callable[[int], FrameFeatures]:
+    """A frame's features by position, extracted as :func:`_run_chunk` extracts them."""
+    orb, colour = make_orb(cfg), colour_camera_for(seq.sensor, cfg)
+    cfg = dataclasses.replace(cfg, rolling_shutter_s=rolling_shutter_for(seq.sensor, cfg))
+    return lambda k: extract(seq.rgb(k), seq.depth(k), cfg, orb, seq.intrinsics.K, colour)
 
 
 def _run_chunks(seq: Sequence, cfg: TeacherConfig, bounds: list[tuple[int, int]],
@@ -295,12 +314,14 @@ def chain_trajectory(ids: NDArray[np.int64], edges: list[EdgeEstimate]) -> tuple
     return chained.poses, chained.bridges
 
 
-def _edge_rows(edges: list[EdgeEstimate], ts: dict[int, float]) -> list[dict]:
+def _edge_rows(edges: list[EdgeEstimate], ts: dict[int, float],
+               kinds: dict[tuple[int, int], str] | None = None) -> list[dict]:
+    kinds = kinds or {}
     return [{
         "i": e.i, "j": e.j, "t_i": f"{ts[e.i]:.6f}", "t_j": f"{ts[e.j]:.6f}", "status": e.status,
         "matches": e.matches, "inliers": e.inliers, "inlier_ratio": float(e.inlier_ratio),
         "rmse_px": float(e.rmse_px), "trans_m": float(e.diag.trans_m), "rot_deg": float(e.diag.rot_deg),
-        **_dense_cells(e), "path": e.diag.path,
+        **_dense_cells(e), "path": e.diag.path, "kind": kinds.get((e.i, e.j), "window"),
     } for e in edges]
 
 
@@ -358,7 +379,7 @@ def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path,
     ts = {int(f): float(t) for f, t in zip(ids, times)}
     good = [Edge(e.i, e.j, e.T_i_j, e.cov) for e in run.edges if e.ok]
     write_g2o(out / "edges.g2o", good, {int(f): T for f, T in zip(ids, run.poses)})
-    write_edges_csv(out / "edges.csv", _edge_rows(run.edges, ts))
+    write_edges_csv(out / "edges.csv", _edge_rows(run.edges, ts, run.kinds))
     write_tum(out / "trajectory.tum", Trajectory(times, run.poses))
     gt = seq.groundtruth()
     if gt is not None:

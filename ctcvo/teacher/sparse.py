@@ -192,9 +192,12 @@ def sparse_estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: 
     uv_i = np.take(uv_fi, pairs[:, 0], axis=0).astype(np.float64)
     uv_j = np.take(uv_fj, pairs[:, 1], axis=0).astype(np.float64)
     P_i = backproject(uv_i, z_fi[pairs[:, 0]].astype(np.float64), K)
-    ok, rvec, tvec, inl = cv2.solvePnPRansac(
-        P_i, uv_j, K, None, iterationsCount=RANSAC_ITERS, reprojectionError=RANSAC_REPROJ_PX,
-        confidence=0.999, flags=cv2.SOLVEPNP_SQPNP)
+    try:
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            P_i, uv_j, K, None, iterationsCount=RANSAC_ITERS, reprojectionError=RANSAC_REPROJ_PX,
+            confidence=0.999, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:  # SQPnP asserts on a sample of (nearly) coincident points: a keyframe edge met one
+        return EdgeEstimate(i, j, "degenerate", matches=n_match)
     if not ok or inl is None or len(inl) < 6:
         return EdgeEstimate(i, j, "few_inliers", matches=n_match, inliers=0 if inl is None else len(inl))
     inl = inl.ravel()

@@ -1,0 +1,85 @@
+"""Keyframe and loop edges of the teacher (ctcvo.teacher.keyframes, ctcvo.teacher.loops)."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import numpy as np
+import pytest
+
+from ctcvo.data import geometry as geo
+from ctcvo.data.formats import Edge, read_edges_csv, read_g2o
+from ctcvo.data.scenes import open_scene
+from ctcvo.posegraph.graph import solve
+from ctcvo.teacher import cli
+from ctcvo.teacher.config import TINY
+from ctcvo.teacher.generate import run_sequence
+from ctcvo.teacher.loops import verify
+
+CFG = dataclasses.replace(TINY, workers=1, keyframes=True)
+
+
+def _there_and_back(seq, period: float = 0.5):
+    """``seq`` played forward then backward (its last frame's images are its first's), one frame
+    every ``period`` seconds, so the return is old enough to be a loop candidate."""
+    n = len(seq)
+    order = np.concatenate([np.arange(n), np.arange(n - 2, -1, -1)])
+    base = seq._positions[order]
+    view = copy.copy(seq)
+    rgb, depth = seq._read_rgb, seq._read_depth
+    view._read_rgb = lambda p: rgb(int(base[p]))
+    view._read_depth = lambda p: depth(int(base[p]))
+    view.timestamps = np.arange(len(order)) * period
+    view.depth_timestamps = None
+    view.frame_ids = np.arange(len(order), dtype=np.int64)
+    gt = seq.groundtruth()
+    view._gt = None if gt is None else gt[order]
+    view._positions = np.arange(len(order))
+    return view
+
+
+def test_keyframe_edges_are_marked_in_edges_csv(tmp_path):
+    out = tmp_path / "t"
+    assert cli.main(["generate", "--scene", "synthetic/tiny", "--out", str(out), "--preset", "tiny",
+                     "--workers", "1", "--keyframes"]) == 0
+    rows = read_edges_csv(next(out.rglob("edges.csv")))
+    kinds = {r["kind"] for r in rows}
+    assert {"window", "keyframe"} <= kinds
+    gap = max(r["j"] - r["i"] for r in rows if r["kind"] == "window")
+    kf = [r for r in rows if r["kind"] == "keyframe"]
+    assert gap == TINY.gaps and all(r["j"] - r["i"] > gap for r in kf)
+    g2o_edges, _ = read_g2o(next(out.rglob("edges.g2o")))
+    pairs = {(e.i, e.j) for e in g2o_edges}
+    assert {(r["i"], r["j"]) for r in kf if r["status"] == "ok"} <= pairs
+
+
+@pytest.fixture(scope="module")
+def loop_run():
+    seq = _there_and_back(open_scene("synthetic/tiny")[0])
+    return seq, run_sequence(seq, CFG, progress=False)
+
+
+def test_a_synthetic_loop_closes(loop_run):
+    seq, run = loop_run
+    n = len(seq)
+    loops = [e for e in run.edges if run.kinds.get((e.i, e.j)) == "loop" and e.ok]
+    assert any(e.i == 0 for e in loops), "the return to the start was not recognised"
+
+    def end_to_start(kinds: set[str]) -> float:
+        edges = [Edge(e.i, e.j, e.T_i_j, e.cov) for e in run.edges
+                 if e.ok and run.kinds.get((e.i, e.j), "window") in kinds]
+        poses = solve(seq.ids(), edges, run.poses).poses
+        return float(np.linalg.norm(geo.relative_pose(poses[0], poses[n - 1])[:3, 3]))
+
+    closed = end_to_start({"window", "keyframe", "loop"})
+    assert closed < 0.01  # the last frame's images are the first's: it is at the start
+    assert closed < 0.5 * end_to_start({"window", "keyframe"})  # and the loop edges are why
+
+
+def test_a_false_loop_is_rejected(loop_run):
+    seq, run = loop_run
+    e = next(e for e in run.edges if run.kinds.get((e.i, e.j)) == "loop" and e.ok)
+    assert verify(e, e.T_i_j).ok
+    far = e.T_i_j @ geo.se3_exp(np.array([0.5, 0.0, 0.0, 0.0, 0.0, 0.0]))  # another place, 0.5 m away
+    assert verify(e, far).status == "loop_rejected"
