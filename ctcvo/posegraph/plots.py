@@ -131,9 +131,12 @@ def make_figures(times: NDArray[np.float64], rows: dict[str, NDArray[np.float64]
             "error_over_time.png": _error_over_time(t, pos, gt, aligned, edges, residuals, threshold)}
 
 
-def make_plots(*args, **kwargs) -> dict[str, bytes]:
+def make_plots(times: NDArray[np.float64], rows: dict[str, NDArray[np.float64]],
+               gt: NDArray[np.float64] | None, frame_ids: NDArray[np.int64], edges: Sequence[Edge],
+               residuals: NDArray[np.float64], outliers: Sequence[OutlierRecord], threshold: float) -> dict[str, bytes]:
     """:func:`make_figures` as ``{file name: PNG bytes}``."""
-    return {name: _png(fig) for name, fig in make_figures(*args, **kwargs).items()}
+    figs = make_figures(times, rows, gt, frame_ids, edges, residuals, outliers, threshold)
+    return {name: _png(fig) for name, fig in figs.items()}
 
 
 def _ate_m(gt: NDArray[np.float64] | None, p: NDArray[np.float64]) -> float | None:
