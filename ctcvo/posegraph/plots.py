@@ -149,7 +149,9 @@ def _legend_label(name: str, ate: float | None) -> str:
 
 
 def _shared_legend(fig, handles: list, labels: list[str], ncol: int | None = None) -> None:
-    """One legend for the whole figure, under the panels."""
+    """One legend for the whole figure, under the panels (none without series)."""
+    if not labels:
+        return
     fig.legend(handles, labels, loc="outside lower center", ncol=ncol or min(len(labels), 3), fontsize=9,
                frameon=False)
 
@@ -265,6 +267,8 @@ def _relative_se3(rows: dict[str, NDArray[np.float64]], gt: NDArray[np.float64] 
     fig = _figure(12, 4.8)
     axes = fig.subplots(1, 2)
     names = list(errs)
+    if not names:
+        fig.text(0.5, 0.5, f"no row to compare with {ref}", ha="center", bbox=dict(fc="white", ec="0.5"))
     w = 0.8 / max(len(names), 1)
     for ax, comps, unit in ((axes[0], range(3), "mm"), (axes[1], range(3, 6), "deg")):
         for k, n in enumerate(names):
