@@ -326,7 +326,9 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
     result = fused.result
     pngs = {}
     if cfg.plots:
-        pngs = make_plots(frames.times, rows, gt, frames.ids, fused.edges + fused.bridges, result.residuals, ~result.used)
+        first = result.first_residuals if result.first_residuals is not None else result.residuals
+        pngs = make_plots(frames.times, rows, gt, frames.ids, fused.edges + fused.bridges, first, result.outliers,
+                          cfg.residual_threshold)
     marg = None
     if result.marginals is not None:
         buf = io.BytesIO()

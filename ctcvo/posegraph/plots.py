@@ -1,16 +1,27 @@
-"""Figures after the paper, rendered in memory (Agg) and returned as PNG bytes so the
-stage can write them atomically after everything else succeeded.
+"""Figures of ``posegraph optimize``, rendered in memory (Agg) and returned as PNG bytes so
+the stage can write them atomically after everything else succeeded.
 
-* ``trajectories.png``: 3-D trajectories (equal scale on the three axes) and their XZ
-  projection versus ground truth (estimates aligned to it with evo's SE(3) Umeyama, no
-  scale);
-* ``relative_se3.png``: the six se(3) coordinates (v, w) of gap-1 relative poses over
-  time, each estimate versus ground truth, a legend in every panel;
-* ``outliers.png``: one se(3) coordinate of the gap-1 edges versus ground truth, with
-  high-variance edges and rejected edges marked (one marker per kind, one colour per
-  source; the legend names only what the figure shows);
-* ``error_over_time.png``: translation error over time after alignment (without ground
-  truth: whitened edge residuals over time).
+Every series has its own colour (Okabe-Ito, colour-blind safe) and line style and the
+report's human label (:data:`LABELS`); each figure has one shared legend. Estimates are
+aligned to ground truth as the report's ATE is: evo's SE(3) Umeyama (no scale) over all
+frames of the graph.
+
+* ``trajectories.png``: a top view and a side view (2-D, equal aspect) of every row
+  aligned to ground truth; the two horizontal world axes are the two along which the
+  trajectory spans most, the vertical the one it spans least (each panel names its axes).
+  Ground truth is drawn last, thin and black; the fused row a wide pale band underneath,
+  so that it shows where it equals the teacher graph. Units mm below 1 m of extent, else m;
+  the legend gives each row's ATE.
+* ``error_over_time.png``: each row's position error after that alignment over time, on
+  a log axis (a 0.5 m error and a 2 mm one both readable); without ground truth the
+  edges' whitened residuals over time.
+* ``relative_se3.png``: per-dimension errors of the gap-1 relative poses against ground
+  truth, ``|log(T_est_rel) - log(T_gt_rel)|`` per se(3) component (v in mm, w in deg; the
+  components of the report's se(3) L2), one box per row (median, quartiles, 5-95 %
+  whiskers) on a log axis; without ground truth against the fused graph.
+* ``outliers.png``: every edge of every gap at its whitened residual after the first
+  (calibrated) solve, the threshold, and the report's outlier edges (``report.json``
+  ``outliers``: the same count, split by action and gap).
 
 Every time axis is the sequence's own time (the trajectories' timestamps: 7-Scenes and
 synthetic frame ``k`` at ``k / 30`` s, TUM the recording's clock), so that a figure of
@@ -21,6 +32,7 @@ from __future__ import annotations
 
 import copy
 import io
+from collections import Counter
 from collections.abc import Sequence
 
 import numpy as np
@@ -29,24 +41,36 @@ from numpy.typing import NDArray
 from ctcvo.data import geometry as geo
 from ctcvo.data import metrics
 from ctcvo.data.formats import Edge, Trajectory
+from ctcvo.posegraph.graph import OutlierRecord
+from ctcvo.posegraph.report import ROW_LABELS
 
+#: the report's row labels, and ground truth's
+LABELS = {"gt": "ground truth", **ROW_LABELS}
+#: colour, line style and width of each series (Okabe-Ito colours); ground truth thin on
+#: top, the fused row a wide pale band underneath
+STYLES = {"gt": dict(color="black", ls="-", lw=0.8, zorder=10),
+          "teacher": dict(color="#E69F00", ls="--", lw=1.4, zorder=4),
+          "teacher_graph": dict(color="#CC79A7", ls="-.", lw=1.4, zorder=5),
+          "learner": dict(color="#0072B2", ls=":", lw=1.8, zorder=3),
+          "fused": dict(color="#009E73", ls="-", lw=4.0, alpha=0.45, zorder=2, solid_capstyle="round")}
+_OTHER = [dict(color="#D55E00", ls=(0, (5, 1, 1, 1)), lw=1.4, zorder=3),
+          dict(color="#56B4E9", ls=(0, (3, 1)), lw=1.4, zorder=3)]
 SE3_NAMES = ("v_x", "v_y", "v_z", "w_x", "w_y", "w_z")
-COLORS = {"gt": "k", "teacher": "tab:orange", "learner": "tab:blue", "fused": "tab:green"}
-#: line styles that tell the series apart where they overlap: ground truth a wide grey
-#: band underneath, each estimate its own colour, dash pattern and marker
-STYLES = {"gt": dict(color="0.55", ls="-", lw=2.6, zorder=1),
-          "teacher": dict(color=COLORS["teacher"], ls="-", lw=1.0, marker="o", zorder=3),
-          "learner": dict(color=COLORS["learner"], ls="--", lw=1.0, marker="^", zorder=2),
-          "fused": dict(color=COLORS["fused"], ls=":", lw=1.4, marker="s", zorder=4)}
-_MARKERS = 24  # markers per line
+ALIGNMENT = "SE(3) Umeyama alignment (no scale) on all {n} frames"
+MM_BELOW_M = 1.0  # trajectories spanning less than this (m) are drawn in mm
+_LOG_FLOOR = 1e-6  # smallest value drawn on a log axis (m, rad or whitened)
 
 
-def _style(name: str, n: int) -> dict:
-    """Plot keywords of a series of ``n`` points (markers spaced ~``_MARKERS`` per line)."""
-    st = dict(STYLES.get(name, dict(ls="-", lw=1.0, marker="d", zorder=2)))
-    if "marker" in st:
-        st.update(ms=3.5, mfc="none", markevery=max(1, n // _MARKERS))
-    return st
+def label(name: str) -> str:
+    """The human label of a row or series (a bare edge source keeps its name, chained)."""
+    return LABELS.get(name, f"{name} (chained)")
+
+
+def style(name: str) -> dict:
+    """Line keywords of a series."""
+    if name in STYLES:
+        return dict(STYLES[name])
+    return dict(_OTHER[sum(map(ord, name)) % len(_OTHER)])
 
 
 def _figure(w: float, h: float):
@@ -54,143 +78,279 @@ def _figure(w: float, h: float):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(w, h), dpi=100)
+    fig = Figure(figsize=(w, h), dpi=100, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
 
 
 def _png(fig) -> bytes:
     buf = io.BytesIO()
-    fig.tight_layout()
-    fig.savefig(buf, format="png")
+    fig.savefig(buf, format="png", dpi=150)
     return buf.getvalue()
 
 
+def _umeyama(ref: NDArray[np.float64], est: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``est`` (N, 4, 4) moved by the rigid motion that best fits its positions to ``ref``'s
+    (Umeyama, no scale): where evo refuses (all positions equal or collinear)."""
+    a, b = ref[:, :3, 3], est[:, :3, 3]
+    ma, mb = a.mean(axis=0), b.mean(axis=0)
+    U, _, Vt = np.linalg.svd((a - ma).T @ (b - mb) / len(a))
+    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0]) @ Vt
+    return geo.make_T(R, ma - R @ mb) @ est
+
+
 def align_to(gt: NDArray[np.float64], est: NDArray[np.float64], times: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``est`` (N, 4, 4) aligned to ``gt`` by evo's SE(3) Umeyama (no scale)."""
+    """``est`` (N, 4, 4) aligned to ``gt`` by evo's SE(3) Umeyama (no scale), as the ATE."""
+    from evo.core.geometry import GeometryException
+
     e = copy.deepcopy(Trajectory(times, est).to_evo())
-    e.align(Trajectory(times, gt).to_evo(), correct_scale=False)
+    try:
+        e.align(Trajectory(times, gt).to_evo(), correct_scale=False)
+    except GeometryException:
+        return _umeyama(gt, est)
     return Trajectory.from_evo(e).poses
+
+
+def make_figures(times: NDArray[np.float64], rows: dict[str, NDArray[np.float64]],
+                 gt: NDArray[np.float64] | None, frame_ids: NDArray[np.int64], edges: Sequence[Edge],
+                 residuals: NDArray[np.float64], outliers: Sequence[OutlierRecord], threshold: float) -> dict:
+    """All figures as ``{file name: matplotlib Figure}``.
+
+    Args:
+        times: (N,) timestamps; rows: name -> (N, 4, 4) ``T_world_cam`` estimates (report order);
+        gt: (N, 4, 4) ground truth or None; edges: the fused graph's input edges;
+        residuals: (E,) their whitened residuals after the first solve (what the outlier
+        test compares with ``threshold``); outliers: the solve's outlier records (the report's).
+    """
+    t = np.asarray(times, dtype=np.float64)
+    aligned = {n: (align_to(gt, p, t) if gt is not None else p) for n, p in rows.items()}
+    pos = {int(k): p for p, k in enumerate(frame_ids)}
+    return {"trajectories.png": _trajectories(gt, aligned),
+            "relative_se3.png": _relative_se3(rows, gt),
+            "outliers.png": _outliers(t, pos, edges, residuals, outliers, threshold),
+            "error_over_time.png": _error_over_time(t, pos, gt, aligned, edges, residuals, threshold)}
+
+
+def make_plots(times: NDArray[np.float64], rows: dict[str, NDArray[np.float64]],
+               gt: NDArray[np.float64] | None, frame_ids: NDArray[np.int64], edges: Sequence[Edge],
+               residuals: NDArray[np.float64], outliers: Sequence[OutlierRecord], threshold: float) -> dict[str, bytes]:
+    """:func:`make_figures` as ``{file name: PNG bytes}``."""
+    figs = make_figures(times, rows, gt, frame_ids, edges, residuals, outliers, threshold)
+    return {name: _png(fig) for name, fig in figs.items()}
+
+
+def _ate_m(gt: NDArray[np.float64] | None, p: NDArray[np.float64]) -> float | None:
+    """RMSE of the aligned positions (the report's ATE)."""
+    return None if gt is None else float(np.sqrt(np.mean(np.sum((p[:, :3, 3] - gt[:, :3, 3]) ** 2, axis=1))))
+
+
+def _legend_label(name: str, ate: float | None) -> str:
+    return label(name) if ate is None else f"{label(name)}, ATE {1e3 * ate:.1f} mm"
+
+
+def _shared_legend(fig, handles: list, labels: list[str], ncol: int | None = None) -> None:
+    """One legend for the whole figure, under the panels (none without series)."""
+    if not labels:
+        return
+    fig.legend(handles, labels, loc="outside lower center", ncol=ncol or min(len(labels), 3), fontsize=9,
+               frameon=False)
+
+
+def view_axes(xyz: NDArray[np.float64]) -> tuple[int, int, int]:
+    """(main horizontal, second horizontal, vertical) world axes of positions (N, 3): by
+    decreasing extent, the vertical being the one the trajectory spans least."""
+    order = np.argsort(-np.ptp(xyz, axis=0), kind="stable")
+    return int(order[0]), int(order[1]), int(order[2])
+
+
+def _trajectories(gt: NDArray[np.float64] | None, aligned: dict[str, NDArray[np.float64]]) -> object:
+    """Top and side view of every row (aligned) and the ground truth, equal aspect."""
+    from matplotlib.ticker import MaxNLocator
+
+    series = list(aligned.items()) + ([("gt", gt)] if gt is not None else [])  # ground truth last
+    ref = gt if gt is not None else aligned.get("fused", next(iter(aligned.values())))
+    a, b, up = view_axes(ref[:, :3, 3])
+    mm = float(np.ptp(ref[:, :3, 3], axis=0).max()) < MM_BELOW_M
+    unit, k = ("mm", 1e3) if mm else ("m", 1.0)
+    fig = _figure(12, 5.6)
+    axes = fig.subplots(1, 2)
+    handles = []
+    for ax, (h, v), title in ((axes[0], (a, b), "top view"), (axes[1], (a, up), "side view")):
+        for n, p in series:
+            (line,) = ax.plot(k * p[:, h, 3], k * p[:, v, 3], **style(n))
+            if ax is axes[0]:
+                handles.append(line)
+        ax.plot(k * ref[0, h, 3], k * ref[0, v, 3], "o", color="black", ms=5, mfc="white", zorder=11)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel(f"{'xyz'[h]} [{unit}]")
+        ax.set_ylabel(f"{'xyz'[v]} [{unit}]")
+        ax.set_title(f"{title} ({'xyz'[h]}-{'xyz'[v]} plane; o: start)", fontsize=10)
+        ax.xaxis.set_major_locator(MaxNLocator(6))
+        ax.yaxis.set_major_locator(MaxNLocator(6))
+        ax.grid(True, lw=0.3, color="0.85")
+    labels = [_legend_label(n, _ate_m(gt, p) if n != "gt" else None) for n, p in series]
+    _shared_legend(fig, handles, labels)
+    what = f"aligned to ground truth by {ALIGNMENT.format(n=len(ref))}" if gt is not None else "no ground truth"
+    fig.suptitle(f"Trajectories ({what})", fontsize=11)
+    return fig
+
+
+def _error_over_time(t: NDArray[np.float64], pos: dict[int, int], gt: NDArray[np.float64] | None,
+                     aligned: dict[str, NDArray[np.float64]], edges: Sequence[Edge], residuals: NDArray[np.float64],
+                     threshold: float) -> object:
+    """Each row's aligned position error over time (log axis), or without ground truth the edges' residuals."""
+    fig = _figure(12, 4.4)
+    ax = fig.subplots(1, 1)
+    if gt is None:
+        return _residuals_over_time(fig, ax, t, pos, edges, residuals, threshold)
+    handles, labels = [], []
+    for n, p in aligned.items():
+        err = np.linalg.norm(p[:, :3, 3] - gt[:, :3, 3], axis=1)
+        (line,) = ax.semilogy(t, 1e3 * np.maximum(err, _LOG_FLOOR), **style(n))
+        handles.append(line)
+        labels.append(_legend_label(n, _ate_m(gt, p)))
+    ax.set_ylabel("position error [mm] (log)")
+    ax.set_xlabel("time [s]")
+    ax.grid(True, which="both", lw=0.3, color="0.85")
+    _shared_legend(fig, handles, labels, ncol=min(len(labels), 4))
+    fig.suptitle(f"Absolute position error over time after {ALIGNMENT.format(n=len(t))} (as the report's ATE)",
+                 fontsize=11)
+    return fig
+
+
+def _sources(edges: Sequence[Edge]) -> list[str]:
+    return list(dict.fromkeys(str(e.extra.get("source", "edges")) for e in edges))
+
+
+def _residuals_over_time(fig, ax, t: NDArray[np.float64], pos: dict[int, int], edges: Sequence[Edge],
+                         residuals: NDArray[np.float64], threshold: float) -> object:
+    """Without ground truth: every edge's whitened residual at the time of its later frame."""
+    te = np.array([t[max(pos[e.i], pos[e.j])] for e in edges])
+    src = np.array([str(e.extra.get("source", "edges")) for e in edges])
+    handles, labels = [], []
+    for s in _sources(edges):
+        m = src == s
+        (h,) = ax.semilogy(te[m], np.maximum(residuals[m], _LOG_FLOOR), ".", ms=3, color=style(s)["color"])
+        handles.append(h)
+        labels.append(f"{s} edges ({int(m.sum())})")
+    if np.isfinite(threshold):
+        handles.append(ax.axhline(threshold, color="0.3", ls="--", lw=1))
+        labels.append(f"outlier threshold {threshold:g}")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("whitened residual (log)")
+    ax.grid(True, which="both", lw=0.3, color="0.85")
+    _shared_legend(fig, handles, labels, ncol=len(labels))
+    fig.suptitle("Edge residuals over time after the first solve (no ground truth)", fontsize=11)
+    return fig
 
 
 def _rel_log(poses: NDArray[np.float64]) -> NDArray[np.float64]:
     return geo.se3_log(metrics.relative_poses(poses))
 
 
-def make_plots(times: NDArray[np.float64], rows: dict[str, NDArray[np.float64]],
-               gt: NDArray[np.float64] | None, frame_ids: NDArray[np.int64],
-               edges: Sequence[Edge], residuals: NDArray[np.float64], rejected: NDArray[np.bool_]) -> dict[str, bytes]:
-    """All figures as ``{file name: PNG bytes}``.
-
-    Args:
-        times: (N,) timestamps; rows: name -> (N, 4, 4) ``T_world_cam`` estimates;
-        gt: (N, 4, 4) ground truth or None; edges, residuals (E,), rejected (E,) bool.
-    """
-    t = np.asarray(times, dtype=np.float64)  # the sequence's own time
-    aligned = {n: (align_to(gt, p, times) if gt is not None else p) for n, p in rows.items()}
-    gt_rel = _rel_log(gt) if gt is not None else None
-    pos = {int(k): p for p, k in enumerate(frame_ids)}
-    return {"trajectories.png": _trajectories(gt, aligned),
-            "relative_se3.png": _relative_se3(t, rows, gt_rel),
-            "outliers.png": _outliers(t, pos, gt_rel, edges, rejected),
-            "error_over_time.png": _error_over_time(t, pos, gt, aligned, edges, residuals, rejected)}
+def relative_errors(rows: dict[str, NDArray[np.float64]], ref: NDArray[np.float64]) -> dict[str, NDArray[np.float64]]:
+    """Per row, (N-1, 6) ``|log(T_est_rel) - log(T_ref_rel)|`` of the gap-1 relative poses,
+    v in mm and w in deg."""
+    r = _rel_log(ref)
+    unit = np.array([1e3] * 3 + [np.degrees(1.0)] * 3)
+    return {n: np.abs(_rel_log(p) - r) * unit for n, p in rows.items()}
 
 
-def _trajectories(gt: NDArray[np.float64] | None, aligned: dict[str, NDArray[np.float64]]) -> bytes:
-    """3-D trajectories and their XZ projection."""
-    from matplotlib.ticker import MaxNLocator
+def _relative_se3(rows: dict[str, NDArray[np.float64]], gt: NDArray[np.float64] | None) -> object:
+    """Per-dimension gap-1 errors against ground truth (or the fused graph): one box per row."""
+    from matplotlib.patches import Patch
 
-    fig = _figure(12, 5.5)
-    ax3 = fig.add_subplot(1, 2, 1, projection="3d")
-    ax2 = fig.add_subplot(1, 2, 2)
-    series = ([("gt", gt)] if gt is not None else []) + list(aligned.items())
-    for n, p in series:
-        xyz = p[:, :3, 3]
-        ax3.plot(xyz[:, 0], xyz[:, 1], xyz[:, 2], label=n, **_style(n, len(xyz)))
-        ax2.plot(xyz[:, 0], xyz[:, 2], label=n, **_style(n, len(xyz)))
-    ax3.set_aspect("equal")  # metres alike on x, y and z
-    for axis in (ax3.xaxis, ax3.yaxis, ax3.zaxis):
-        axis.set_major_locator(MaxNLocator(4))  # a short axis keeps legible ticks
-    ax3.set_xlabel("x [m]")
-    ax3.set_ylabel("y [m]")
-    ax3.set_zlabel("z [m]")
-    ax3.set_title("3-D trajectories" + (" (aligned to GT)" if gt is not None else ""))
-    ax3.legend(loc="upper left", fontsize=8)
-    ax2.set_xlabel("x [m]")
-    ax2.set_ylabel("z [m]")
-    ax2.set_title("XZ projection")
-    ax2.axis("equal")
-    ax2.legend(loc="best", fontsize=8)
-    return _png(fig)
-
-
-def _relative_se3(t: NDArray[np.float64], rows: dict[str, NDArray[np.float64]],
-                  gt_rel: NDArray[np.float64] | None) -> bytes:
-    """The six se(3) coordinates of every row's gap-1 relative poses over time."""
-    fig = _figure(12, 9)
-    rels = {n: _rel_log(p) for n, p in rows.items()}
-    for c in range(6):
-        ax = fig.add_subplot(3, 2, c + 1)
-        if gt_rel is not None:
-            ax.plot(t[1:], gt_rel[:, c], label="gt", **_style("gt", len(gt_rel)))
-        for n, r in rels.items():
-            ax.plot(t[1:], r[:, c], label=n, **_style(n, len(r)))
-        ax.set_ylabel(SE3_NAMES[c] + (" [m]" if c < 3 else " [rad]"))
-        if c >= 4:
-            ax.set_xlabel("time [s]")
-        ax.legend(fontsize=7, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=len(rels) + (gt_rel is not None),
-                  frameon=False, borderaxespad=0.2)  # above the panel, off the data
-    fig.suptitle("gap-1 relative poses in se(3) (v, w)")
-    return _png(fig)
-
-
-def _outliers(t: NDArray[np.float64], pos: dict[int, int], gt_rel: NDArray[np.float64] | None,
-              edges: Sequence[Edge], rejected: NDArray[np.bool_]) -> bytes:
-    """Forward translation (v_z) of the gap-1 edges of each source, high-variance and rejected edges marked."""
-    fig = _figure(12, 4.5)
-    ax = fig.add_subplot(1, 1, 1)
-    if gt_rel is not None:
-        ax.plot(t[1:], gt_rel[:, 2], label="gt", **_style("gt", len(gt_rel)))
-    sig = np.array([np.sqrt(max(np.linalg.eigvalsh(e.cov[:3, :3]).max(), 0.0)) for e in edges]) if edges else np.array([])
-    hi = sig > np.quantile(sig, 0.9) if len(sig) else sig.astype(bool)
-    for src in sorted({str(e.extra.get("source", "edges")) for e in edges}):
-        idx = [n for n, e in enumerate(edges) if e.extra.get("source", "edges") == src and pos[e.j] - pos[e.i] == 1]
-        if not idx:
-            continue
-        tt = np.array([t[pos[edges[n].j]] for n in idx])
-        vz = np.array([geo.se3_log(edges[n].T_i_j)[2] for n in idx])
-        color = COLORS.get(src, "tab:purple")
-        ax.plot(tt, vz, ".", ms=4, color=color, label=f"{src} edge ({len(idx)})", zorder=3)
-        for mask, kind in ((hi[idx], dict(marker="o", mfc="none", ms=8, mew=1.2, label="top-10 % sigma of all edges")),
-                           (rejected[idx], dict(marker="x", ms=8, mew=1.5, label="rejected by the graph"))):
-            if mask.any():  # only what appears gets a legend entry
-                label = f"{src}: {kind.pop('label')} ({int(mask.sum())})"
-                ax.plot(tt[mask], vz[mask], ls="none", color=color, label=label, zorder=4, **kind)
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("v_z [m]")
-    ax.legend(fontsize=7, loc="upper right")
-    ax.set_title("gap-1 edges, forward se(3) coordinate v_z; high-variance and rejected edges marked")
-    return _png(fig)
-
-
-def _error_over_time(t: NDArray[np.float64], pos: dict[int, int], gt: NDArray[np.float64] | None,
-                     aligned: dict[str, NDArray[np.float64]], edges: Sequence[Edge], residuals: NDArray[np.float64],
-                     rejected: NDArray[np.bool_]) -> bytes:
-    """Each row's aligned translation error over time, or without ground truth the edges' residuals."""
-    fig = _figure(12, 4)
-    ax = fig.add_subplot(1, 1, 1)
     if gt is not None:
-        for n, p in aligned.items():
-            ax.plot(t, np.linalg.norm(p[:, :3, 3] - gt[:, :3, 3], axis=1), label=n, **_style(n, len(p)))
-        ax.set_ylabel("translation error [m]")
-        ax.set_title("absolute error over time (aligned)")
+        errs, ref = relative_errors(rows, gt), "ground truth"
     else:
-        te = np.array([t[max(pos[e.i], pos[e.j])] for e in edges])
-        ax.semilogy(te, np.maximum(residuals, 1e-6), ".", ms=3, label="edge residual")
-        if rejected.any():
-            ax.semilogy(te[rejected], np.maximum(residuals[rejected], 1e-6), "x", color="m", label="rejected")
-        ax.set_ylabel("whitened residual")
-        ax.set_title("edge residuals over time (no ground truth)")
-    ax.set_xlabel("time [s]")
-    ax.legend(fontsize=8)
-    return _png(fig)
+        errs, ref = relative_errors({n: p for n, p in rows.items() if n != "fused"}, rows["fused"]), "the fused graph"
+    fig = _figure(12, 4.8)
+    axes = fig.subplots(1, 2)
+    names = list(errs)
+    if not names:
+        fig.text(0.5, 0.5, f"no row to compare with {ref}", ha="center", bbox=dict(fc="white", ec="0.5"))
+    w = 0.8 / max(len(names), 1)
+    for ax, comps, unit in ((axes[0], range(3), "mm"), (axes[1], range(3, 6), "deg")):
+        for k, n in enumerate(names):
+            data = [np.maximum(errs[n][:, c], _LOG_FLOOR) for c in comps]
+            st = style(n)
+            bp = ax.boxplot(data, positions=np.arange(3) + (k - (len(names) - 1) / 2) * w, widths=0.85 * w,
+                            whis=(5, 95), showfliers=False, patch_artist=True)
+            for box in bp["boxes"]:
+                box.set(facecolor=st["color"], alpha=0.75, edgecolor="black", lw=0.6)
+            for part in ("whiskers", "caps"):
+                for line in bp[part]:
+                    line.set(color=st["color"], lw=1.0)
+            for line in bp["medians"]:
+                line.set(color="black", lw=1.0)
+        ax.set_yscale("log")
+        ax.set_xticks(range(3), [SE3_NAMES[c] for c in comps])
+        ax.set_ylabel(f"|error| [{unit}] (log)")
+        ax.grid(True, axis="y", which="both", lw=0.3, color="0.85")
+    axes[0].set_title("translation components v", fontsize=10)
+    axes[1].set_title("rotation components w", fontsize=10)
+    handles = [Patch(facecolor=style(n)["color"], alpha=0.75, edgecolor="black", lw=0.6) for n in names]
+    _shared_legend(fig, handles, [label(n) for n in names], ncol=min(len(names), 4))
+    fig.suptitle(f"Gap-1 relative-pose error per se(3) component against {ref}: |log(T_est_rel) - log(T_ref_rel)|\n"
+                 "(box: quartiles, line: median, whiskers: 5-95 %)", fontsize=10)
+    return fig
+
+
+def match_outliers(edges: Sequence[Edge], outliers: Sequence[OutlierRecord]) -> dict[int, str]:
+    """``{edge index: action}`` of every outlier record (matched by frames and source)."""
+    free: dict[tuple, list[int]] = {}
+    for n, e in enumerate(edges):
+        free.setdefault((e.i, e.j, str(e.extra.get("source", "edges"))), []).append(n)
+    out = {}
+    for o in outliers:
+        idx = free.get((o.i, o.j, o.source))
+        if idx:
+            out[idx.pop(0)] = o.action
+    return out
+
+
+def _outliers(t: NDArray[np.float64], pos: dict[int, int], edges: Sequence[Edge], residuals: NDArray[np.float64],
+              outliers: Sequence[OutlierRecord], threshold: float) -> object:
+    """Every edge's first-solve residual over time, the threshold, and the report's outliers."""
+    fig = _figure(12, 4.8)
+    ax = fig.subplots(1, 1)
+    te = np.array([t[max(pos[e.i], pos[e.j])] for e in edges])
+    res = np.maximum(np.asarray(residuals, dtype=np.float64), _LOG_FLOOR)
+    src = np.array([str(e.extra.get("source", "edges")) for e in edges])
+    gaps = np.array([abs(pos[e.j] - pos[e.i]) for e in edges])
+    flagged = match_outliers(edges, outliers)
+    handles, labels = [], []
+    for s in _sources(edges):
+        m = src == s
+        (h,) = ax.semilogy(te[m], res[m], ".", ms=3, color=style(s)["color"], alpha=0.6)
+        handles.append(h)
+        labels.append(f"{s} edges ({int(m.sum())}, gaps {gaps[m].min()}-{gaps[m].max()})")
+    for action, marker in (("removed", "x"), ("downweighted", "D")):
+        for s in _sources(edges):
+            idx = [n for n, a in flagged.items() if a == action and src[n] == s]
+            if idx:
+                (h,) = ax.semilogy(te[idx], res[idx], ls="none", marker=marker, ms=7, mew=1.4, mfc="none",
+                                   color=style(s)["color"], zorder=5)
+                handles.append(h)
+                labels.append(f"{s}: {action} ({len(idx)})")
+    if np.isfinite(threshold):
+        handles.append(ax.axhline(threshold, color="0.3", ls="--", lw=1))
+        labels.append(f"threshold {threshold:g}")
+    ax.set_xlabel("time of the edge's later frame [s]")
+    ax.set_ylabel("whitened residual, first solve (log)")
+    ax.grid(True, which="both", lw=0.3, color="0.85")
+    _shared_legend(fig, handles, labels, ncol=min(len(labels), 4))
+    fig.suptitle(outlier_title(outliers, edges, pos), fontsize=11)
+    return fig
+
+
+def outlier_title(outliers: Sequence[OutlierRecord], edges: Sequence[Edge], pos: dict[int, int]) -> str:
+    """The outlier figure's title: the report's count over all gaps, by action and by gap."""
+    acts = Counter(o.action for o in outliers)
+    by_gap = Counter(abs(pos[o.j] - pos[o.i]) for o in outliers)
+    gaps = sorted({abs(pos[e.j] - pos[e.i]) for e in edges})
+    title = (f"Outlier edges: {len(outliers)} of {len(edges)} (all gaps {gaps[0]}-{gaps[-1]}; as report.json), "
+             f"{acts.get('removed', 0)} removed, {acts.get('downweighted', 0)} down-weighted")
+    if by_gap:
+        title += "; by gap: " + ", ".join(f"{g}: {c}" for g, c in sorted(by_gap.items()))
+    return title
