@@ -67,7 +67,16 @@ def _png(fig) -> bytes:
 
 
 def align_to(gt: NDArray[np.float64], est: NDArray[np.float64], times: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``est`` (N, 4, 4) aligned to ``gt`` by evo's SE(3) Umeyama (no scale)."""
+    """``est`` (N, 4, 4) aligned to ``gt`` by evo's SE(3) Umeyama (no scale), fitted on the
+    frames whose ground truth is finite (NaN rows: frames the teacher left out of its
+    evaluation, :func:`posegraph.optimize._groundtruth`)."""
+    has = np.isfinite(gt).all(axis=(1, 2))
+    if not has.all():
+        e = Trajectory(times[has], est[has]).to_evo()
+        r, t, _ = e.align(Trajectory(times[has], gt[has]).to_evo(), correct_scale=False)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = r, t
+        return T @ est
     e = copy.deepcopy(Trajectory(times, est).to_evo())
     e.align(Trajectory(times, gt).to_evo(), correct_scale=False)
     return Trajectory.from_evo(e).poses

@@ -39,6 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also estimate keyframe edges reaching back seconds and verified loop edges")
     g.add_argument("--overwrite", action="store_true",
                    help="replace outputs of other inputs instead of stopping with an error")
+    g.add_argument("--strict", action="store_true",
+                   help="stop at the first unreadable frame or non-finite ground-truth pose (default: skip the frame "
+                        "with a warning, bridge it by the longer edges and list it in report.json)")
     orb = g.add_argument_group("ORB-SLAM3 backend (--backend orbslam3; needs `pip install ctcvo[orbslam3]`, GPL-3.0)")
     orb.add_argument("--backend", default="ours", choices=["ours", "orbslam3"],
                      help="ours: this project's odometry; orbslam3: ORB-SLAM3 RGB-D through pyorbslam3")
@@ -85,7 +88,7 @@ def _generate(args: argparse.Namespace) -> int:
     from ctcvo.teacher.generate import generate
 
     args.scene = scene_with_topics(args.scene, args)
-    generate(args.scene, args.out, args.split, args.frames, cfg, args.overwrite)
+    generate(args.scene, args.out, args.split, args.frames, cfg, args.overwrite, strict=args.strict)
     return 0
 
 
