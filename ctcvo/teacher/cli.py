@@ -101,7 +101,7 @@ def _generate_orbslam3(args: argparse.Namespace) -> int:
     args.scene = scene_with_topics(args.scene, args)
     generate_orbslam3(args.scene, args.vocabulary, args.out, args.split, args.frames,
                       args.gaps if args.gaps is not None else PRESETS[args.preset].gaps, args.mode, args.labels,
-                      args.orb_settings, args.orb_features, args.overwrite)
+                      args.orb_settings, args.orb_features, args.overwrite, strict=args.strict)
     return 0
 
 

@@ -101,7 +101,7 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True, stric
     bar.close()
     edges.sort(key=lambda e: (e.i, e.j))
     skips.check(seq.ids(), bad, cfg.gaps)
-    skips.warn(seq.ids(), bad)
+    skips.warn(seq.name, seq.ids(), bad)
     skipped = skips.report(seq.ids(), bad, edges)
     frames = seq.without([f["frame"] for f in skipped]) if bad else seq
     poses, bridges = chain_trajectory(frames.ids(), edges)
@@ -491,21 +491,11 @@ def generate(spec: str, out: Path | None = None, split: str = "all", frames: str
                 continue
             if len(seq) < 2:
                 raise ConfigError(f"{seq.name}: need at least 2 frames, got {len(seq)}")
-            _check_groundtruth(seq, strict)
+            skips.check_groundtruth(seq, strict)
             run = run_sequence(seq, config, progress, strict)
             rep = write_outputs(seq, run, config, d, {"scene": spec, "split": split, "frames": frames}, fp)
             log.info("%s", summary_line(seq.name, rep))
     return dirs
-
-
-def _check_groundtruth(seq: Sequence, strict: bool) -> None:
-    """A frame with an unusable ground-truth pose: a :class:`DataError` with ``strict``, else
-    one warning line (the teacher needs no ground truth; its evaluation leaves the frame out)."""
-    dropped = seq.groundtruth_dropped()
-    if strict and dropped:
-        seq.groundtruth()  # raises, naming the first
-    for d in dropped:
-        log.warning("%s: frame %d left out of the evaluation (--strict stops instead): %s", seq.name, d["frame"], d["why"])
 
 
 def summary_line(name: str, rep: dict) -> str:

@@ -6,6 +6,11 @@ A frame whose colour or depth image is missing, truncated or malformed (a
 edges (i, j), j - i <= K, that would have started or ended at it are simply not estimated,
 and those that jump over it (the frame before to the frame after: gap 2) bridge it. The
 frame has no pose in the outputs (no vertex, no trajectory row); ``report.json`` lists it.
+The ORB-SLAM3 backend does the same (:func:`teacher.orbslam3.run_orbslam3`: the frame is not
+given to ORB-SLAM3, its edges fail with status ``unreadable``).
+
+A frame whose ground-truth pose is unusable (non-finite) keeps its place: only the
+evaluation against ground truth leaves it out (``groundtruth_dropped``).
 
 A run of K or more consecutive unreadable frames cannot be bridged by any edge (the
 trajectory would fall apart, or, at an end of the sequence, silently lose frames): the run
@@ -21,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ctcvo.data.errors import DataError
+from ctcvo.data.sequence import Sequence
 from ctcvo.teacher.record import EdgeEstimate
 
 log = logging.getLogger(__name__)
@@ -57,11 +63,21 @@ def check(ids: NDArray[np.int64], skipped: dict[int, str], gaps: int) -> None:
                         f"the first: {skipped[first]}")
 
 
-def warn(ids: NDArray[np.int64], skipped: dict[int, str]) -> None:
-    """One warning line per skipped frame."""
+def warn(name: str, ids: NDArray[np.int64], skipped: dict[int, str]) -> None:
+    """One warning line per skipped frame of the sequence ``name``."""
     for p in sorted(skipped):
-        log.warning("frame %d skipped (bridged by the longer edges; --strict stops instead): %s",
-                    int(ids[p]), skipped[p])
+        log.warning("%s: frame %d skipped (bridged by the longer edges; --strict stops instead): %s",
+                    name, int(ids[p]), skipped[p])
+
+
+def check_groundtruth(seq: Sequence, strict: bool) -> None:
+    """A frame with an unusable ground-truth pose: a :class:`DataError` with ``strict``, else
+    one warning line (the teacher needs no ground truth; its evaluation leaves the frame out)."""
+    dropped = seq.groundtruth_dropped()
+    if strict and dropped:
+        seq.groundtruth()  # raises, naming the first
+    for d in dropped:
+        log.warning("%s: frame %d left out of the evaluation (--strict stops instead): %s", seq.name, d["frame"], d["why"])
 
 
 def report(ids: NDArray[np.int64], skipped: dict[int, str], edges: list[EdgeEstimate]) -> list[dict]:
