@@ -88,6 +88,11 @@ def test_truncated_jpeg_is_skipped_and_bridged(tiny10, tmp_path, capsys, caplog)
     pg = json.loads((tmp_path / "pg" / "report.json").read_text())
     assert pg["frames"] == N_FRAMES - 1 and pg["rows"]["fused"]["ate_rmse_m"] < 0.05
     assert len(read_tum(tmp_path / "pg" / "trajectory.tum")) == N_FRAMES - 1
+    # the learner reads every frame itself: it names the skipped one instead of asking for a rerun
+    from ctcvo.learner.dataset import find_teacher_edges
+
+    with pytest.raises(DataError, match=r"the teacher skipped frame\(s\) 4 of scene-seq-01"):
+        find_teacher_edges(str(tiny10), open_scene(str(tiny10)), "all", None, out)
     # --strict: today's behaviour, one line and exit 1, nothing written
     assert _generate(tiny10, tmp_path / "strict", "--strict") == 1
     assert "frame-000004.color.jpg" in _err(capsys)
@@ -136,7 +141,7 @@ def test_nonfinite_groundtruth_only_leaves_the_evaluation(tiny10, tmp_path, caps
     assert rep["frames_skipped"] == [] and [d["frame"] for d in rep["groundtruth_dropped"]] == [3]
     assert "non-finite" in rep["groundtruth_dropped"][0]["why"]
     assert np.isfinite(rep["ate_rmse_m"]) and rep["ate_rmse_m"] < 0.05
-    assert sum(v["edges"] for v in rep["label_error_by_gap"].values()) == 17 - 4  # 9 + 8 edges, 4 touch frame 3: (1, 3), (2, 3), (3, 4), (3, 5)
+    assert sum(v["edges"] for v in rep["label_error_by_gap"].values()) == 17 - 4  # (1, 3) (2, 3) (3, 4) (3, 5) touch frame 3
     assert len(read_tum(out / "trajectory.tum")) == N_FRAMES  # the teacher needs no ground truth
     gt = read_tum(out / "groundtruth.tum")
     assert len(gt) == N_FRAMES - 1 and 3 / 30 not in set(np.round(gt.timestamps, 6))
@@ -185,3 +190,24 @@ def test_worker_chunks_skip_a_frame_at_their_border(tmp_path):
     assert [s["frame"] for s in one.skipped] == [s["frame"] for s in two.skipped] == [10]
     assert [(e.i, e.j) for e in one.edges] == [(e.i, e.j) for e in two.edges]
     assert (9, 11) in {(e.i, e.j) for e in two.edges if e.ok} and len(two.frames) == 19
+
+
+@pytest.mark.slow
+def test_orbslam3_backend_skips_a_truncated_jpeg(tiny10, tmp_path, capsys):
+    pytest.importorskip("pyorbslam3")
+    from ctcvo.teacher import vocabulary as V
+
+    seq = open_scene(str(tiny10))[0]
+    vocab = tmp_path / "voc.txt"
+    V.write_vocabulary(V.build_vocabulary(V.descriptors_of(seq, range(0, N_FRAMES, 3)), k=6, levels=3), vocab)
+    _truncate(tiny10 / "frame-000004.color.jpg")
+    out = tmp_path / "o"
+    args = ["--backend", "orbslam3", "--vocabulary", str(vocab), "--gaps", "2"]
+    assert _generate(tiny10, out, *args) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert [s["frame"] for s in rep["frames_skipped"]] == [4]
+    pairs = {(int(r["i"]), int(r["j"])): r["status"] for r in read_edges_csv(out / "edges.csv")}
+    assert pairs[(3, 4)] == pairs[(4, 5)] == "unreadable" and pairs[(3, 5)] == "ok"
+    assert 4 not in read_g2o(out / "edges.g2o")[1]
+    assert _generate(tiny10, tmp_path / "strict", *args, "--strict") == 1
+    assert "frame-000004.color.jpg" in _err(capsys)
