@@ -211,3 +211,14 @@ def test_orbslam3_backend_skips_a_truncated_jpeg(tiny10, tmp_path, capsys):
     assert 4 not in read_g2o(out / "edges.g2o")[1]
     assert _generate(tiny10, tmp_path / "strict", *args, "--strict") == 1
     assert "frame-000004.color.jpg" in _err(capsys)
+
+
+def test_vocabulary_leaves_an_unreadable_frame_out(tiny10, tmp_path, capsys, caplog):
+    _truncate(tiny10 / "frame-000002.color.jpg")
+    args = ["vocabulary", "--scene", str(tiny10), "--k", "4", "--levels", "2", "--features", "200"]
+    assert cli.main([*args, "--out", str(tmp_path / "voc.txt")]) == 0
+    assert any("frame 2 left out of the vocabulary" in r.getMessage() for r in caplog.records)
+    assert (tmp_path / "voc.txt").is_file()
+    assert cli.main([*args, "--out", str(tmp_path / "strict.txt"), "--strict"]) == 1
+    assert "frame-000002.color.jpg" in _err(capsys)
+    assert not (tmp_path / "strict.txt").exists()

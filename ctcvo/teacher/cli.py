@@ -66,6 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--levels", type=int, default=5, help="depth of the tree (DBoW2 allows <= 10)")
     v.add_argument("--features", type=int, default=1000, help="ORB features per frame")
     v.add_argument("--seed", type=int, default=0, help="seed of the k-means++ seeding")
+    v.add_argument("--strict", action="store_true",
+                   help="stop at the first unreadable frame (default: leave it out with a warning)")
     return p
 
 
@@ -108,7 +110,8 @@ def _generate_orbslam3(args: argparse.Namespace) -> int:
 def _vocabulary(args: argparse.Namespace) -> int:
     from ctcvo.teacher.orbslam3_generate import build_vocabulary_file
 
-    build_vocabulary_file(args.scene, args.out, args.frames or [None], args.k, args.levels, args.features, args.seed)
+    build_vocabulary_file(args.scene, args.out, args.frames or [None], args.k, args.levels, args.features, args.seed,
+                          strict=args.strict)
     return 0
 
 

@@ -69,17 +69,19 @@ def generate_orbslam3(spec: str, vocabulary: Path, out: Path | None = None, spli
 
 
 def build_vocabulary_file(scenes: TypingSequence[str], out: Path, frames: TypingSequence[str | None] = (None,),
-                          k: int = 10, levels: int = 5, n_features: int = 1000, seed: int = 0) -> Path:
+                          k: int = 10, levels: int = 5, n_features: int = 1000, seed: int = 0,
+                          strict: bool = False) -> Path:
     """Build a DBoW2 vocabulary from the frames of ``scenes`` (``frames``: one range for all,
     or one per scene) and write it to ``out``, with ``out`` + ``.json`` naming its sources.
-    Never give it test frames: a vocabulary is a trained model."""
+    Never give it test frames: a vocabulary is a trained model. An unreadable frame is left
+    out with a warning (``strict``: it stops the run)."""
     if len(frames) not in (1, len(scenes)):
         raise ConfigError(f"give --frames once or once per --scene ({len(scenes)}), got {len(frames)}")
     ranges = list(frames) * len(scenes) if len(frames) == 1 else list(frames)
     images, sources = [], []
     for spec, rng in zip(scenes, ranges):
         for seq in open_scene(spec, frames=rng):
-            images += descriptors_of(seq, n_features=n_features)
+            images += descriptors_of(seq, n_features=n_features, strict=strict)
             sources.append({"scene": scene_id(spec), "sequence": seq.name, "frames": frames_id(seq.ids())})
     if not images or sum(len(d) for d in images) < k:
         raise ConfigError(f"too few ORB descriptors to build a k={k} vocabulary from {list(scenes)}")
