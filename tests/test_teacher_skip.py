@@ -222,3 +222,17 @@ def test_vocabulary_leaves_an_unreadable_frame_out(tiny10, tmp_path, capsys, cap
     assert cli.main([*args, "--out", str(tmp_path / "strict.txt"), "--strict"]) == 1
     assert "frame-000002.color.jpg" in _err(capsys)
     assert not (tmp_path / "strict.txt").exists()
+
+
+@pytest.mark.slow
+def test_bad_first_and_last_frames_shorten_the_trajectory(tiny10, tmp_path):
+    for k in (0, N_FRAMES - 1):
+        _truncate(tiny10 / f"frame-{k:06d}.color.jpg")
+    out = tmp_path / "o"
+    assert _generate(tiny10, out) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert [(s["frame"], s["bridge"]) for s in rep["frames_skipped"]] == [(0, None), (N_FRAMES - 1, None)]
+    traj = read_tum(out / "trajectory.tum")
+    assert len(traj) == N_FRAMES - 2 and traj.timestamps[0] == pytest.approx(1 / 30, abs=1e-6)
+    np.testing.assert_allclose(traj.poses[0], np.eye(4), atol=1e-9)  # the first readable frame is the origin
+    assert rep["bridges"] == [] and rep["ate_rmse_m"] < 0.05

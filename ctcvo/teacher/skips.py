@@ -66,7 +66,7 @@ def check(ids: NDArray[np.int64], skipped: dict[int, str], gaps: int) -> None:
 def warn(name: str, ids: NDArray[np.int64], skipped: dict[int, str]) -> None:
     """One warning line per skipped frame of the sequence ``name``."""
     for p in sorted(skipped):
-        log.warning("%s: frame %d skipped (bridged by the longer edges; --strict stops instead): %s",
+        log.warning("%s: frame %d skipped (no pose, the edges over it bridge it; --strict stops instead): %s",
                     name, int(ids[p]), skipped[p])
 
 
@@ -82,8 +82,9 @@ def check_groundtruth(seq: Sequence, strict: bool) -> None:
 
 def report(ids: NDArray[np.int64], skipped: dict[int, str], edges: list[EdgeEstimate]) -> list[dict]:
     """``report.json``'s ``frames_skipped``: ``{frame, why, bridge}`` per skipped frame, the
-    bridge the shortest good edge that jumps over it (``"edge A->B"``; ``None`` when every
-    one failed: the chained trajectory then crosses it by constant velocity, see ``bridges``)."""
+    bridge the shortest good edge that jumps over it (``"edge A->B"``; ``None`` at either end
+    of the sequence, where nothing needs a bridge, or when every one failed: the chained
+    trajectory then crosses it by constant velocity, see ``bridges``)."""
     pos = {int(f): p for p, f in enumerate(ids)}
     good = sorted(((pos[e.j] - pos[e.i], e.i, e.j) for e in edges if e.ok), key=lambda t: t[0])
     out = []
