@@ -6,6 +6,7 @@ from __future__ import annotations
 import builtins
 import json
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -252,3 +253,41 @@ def test_cli_orbslam3_bad_input_is_one_line(tmp_path, capsys):
     assert len(err) == 1 and err[0].startswith("error: ") and str(bad) in err[0]
     assert main(["teacher", "generate", "--scene", "synthetic/tiny", "--vocabulary", str(bad)]) == 1
     assert "options of --backend orbslam3" in capsys.readouterr().err
+
+
+class _FakeSlam:
+    """Tracks every frame it is given, at the identity; records the timestamps."""
+
+    def __init__(self):
+        self.times = []
+
+    def track_rgbd(self, rgb, depth, t):
+        self.times.append(t)
+        return SimpleNamespace(state=SimpleNamespace(name="OK"), pose_valid=True, pose_wc=np.eye(4),
+                               num_tracked_points=300)
+
+    def map_changed(self):
+        return False
+
+
+class _BadFrameSequence(_ArraySequence):
+    def _read_rgb(self, pos: int) -> np.ndarray:
+        if pos == 4:
+            raise DataError("corrupt or unreadable colour image frame-000004.color.jpg")
+        return super()._read_rgb(pos)
+
+
+def test_an_unreadable_frame_is_not_given_to_orbslam3():
+    seq = _BadFrameSequence([np.zeros((120, 160, 3), np.uint8)] * 8, [np.ones((120, 160), np.float32)] * 8)
+    slam = _FakeSlam()
+    run = O._track(slam, seq, "slam")
+    assert len(slam.times) == 7 and 4 / 30 not in slam.times
+    assert run.states[4] == O.UNREADABLE and run.skipped == {4: "corrupt or unreadable colour image frame-000004.color.jpg"}
+    run.T_world_cam_final = run.T_world_cam_causal
+    edges = {(e.i, e.j): e for e in O.edges_from(run, gaps=2, use="final")}
+    assert edges[(3, 4)].status == edges[(4, 5)].status == edges[(4, 6)].status == "unreadable"
+    assert edges[(3, 5)].good and edges[(5, 6)].good  # the stretch goes on over the frame ORB-SLAM3 never saw
+    rep = O.build_report(seq, run, list(edges.values()), "final")
+    assert rep["frames_skipped"] == [{"frame": 4, "why": run.skipped[4]}]
+    with pytest.raises(DataError, match="frame-000004"):
+        O._track(_FakeSlam(), seq, "slam", strict=True)

@@ -289,7 +289,9 @@ def test_bad_pose_files(tmp_path: Path, content: str | None, match: str) -> None
     else:
         bad.write_text(content)
     with pytest.raises(DataError, match=match) as exc:
-        SevenScenesSequence(seq_dir)
+        # a non-finite pose (7-Scenes' mark of a frame KinectFusion lost) opens, and stops
+        # whoever asks for every ground-truth pose (tests/test_teacher_skip.py: the teacher does not)
+        SevenScenesSequence(seq_dir).groundtruth()
     assert str(bad) in str(exc.value)
 
 
@@ -596,3 +598,23 @@ def test_each_reader_sets_its_sensor(tmp_path: Path) -> None:
     assert SevenScenesSequence(tmp_path / "scene" / "seq-01").sensor == seven.sensor
     tum_seq = TumSequence(make_tum_seq(tmp_path / "rgbd_dataset_freiburg1_x"))
     assert tum_seq.sensor == Sensor(None, KINECT_V1_READOUT_S, synchronous=False, depth_scale=5000.0)
+
+
+def test_tum_nonfinite_groundtruth_row_drops_the_frames_across_it(tmp_path: Path) -> None:
+    folder = make_tum_seq(tmp_path / "fr1_nan", n=4)  # frames at 1000.0 .. 1000.3 s, GT every 0.01 s
+    f = folder / "groundtruth.txt"
+    lines = f.read_text().splitlines()
+    row = next(n for n, x in enumerate(lines) if x.startswith("1000.1500 "))
+    lines[row] = "1000.1500 0 nan 0 0 0 0 1"  # between frames 1 and 2: only its neighbours bracket it
+    f.write_text("\n".join(lines) + "\n")
+    seq = TumSequence(folder)
+    assert seq.groundtruth_dropped() == []  # no frame is interpolated across 1000.15
+    lines[row + 5] = "1000.2000 nan nan nan 0 0 0 1"  # frame 2's own sample
+    f.write_text("\n".join(lines) + "\n")
+    seq = TumSequence(folder)
+    assert [d["frame"] for d in seq.groundtruth_dropped()] == [2]
+    assert f"{f}:{row + 6}: non-finite" in seq.groundtruth_dropped()[0]["why"]
+    gt = seq.groundtruth(partial=True)
+    assert np.isnan(gt[2]).all() and np.isfinite(gt[[0, 1, 3]]).all()
+    with pytest.raises(DataError, match="non-finite"):
+        seq.groundtruth()

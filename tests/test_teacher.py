@@ -500,10 +500,11 @@ def tiny_copy(tmp_path):
 
 @pytest.mark.slow
 def test_cli_corrupt_image_no_partial_output(tiny_copy, tmp_path, capsys):
+    """With --strict (tests/test_teacher_skip.py: skipped by default)."""
     jpg = tiny_copy / "frame-000002.color.jpg"  # the synthetic scenes' colour images are JPEG
     jpg.write_bytes(jpg.read_bytes()[:20])
     out = tmp_path / "o"
-    assert cli.main(["generate", "--scene", str(tiny_copy), "--out", str(out)]) == 1
+    assert cli.main(["generate", "--scene", str(tiny_copy), "--out", str(out), "--strict"]) == 1
     assert "frame-000002.color.jpg" in _err(capsys)
     assert not (out / "report.json").exists() and not (out / "edges.g2o").exists()
 
@@ -511,14 +512,14 @@ def test_cli_corrupt_image_no_partial_output(tiny_copy, tmp_path, capsys):
 @pytest.mark.slow
 def test_cli_wrong_depth_dtype(tiny_copy, tmp_path, capsys):
     cv2.imwrite(str(tiny_copy / "frame-000001.depth.png"), np.zeros((480, 640), np.uint8))
-    assert cli.main(["generate", "--scene", str(tiny_copy), "--out", str(tmp_path / "o")]) == 1
+    assert cli.main(["generate", "--scene", str(tiny_copy), "--out", str(tmp_path / "o"), "--strict"]) == 1
     assert "16-bit" in _err(capsys)
 
 
 @pytest.mark.slow
 def test_cli_nonfinite_pose(tiny_copy, tmp_path, capsys):
     (tiny_copy / "frame-000003.pose.txt").write_text("nan " * 16)
-    assert cli.main(["generate", "--scene", str(tiny_copy), "--out", str(tmp_path / "o")]) == 1
+    assert cli.main(["generate", "--scene", str(tiny_copy), "--out", str(tmp_path / "o"), "--strict"]) == 1
     assert "non-finite" in _err(capsys)
 
 

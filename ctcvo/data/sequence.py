@@ -143,6 +143,8 @@ class Sequence(abc.ABC):
         self.frame_ids = np.asarray(frame_ids, dtype=np.int64)
         self._gt = gt
         self._positions = np.arange(len(self.timestamps))
+        #: why a frame's ground-truth pose is unusable (NaN in ``_gt``), by position in the full sequence
+        self.gt_problems: dict[int, str] = {}
 
     # -- readers implemented per dataset, addressed by position in the *full* sequence
     @abc.abstractmethod
@@ -189,12 +191,25 @@ class Sequence(abc.ABC):
             return np.zeros(len(self._positions))
         return self.depth_timestamps[self._positions] - self.timestamps[self._positions]
 
-    def groundtruth(self) -> NDArray[np.float64] | None:
-        """Ground-truth ``T_world_cam`` of this view, (N, 4, 4), or ``None``."""
-        return None if self._gt is None else self._gt[self._positions]
+    def groundtruth(self, partial: bool = False) -> NDArray[np.float64] | None:
+        """Ground-truth ``T_world_cam`` of this view, (N, 4, 4), or ``None``. A frame whose
+        pose the reader found unusable (:meth:`groundtruth_dropped`) is a
+        :class:`DataError` naming it, or with ``partial`` a NaN row."""
+        if self._gt is None:
+            return None
+        if not partial and (dropped := self.groundtruth_dropped()):
+            more = f" (and {len(dropped) - 1} more frames)" if len(dropped) > 1 else ""
+            raise DataError(dropped[0]["why"] + more)
+        return self._gt[self._positions]
+
+    def groundtruth_dropped(self) -> list[dict]:
+        """``{"frame": id, "why": ...}`` of every frame of this view whose ground-truth pose
+        is unusable (a non-finite pose file): the teacher leaves it out of its evaluation."""
+        return [{"frame": int(self.frame_ids[p]), "why": self.gt_problems[int(p)]}
+                for p in self._positions if int(p) in self.gt_problems]
 
     def frame(self, k: int) -> Frame:
-        gt = self.groundtruth()
+        gt = self.groundtruth(partial=True)
         return Frame(
             frame_id=int(self.ids()[k]), timestamp=float(self.times()[k]), rgb=self.rgb(k),
             depth=self.depth(k), T_world_cam=None if gt is None else gt[k],
@@ -207,6 +222,14 @@ class Sequence(abc.ABC):
         view._positions = self._positions[slice(start, stop, step)]
         if len(view._positions) == 0:
             raise DataError(f"frame range {start}:{stop} of {self.name} is empty ({len(self)} frames)")
+        return view
+
+    def without(self, ids: TypingSequence[int]) -> Sequence:
+        """A view of this view without the frames of the given ids (frames the teacher skipped)."""
+        view = copy.copy(self)
+        view._positions = self._positions[~np.isin(self.ids(), np.asarray(list(ids), dtype=np.int64))]
+        if len(view._positions) == 0:
+            raise DataError(f"no frame of {self.name} is left")
         return view
 
     def __repr__(self) -> str:

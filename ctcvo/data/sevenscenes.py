@@ -50,6 +50,11 @@ def read_intrinsics_file(path: Path, width: int = 640, height: int = 480) -> Int
     raise DataError(f"{path}: expected a 3x3 matrix or 'fx fy cx cy [w h]', got {vals.size} numbers")
 
 
+class NonFinitePose(DataError):
+    """A pose file holds NaN or inf (7-Scenes marks frames KinectFusion lost this way): the
+    sequence keeps the frame, and its ground truth drops it (``Sequence.groundtruth_dropped``)."""
+
+
 def read_pose_file(path: Path) -> NDArray[np.float64]:
     """A 4x4 ``T_world_cam`` from a 7-Scenes ``.pose.txt``; clear error if missing or bad."""
     path = Path(path)
@@ -63,7 +68,7 @@ def read_pose_file(path: Path) -> NDArray[np.float64]:
         raise DataError(f"pose file {path} must contain 16 numbers, got {T.size}")
     T = T.reshape(4, 4)
     if not np.all(np.isfinite(T)):
-        raise DataError(f"pose file {path} contains non-finite values")
+        raise NonFinitePose(f"pose file {path} contains non-finite values")
     if not is_rigid(T, atol=1e-2):
         raise DataError(f"pose file {path} is not a rigid transform")
     return orthonormalize(T)
@@ -149,6 +154,18 @@ def _rendered_sensor(sensor: dict) -> Sensor:
     return Sensor(colour, float(sensor["rolling_shutter_s"]), synchronous=True, depth_scale=DEPTH_SCALE)
 
 
+def _read_poses(seq_dir: Path, ids: list[int]) -> tuple[NDArray[np.float64], dict[int, str]]:
+    """The (N, 4, 4) poses of the frames ``ids``, NaN for a non-finite pose file, and why
+    (by position); any other bad pose file is a :class:`DataError`."""
+    poses, problems = np.full((len(ids), 4, 4), np.nan), {}
+    for p, k in enumerate(ids):
+        try:
+            poses[p] = read_pose_file(seq_dir / f"frame-{k:06d}.pose.txt")
+        except NonFinitePose as exc:
+            problems[p] = str(exc)
+    return poses, problems
+
+
 class SevenScenesSequence(Sequence):
     """One ``seq-XX`` folder of a 7-Scenes-layout scene."""
 
@@ -165,13 +182,14 @@ class SevenScenesSequence(Sequence):
             raise DataError(f"no colour image frame-{ids[0]:06d}.color.png/.jpg in {seq_dir}")
         self._color_ext = first.name[len(f"frame-{ids[0]:06d}"):]
         intr = folder_intrinsics(seq_dir)
-        gt = None
+        gt, problems = None, {}
         if (seq_dir / f"frame-{ids[0]:06d}.pose.txt").is_file():
-            gt = np.stack([read_pose_file(seq_dir / f"frame-{k:06d}.pose.txt") for k in ids])
+            gt, problems = _read_poses(seq_dir, ids)
         ids_arr = np.asarray(ids, dtype=np.int64)
         offsets = read_depth_offsets(seq_dir / "depth-offsets.txt", ids_arr)
         super().__init__(name or f"{seq_dir.parent.name}-{seq_dir.name}", intr, ids_arr / FPS, ids_arr, gt,
                          None if offsets is None else ids_arr / FPS + offsets, sensor=folder_sensor(seq_dir))
+        self.gt_problems = problems
 
     def _read_rgb(self, pos: int) -> NDArray[np.uint8]:
         fid = int(self.frame_ids[pos])

@@ -20,7 +20,9 @@ How the frames are built (docs/formats.md, "TUM RGB-D input"):
   have no GT: if *some* frames lie inside the GT time span, the sequence is restricted to
   them (logged at INFO); if *none* do, the sequence has no GT (logged as a WARNING). A
   frame whose two bracketing GT samples are more than ``max_gt_gap`` apart is counted and
-  reported in a WARNING (its GT is interpolated across the gap regardless).
+  reported in a WARNING (its GT is interpolated across the gap regardless). A GT row with a
+  non-finite pose is left out, and the frames interpolated across it have no GT
+  (``Sequence.groundtruth_dropped``: the teacher leaves them out of its evaluation).
 * **Depth** PNGs are 16-bit with 5000 units per metre; 0 is invalid.
 * **Intrinsics** come from ``camera.txt`` in the folder if present, else from the
   ``freiburgN`` / ``frN`` part of the folder name (table :data:`TUM_INTRINSICS`, the
@@ -34,6 +36,7 @@ from __future__ import annotations
 
 import logging
 import re
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -94,6 +97,53 @@ def read_groundtruth(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float6
     except FormatError as exc:
         raise DataError(str(exc)) from None
     return traj.timestamps, traj.poses
+
+
+def read_groundtruth_rows(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64], list[tuple[float, str]]]:
+    """:func:`read_groundtruth`, with the rows whose pose is non-finite (a finite timestamp)
+    left out: also returns ``(timestamp, "file:line")`` of each of those."""
+    path = Path(path)
+    try:
+        return (*read_groundtruth(path), [])
+    except DataError as exc:
+        if "non-finite" not in str(exc):
+            raise
+    kept, dropped, prev = [], [], -np.inf
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        toks = line.split()
+        if len(toks) == 8 and not toks[0].startswith("#"):
+            try:
+                vals = np.array(toks, dtype=np.float64)
+            except ValueError:
+                vals = np.full(8, np.nan)
+            # a row in order with a non-finite pose is left out; anything else stays an error
+            if vals[0] > prev and not np.isfinite(vals[1:]).all():
+                dropped.append((float(vals[0]), f"{path}:{lineno}"))
+                line = "#"  # keeps the line numbers of the messages
+            prev = vals[0] if np.isfinite(vals[0]) else prev
+        kept.append(line)
+    with tempfile.TemporaryDirectory(prefix="ctcvo-gt-") as tmp:
+        p = Path(tmp) / path.name
+        p.write_text("\n".join(kept) + "\n")
+        try:
+            t, T = read_groundtruth(p)
+        except DataError as exc:
+            raise DataError(str(exc).replace(str(p), str(path))) from None
+    return t, T, dropped
+
+
+def across_dropped(times: NDArray[np.float64], t_gt: NDArray[np.float64],
+                   dropped: list[tuple[float, str]]) -> dict[int, str]:
+    """{position: why} of the frames whose two bracketing GT samples have a dropped
+    (non-finite) row between them: their interpolated pose would be made up."""
+    if not dropped or len(t_gt) < 2:
+        return {}
+    k = np.clip(np.searchsorted(t_gt, times), 1, len(t_gt) - 1)
+    out = {}
+    for t_bad, where in dropped:
+        for p in np.flatnonzero((t_gt[k - 1] < t_bad) & (t_bad < t_gt[k])):
+            out[int(p)] = f"{where}: non-finite ground-truth pose (frame at {times[p]:.6f} s interpolated across it)"
+    return dict(sorted(out.items()))
 
 
 # ----------------------------------------------------------------------------------
@@ -199,9 +249,10 @@ class TumSequence(Sequence):
         self.assoc_dt = np.abs(times - t_depth[ib])
 
         gt: NDArray[np.float64] | None = None
+        problems: dict[int, str] = {}
         gt_file = folder / "groundtruth.txt"
         if gt_file.is_file():
-            t_gt, T_gt = read_groundtruth(gt_file)
+            t_gt, T_gt, dropped = read_groundtruth_rows(gt_file)
             inside = (times >= t_gt[0]) & (times <= t_gt[-1])
             if not inside.any():
                 log.warning("%s: no frame lies within the ground-truth time span [%.3f, %.3f]; "
@@ -217,6 +268,8 @@ class TumSequence(Sequence):
                     depth_files = [f for f, ok in zip(depth_files, inside) if ok]
                     self.assoc_dt = self.assoc_dt[inside]
                 gt = interpolate_poses(t_gt, T_gt, times)
+                problems = across_dropped(times, t_gt, dropped)
+                gt[list(problems)] = np.nan
                 k = np.clip(np.searchsorted(t_gt, times), 1, len(t_gt) - 1) if len(t_gt) > 1 else None
                 if k is not None:
                     gaps = t_gt[k] - t_gt[k - 1]
@@ -228,6 +281,7 @@ class TumSequence(Sequence):
         self._depth_files = depth_files
         ids = np.arange(len(times), dtype=np.int64)
         super().__init__(name or folder.resolve().name, intr, times, ids, gt, depth_times, sensor=SENSOR)
+        self.gt_problems = problems
 
     def _read_rgb(self, pos: int) -> NDArray[np.uint8]:
         return read_rgb(self.root / self._rgb_files[pos], self.intrinsics)

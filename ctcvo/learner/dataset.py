@@ -351,6 +351,15 @@ def check_teacher_sequence(g2o: Path, name: str) -> None:
             raise DataError(f"teacher labels {g2o} are of sequence {seq!r}, not {name!r} (wrong --teacher?)")
 
 
+def teacher_skipped(g2o: Path) -> set[int]:
+    """The frame ids the teacher skipped as unreadable (report.json's ``frames_skipped``)."""
+    try:
+        rep = json.loads((g2o.parent / "report.json").read_text())
+        return {int(f["frame"]) for f in rep.get("frames_skipped") or []}
+    except (OSError, ValueError, AttributeError, TypeError, KeyError):
+        return set()
+
+
 def find_teacher_edges(spec: str, seqs: list[Sequence], split: str, frames: str | None,
                        teacher_root: Path | None) -> list[Path]:
     """The teacher ``edges.g2o`` of every sequence, covering each sequence's frames
@@ -365,6 +374,10 @@ def find_teacher_edges(spec: str, seqs: list[Sequence], split: str, frames: str 
                                     f"`{teacher_command(spec, split, frames, teacher_root)}` first")
         check_teacher_sequence(g2o, seq.name)
         lack = set(map(int, seq.ids())) - _labelled_ids(g2o)
+        if lack and (skipped := sorted(lack & teacher_skipped(g2o))):
+            raise DataError(f"the teacher skipped frame(s) {', '.join(map(str, skipped[:5]))} of {seq.name} as "
+                            f"unreadable ({g2o.parent}/report.json): repair them and rerun it with --overwrite, "
+                            "or train on --frames that leave them out")
         if lack:
             raise MissingInputError(
                 f"no teacher labels for {len(lack)} of the {len(seq)} frames {seq.ids()[0]}..{seq.ids()[-1]} of "

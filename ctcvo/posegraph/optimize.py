@@ -254,9 +254,15 @@ def _groundtruth(srcs: dict[str, Source], frames: Frames, scene: str | None, spl
     """(ground-truth poses of the frames, where from): a source's ``groundtruth.tum``, else the scene's."""
     for s in srcs.values():
         if s.groundtruth is not None:
-            gt = poses_for_frames(s.groundtruth, frames)
-            if gt is None:
+            gt = poses_for_frames(s.groundtruth, frames, partial=not frames.synthetic_times)
+            has = rep.finite_rows(gt) if gt is not None else np.zeros(0, bool)
+            if has.sum() < 2:
                 raise DataError(f"{s.path}/groundtruth.tum does not cover the {len(frames.ids)} frames of the graph")
+            if not has.all():  # the teacher left frames with a non-finite ground truth out
+                missing = frames.ids[~has]
+                log.warning("%s/groundtruth.tum has no pose for %d of the graph's %d frames (%s): the figures "
+                            "against ground truth leave them out", s.path, len(missing), len(has),
+                            ", ".join(map(str, missing[:5])) + (" ..." if len(missing) > 5 else ""))
             return gt, str(s.path / "groundtruth.tum")
     if scene:
         gt = _scene_groundtruth(scene, split, seq_name, frames)
@@ -311,6 +317,7 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
         "inputs": {n: str(s.path) for n, s in srcs.items()}, "graph_sources": used,
         "frames": len(frames.ids), "frames_listed_by": frames.listed_by, "frames_cut": frames_cut,
         "synthetic_timestamps": frames.synthetic_times, "has_groundtruth": gt is not None, "groundtruth_from": gt_from,
+        "frames_without_groundtruth": [] if gt is None else [int(k) for k in frames.ids[~rep.finite_rows(gt)]],
         "initial_values": fused.initial_from, "edges_total": len(edges),
         "edges_per_source": {n: len(srcs[n].edges) for n in used},
         "bridges": {"fused": len(fused.bridges),

@@ -90,25 +90,30 @@ def _png(fig) -> bytes:
 
 
 def _umeyama(ref: NDArray[np.float64], est: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``est`` (N, 4, 4) moved by the rigid motion that best fits its positions to ``ref``'s
+    """The rigid motion (4, 4) that best fits ``est``'s positions (N, 4, 4) to ``ref``'s
     (Umeyama, no scale): where evo refuses (all positions equal or collinear)."""
     a, b = ref[:, :3, 3], est[:, :3, 3]
     ma, mb = a.mean(axis=0), b.mean(axis=0)
     U, _, Vt = np.linalg.svd((a - ma).T @ (b - mb) / len(a))
     R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0]) @ Vt
-    return geo.make_T(R, ma - R @ mb) @ est
+    return geo.make_T(R, ma - R @ mb)
 
 
 def align_to(gt: NDArray[np.float64], est: NDArray[np.float64], times: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``est`` (N, 4, 4) aligned to ``gt`` by evo's SE(3) Umeyama (no scale), as the ATE."""
+    """``est`` (N, 4, 4) aligned to ``gt`` by evo's SE(3) Umeyama (no scale), as the ATE,
+    fitted on the frames whose ground truth is finite (NaN rows: frames the teacher left out
+    of its evaluation, :func:`posegraph.optimize._groundtruth`)."""
     from evo.core.geometry import GeometryException
 
-    e = copy.deepcopy(Trajectory(times, est).to_evo())
+    has = np.isfinite(gt).all(axis=(1, 2))
+    ref, sub, t = gt[has], est[has], times[has]
     try:
-        e.align(Trajectory(times, gt).to_evo(), correct_scale=False)
+        r, tr, _ = copy.deepcopy(Trajectory(t, sub).to_evo()).align(Trajectory(t, ref).to_evo(), correct_scale=False)
     except GeometryException:
-        return _umeyama(gt, est)
-    return Trajectory.from_evo(e).poses
+        return _umeyama(ref, sub) @ est
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = r, tr
+    return T @ est
 
 
 def make_figures(times: NDArray[np.float64], rows: dict[str, NDArray[np.float64]],

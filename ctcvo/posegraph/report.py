@@ -64,6 +64,13 @@ def frames_per_second_gap(times: NDArray[np.float64]) -> int:
     return max(1, int(round(1.0 / float(np.median(dt)))))
 
 
+def finite_rows(poses: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """(N,) the poses that are finite: the ground truth of a graph whose ``groundtruth.tum``
+    leaves frames out (:func:`posegraph.optimize._groundtruth`) has NaN rows there, and
+    the figures against it are computed over the others."""
+    return np.isfinite(poses).all(axis=(1, 2))
+
+
 def gt_metrics(gt: Trajectory, est: Trajectory) -> dict[str, float | None]:
     """Standard keys plus RPE at gaps 1, 2, 3 and one second (evo)."""
     out = {k: _f(v) for k, v in metrics.trajectory_report(gt, est).items()}
@@ -121,6 +128,9 @@ def calibration(edges: Sequence[Edge], frame_ids: NDArray[np.int64],
                 gt_poses: NDArray[np.float64] | None) -> dict[str, float | None]:
     """Covariance calibration of a source's edges (NEES, 1-sigma / 2-sigma coverage, from
     :func:`data.uncertainty.nees_stats`)."""
+    if gt_poses is not None:  # only the edges between frames with a finite ground truth
+        has = {int(k) for k in np.asarray(frame_ids)[finite_rows(gt_poses)]}
+        edges = [e for e in edges if e.i in has and e.j in has]
     if gt_poses is None or not edges:
         return {**nees_stats(np.zeros(0)), "calibration_n": 0}
     v = nees(edges, frame_ids, gt_poses)
@@ -133,7 +143,8 @@ def row_block(name: str, poses: NDArray[np.float64], frame_ids: NDArray[np.int64
     """One ``rows.<name>`` block of ``report.json``."""
     block: dict = {"label": ROW_LABELS.get(name, name), "how": how, "n_poses": len(frame_ids)}
     if gt_poses is not None:
-        block.update(gt_metrics(Trajectory(times, gt_poses), Trajectory(times, poses)))
+        has = finite_rows(gt_poses)
+        block.update(gt_metrics(Trajectory(times[has], gt_poses[has]), Trajectory(times[has], poses[has])))
     else:
         block.update(empty_gt_metrics())
     block.update(composition_consistency(poses, frame_ids, consistency_edges))
@@ -148,7 +159,8 @@ def baseline_blocks(frame_ids: NDArray[np.int64], times: NDArray[np.float64],
     ground truth."""
     if gt_poses is None:
         return {}
-    gt = Trajectory(times, gt_poses)
+    has = finite_rows(gt_poses)
+    gt = Trajectory(times[has], gt_poses[has])
     out = {}
     for name, traj in metrics.baseline_trajectories(gt).items():
         key = BASELINE_KEYS[name]

@@ -173,9 +173,10 @@ def resolve_frames(sources: Sequence[Source]) -> Frames:
     return Frames(ids, times, ", ".join(by))
 
 
-def poses_for_frames(traj: Trajectory | None, frames: Frames) -> NDArray[np.float64] | None:
+def poses_for_frames(traj: Trajectory | None, frames: Frames, partial: bool = False) -> NDArray[np.float64] | None:
     """(N, 4, 4) poses of ``traj`` at the frames, or ``None`` if they cannot be paired
-    (by timestamp, or by order when the lengths are equal and the times are unknown)."""
+    (by timestamp, or by order when the lengths are equal and the times are unknown);
+    with ``partial`` a frame without a pose (by timestamp) is a NaN row instead."""
     if traj is None:
         return None
     if frames.synthetic_times:
@@ -184,11 +185,12 @@ def poses_for_frames(traj: Trajectory | None, frames: Frames) -> NDArray[np.floa
     out = np.empty((len(frames.ids), 4, 4))
     for n, (t, k) in enumerate(zip(frames.times, idx)):
         cands = [c for c in (k - 1, k) if 0 <= c < len(traj)]
-        if not cands:
-            return None
-        c = min(cands, key=lambda c: abs(traj.timestamps[c] - t))
-        if abs(traj.timestamps[c] - t) > TIME_TOL:
-            return None
+        c = min(cands, key=lambda c: abs(traj.timestamps[c] - t)) if cands else None
+        if c is None or abs(traj.timestamps[c] - t) > TIME_TOL:
+            if not partial:
+                return None
+            out[n] = np.nan
+            continue
         out[n] = traj.poses[c]
     return out
 

@@ -39,6 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also estimate keyframe edges reaching back seconds and verified loop edges")
     g.add_argument("--overwrite", action="store_true",
                    help="replace outputs of other inputs instead of stopping with an error")
+    g.add_argument("--strict", action="store_true",
+                   help="stop at the first unreadable frame or non-finite ground-truth pose (default: skip the frame "
+                        "with a warning, bridge it by the longer edges and list it in report.json)")
     orb = g.add_argument_group("ORB-SLAM3 backend (--backend orbslam3; needs `pip install ctcvo[orbslam3]`, GPL-3.0)")
     orb.add_argument("--backend", default="ours", choices=["ours", "orbslam3"],
                      help="ours: this project's odometry; orbslam3: ORB-SLAM3 RGB-D through pyorbslam3")
@@ -63,6 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--levels", type=int, default=5, help="depth of the tree (DBoW2 allows <= 10)")
     v.add_argument("--features", type=int, default=1000, help="ORB features per frame")
     v.add_argument("--seed", type=int, default=0, help="seed of the k-means++ seeding")
+    v.add_argument("--strict", action="store_true",
+                   help="stop at the first unreadable frame (default: leave it out with a warning)")
     return p
 
 
@@ -85,7 +90,7 @@ def _generate(args: argparse.Namespace) -> int:
     from ctcvo.teacher.generate import generate
 
     args.scene = scene_with_topics(args.scene, args)
-    generate(args.scene, args.out, args.split, args.frames, cfg, args.overwrite)
+    generate(args.scene, args.out, args.split, args.frames, cfg, args.overwrite, strict=args.strict)
     return 0
 
 
@@ -98,14 +103,15 @@ def _generate_orbslam3(args: argparse.Namespace) -> int:
     args.scene = scene_with_topics(args.scene, args)
     generate_orbslam3(args.scene, args.vocabulary, args.out, args.split, args.frames,
                       args.gaps if args.gaps is not None else PRESETS[args.preset].gaps, args.mode, args.labels,
-                      args.orb_settings, args.orb_features, args.overwrite)
+                      args.orb_settings, args.orb_features, args.overwrite, strict=args.strict)
     return 0
 
 
 def _vocabulary(args: argparse.Namespace) -> int:
     from ctcvo.teacher.orbslam3_generate import build_vocabulary_file
 
-    build_vocabulary_file(args.scene, args.out, args.frames or [None], args.k, args.levels, args.features, args.seed)
+    build_vocabulary_file(args.scene, args.out, args.frames or [None], args.k, args.levels, args.features, args.seed,
+                          strict=args.strict)
     return 0
 
 

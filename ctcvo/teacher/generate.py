@@ -36,7 +36,7 @@ from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from ctcvo.data.chain import chain_edges
-from ctcvo.data.errors import ConfigError
+from ctcvo.data.errors import ConfigError, DataError
 from ctcvo.data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
 from ctcvo.data.io import ensure_dir, git_revision, json_safe, write_json
 from ctcvo.data.metrics import label_errors_by_gap, trajectory_report
@@ -45,7 +45,7 @@ from ctcvo.data.runs import Fingerprint, claim, frames_id, output_folder, scene_
 from ctcvo.data.scenes import open_scene
 from ctcvo.data.sensor import KINECT_V1_COLOUR, ColourCamera, Sensor
 from ctcvo.data.sequence import Sequence
-from ctcvo.teacher import processes
+from ctcvo.teacher import processes, skips
 from ctcvo.teacher.config import TeacherConfig, dense_method
 from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb
 from ctcvo.teacher.keyframes import keyframe_edges
@@ -68,9 +68,13 @@ class TeacherRun:
     seconds: float
     kinds: dict[tuple[int, int], str] = dataclasses.field(default_factory=dict)
     """``keyframe`` or ``loop`` for the edges :mod:`teacher.keyframes` added; others are ``window``."""
+    frames: Sequence | None = None
+    """The frames ``poses`` belong to: the sequence less the skipped ones (None: all of it)."""
+    skipped: list[dict] = dataclasses.field(default_factory=list)
+    """``report.json``'s ``frames_skipped`` (:func:`teacher.skips.report`)."""
 
 
-def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> TeacherRun:
+def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True, strict: bool = False) -> TeacherRun:
     """Estimate every edge (i, i+g), g = 1..cfg.gaps, and the chained gap-1 trajectory.
 
     With ``cfg.workers > 1`` and enough frames, the sequence is cut into chunks of about
@@ -81,28 +85,36 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True) -> Te
     its ``start()`` early to have them ready), so a script that calls this with
     ``workers > 1`` must guard its entry point with ``if __name__ == "__main__":`` (as
     multiprocessing requires).
+
+    A frame that cannot be read is skipped and bridged by the longer edges, with a warning
+    (:mod:`teacher.skips`; ``run.frames`` is the sequence without it); with ``strict`` its
+    :class:`~data.errors.DataError` stops the run.
     """
     n = len(seq)
     t0 = time.perf_counter()
     bounds = _chunks(n, cfg)
     bar = tqdm(total=n, desc=f"teacher {seq.name}", unit="frame", disable=not (progress and sys.stderr.isatty()))
     if len(bounds) == 1:
-        edges = _run_chunk(seq, cfg, 0, n, bar.update)
+        edges, bad = _run_chunk(seq, cfg, 0, n, bar.update, strict)
     else:
-        edges = _run_chunks(seq, cfg, bounds, bar.update)
+        edges, bad = _run_chunks(seq, cfg, bounds, bar.update, strict)
     bar.close()
     edges.sort(key=lambda e: (e.i, e.j))
-    poses, bridges = chain_trajectory(seq.ids(), edges)
+    skips.check(seq.ids(), bad, cfg.gaps)
+    skips.warn(seq.name, seq.ids(), bad)
+    skipped = skips.report(seq.ids(), bad, edges)
+    frames = seq.without([f["frame"] for f in skipped]) if bad else seq
+    poses, bridges = chain_trajectory(frames.ids(), edges)
     kinds: dict[tuple[int, int], str] = {}
-    if cfg.keyframes and n >= 2:
+    if cfg.keyframes and len(frames) >= 2:
         have = {(e.i, e.j) for e in edges}
-        for e, kind in keyframe_edges(seq, cfg, poses, _features_of(seq, cfg)):
+        for e, kind in keyframe_edges(frames, cfg, poses, _features_of(frames, cfg)):
             if (e.i, e.j) not in have:
                 have.add((e.i, e.j))
                 edges.append(e)
                 kinds[(e.i, e.j)] = kind
         edges.sort(key=lambda e: (e.i, e.j))
-    return TeacherRun(edges, poses, bridges, time.perf_counter() - t0, kinds)
+    return TeacherRun(edges, poses, bridges, time.perf_counter() - t0, kinds, frames, skipped)
 
 
 def _features_of(seq: Sequence, cfg: TeacherConfig) -> Callable[[int], FrameFeatures]:
@@ -113,7 +125,7 @@ def _features_of(seq: Sequence, cfg: TeacherConfig) -> Callable[[int], FrameFeat
 
 
 def _run_chunks(seq: Sequence, cfg: TeacherConfig, bounds: list[tuple[int, int]],
-                on_frame: Callable[[int], object]) -> list[EdgeEstimate]:
+                on_frame: Callable[[int], object], strict: bool = False) -> tuple[list[EdgeEstimate], dict[int, str]]:
     """Edges of all chunks, shared between this process and ``cfg.workers - 1`` children.
 
     Chunks are handed out one at a time as a process becomes free: children from the
@@ -122,7 +134,8 @@ def _run_chunks(seq: Sequence, cfg: TeacherConfig, bounds: list[tuple[int, int]]
     of imports), and this process works meanwhile. A chunk queued in a pool cannot be
     taken back, so handing all out up front left this process idle at the end
     (synthetic/office, 300 frames: 1.8 s of 7.4). The chunk bounds depend only on the
-    sequence length, so the edges do not depend on who computes which chunk.
+    sequence length, so the edges do not depend on who computes which chunk. Returns the
+    edges and the unreadable frames, as :func:`_run_chunk`.
     """
     processes.start()
     todo = deque(bounds)
@@ -132,13 +145,17 @@ def _run_chunks(seq: Sequence, cfg: TeacherConfig, bounds: list[tuple[int, int]]
         with lock:
             return None if not todo else todo.popleft() if front else todo.pop()
 
+    bad: dict[int, str] = {}  # a frame read by two chunks (one reads past its end) gives one entry
+
     def feed(children: ProcessPoolExecutor) -> list[EdgeEstimate]:
         """Keeps one child busy, one chunk at a time (runs in a thread of this process)."""
         out: list[EdgeEstimate] = []
         try:
             children.submit(_started).result()
             while (ab := take(front=True)) is not None:
-                out += children.submit(_run_chunk, seq, cfg, *ab, None).result()
+                got, b = children.submit(_run_chunk, seq, cfg, *ab, None, strict).result()
+                out += got
+                bad.update(b)
                 on_frame(ab[1] - ab[0])
         except BaseException:
             todo.clear()  # the others stop after their current chunk
@@ -151,13 +168,15 @@ def _run_chunks(seq: Sequence, cfg: TeacherConfig, bounds: list[tuple[int, int]]
         fed = [feeders.submit(feed, children) for _ in range(cfg.workers - 1)]
         try:
             while (ab := take(front=False)) is not None:
-                edges += _run_chunk(seq, cfg, *ab, on_frame)
+                got, b = _run_chunk(seq, cfg, *ab, on_frame, strict)
+                edges += got
+                bad.update(b)
         except BaseException:
             todo.clear()
             raise
         for f in fed:
             edges += f.result()
-    return edges
+    return edges, dict(sorted(bad.items()))
 
 
 def _started() -> None:
@@ -174,7 +193,8 @@ def _chunks(n: int, cfg: TeacherConfig) -> list[tuple[int, int]]:
 
 
 def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
-               on_frame: Callable[[int], object] | None = None) -> list[EdgeEstimate]:
+               on_frame: Callable[[int], object] | None = None,
+               strict: bool = False) -> tuple[list[EdgeEstimate], dict[int, str]]:
     """Edges (i, j) whose first frame position lies in [k0, k1), with j - i <= gaps.
 
     Frames k0 .. k1 + gaps - 1 are streamed once: one helper thread decodes and extracts
@@ -182,12 +202,17 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     (the gap-1 edge guided by constant velocity, its inliers extending the feature tracks,
     then the longer edges ending at that frame from the tracks, predicted by the chained
     motion). Both threads run Open3D's kernels and BLAS with ``cfg.threads`` threads.
+
+    Returns the edges and the frames that could not be read ({position: why}; skipped, see
+    :mod:`teacher.skips`; with ``strict`` the first one's error stops the chunk, as does a
+    run of ``gaps`` in a row).
     """
     n = len(seq)
     ids, times, offsets = seq.ids(), seq.times(), seq.depth_offsets()
     intr = seq.intrinsics
     k_end = min(n, k1 + cfg.gaps)
     edges: list[EdgeEstimate] = []
+    bad: dict[int, str] = {}
     orb = make_orb(cfg)
     colour = colour_camera_for(seq.sensor, cfg)  # it also picks the dense step's method (dense_method_for)
     cfg = dataclasses.replace(cfg, rolling_shutter_s=rolling_shutter_for(seq.sensor, cfg))
@@ -198,7 +223,7 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     # fingerprints of the frame before the chunk, to tell whether frame k0 repeats it; the
     # walks back over earlier frames (rare) share them
     keys_of = _KeysOf(seq)
-    prev_keys = keys_of(k0 - 1) if k0 > 0 else None
+    prev_keys = keys_of(k0 - 1) if k0 > 0 else None  # None also when that frame cannot be read
     window = EdgeWindow(intr, cfg, prev_keys, until=k1 - k0,
                         prev_photo=lambda: _photo_before(seq, k0, cfg, orb, colour, keys_of),
                         prev_moments=lambda: _moments_before(seq, k0, keys_of))
@@ -208,13 +233,23 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
         ahead = 3
         feat_futs: dict[int, Future] = {k: pool.submit(_extract, k) for k in range(k0, min(k_end, k0 + ahead))}
         for k in range(k0, k_end):
-            fk = feat_futs.pop(k).result()
+            try:
+                fk = feat_futs.pop(k).result()
+            except DataError as exc:
+                if strict:
+                    raise
+                fk, bad[k] = None, str(exc)
             if k + ahead < k_end:
                 feat_futs[k + ahead] = pool.submit(_extract, k + ahead)
-            edges += window.add(int(ids[k]), float(times[k]), fk, float(offsets[k]))
+            if fk is None:
+                window.skip()
+                if len(run := skips.runs_of(bad)[-1]) >= cfg.gaps:  # stop early: no edge can bridge it
+                    raise skips.unbridgeable(ids, run, cfg.gaps, bad[run[0]])
+            else:
+                edges += window.add(int(ids[k]), float(times[k]), fk, float(offsets[k]))
             if on_frame is not None and k < k1:
                 on_frame(1)
-    return edges
+    return edges, bad
 
 
 class _KeysOf:
@@ -225,9 +260,13 @@ class _KeysOf:
     def __init__(self, seq: Sequence) -> None:
         self.seq, self._keys = seq, {}
 
-    def __call__(self, k: int) -> tuple[bytes, bytes]:
+    def __call__(self, k: int) -> tuple[bytes, bytes] | None:
+        """None for a frame that cannot be read (its own chunk reports it)."""
         if k not in self._keys:
-            self._keys[k] = image_keys(self.seq.rgb(k), self.seq.depth(k))
+            try:
+                self._keys[k] = image_keys(self.seq.rgb(k), self.seq.depth(k))
+            except DataError:
+                self._keys[k] = None
         return self._keys[k]
 
 
@@ -242,6 +281,9 @@ def _moments_before(seq: Sequence, k: int, keys_of: _KeysOf | None = None) -> tu
     j = k - 1
     while j > 0 and None in found:
         cur, prev = keys_of(j), keys_of(j - 1)
+        if prev is None:  # an unreadable frame before: its images are new
+            found = [float(times[j]) if m is None else m for m in found]
+            break
         for c in (0, 1):
             if found[c] is None and cur[c] != prev[c]:
                 found[c] = float(times[j])
@@ -262,6 +304,9 @@ def _photo_before(seq: Sequence, k: int, cfg: TeacherConfig, orb, colour: Colour
     j, behind, grey = k - 1, True, True
     while j > 0:
         cur, prev = keys_of(j), keys_of(j - 1)
+        if prev is None:  # an unreadable frame before: this frame's own maps, as the sequence's first
+            behind = False
+            break
         behind = behind and cur[0] == prev[0]
         if cur[1] != prev[1]:  # new depth: this frame's own maps, only their depth when its colour repeats
             grey = cur[0] != prev[0]
@@ -356,13 +401,31 @@ def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
         "dense_method": dense_method_for(seq.sensor, cfg) if cfg.dense else "none",
         "fps": n / run.seconds if run.seconds > 0 else float("nan"),
         "seconds": run.seconds,
+        "frames_skipped": run.skipped,
     }
-    gt = seq.groundtruth()
-    if gt is not None and n >= 2:
-        times = seq.times()
-        rep.update(trajectory_report(Trajectory(times, gt), Trajectory(times, run.poses)))
-        rep["label_error_by_gap"] = label_errors_by_gap([(e.i, e.j, e.T_i_j) for e in run.edges if e.ok], gt, seq.ids())
+    frames = run.frames or seq
+    gt = frames.groundtruth(partial=True)
+    if gt is not None:
+        rep["groundtruth_dropped"] = frames.groundtruth_dropped()
+        rep.update(_evaluation(seq, frames, run, gt))
     return rep
+
+
+def _evaluation(seq: Sequence, frames: Sequence, run: TeacherRun, gt: NDArray[np.float64]) -> dict:
+    """The report's figures against ground truth, over the frames that have a pose and a
+    finite ground-truth pose (RPE pairs consecutive ones of those; label errors by the gap
+    in frames of the sequence); none with fewer than 2 such frames."""
+    has = np.isfinite(gt).all(axis=(1, 2))
+    if has.sum() < 2:
+        return {}
+    times = frames.times()[has]
+    out = trajectory_report(Trajectory(times, gt[has]), Trajectory(times, run.poses[has]))
+    ok = set(frames.ids()[has].tolist())
+    full = np.full((len(seq), 4, 4), np.nan)
+    full[np.searchsorted(seq.ids(), frames.ids()[has])] = gt[has]
+    out["label_error_by_gap"] = label_errors_by_gap(
+        [(e.i, e.j, e.T_i_j) for e in run.edges if e.ok and e.i in ok and e.j in ok], full, seq.ids())
+    return out
 
 
 def _gap(seq: Sequence, e: EdgeEstimate) -> int:
@@ -375,15 +438,16 @@ def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path,
     """Write every output file atomically; then ``fingerprint.json``, and ``report.json``
     last (it marks completion)."""
     ensure_dir(out)
-    ids, times = seq.ids(), seq.times()
+    frames = run.frames or seq  # a skipped frame has no pose (teacher.skips)
+    ids, times = frames.ids(), frames.times()
     ts = {int(f): float(t) for f, t in zip(ids, times)}
     good = [Edge(e.i, e.j, e.T_i_j, e.cov) for e in run.edges if e.ok]
     write_g2o(out / "edges.g2o", good, {int(f): T for f, T in zip(ids, run.poses)})
     write_edges_csv(out / "edges.csv", _edge_rows(run.edges, ts, run.kinds))
     write_tum(out / "trajectory.tum", Trajectory(times, run.poses))
-    gt = seq.groundtruth()
-    if gt is not None:
-        write_tum(out / "groundtruth.tum", Trajectory(times, gt))
+    gt = frames.groundtruth(partial=True)
+    if gt is not None and (has := np.isfinite(gt).all(axis=(1, 2))).any():
+        write_tum(out / "groundtruth.tum", Trajectory(times[has], gt[has]))  # without the dropped frames
     write_json(out / "config.json", {"teacher": cfg.to_dict(), "git_revision": git_revision(), **extra})
     report = build_report(seq, run, cfg)
     if fingerprint is not None:
@@ -403,7 +467,8 @@ def fingerprint(spec: str, seq: Sequence, cfg: TeacherConfig) -> Fingerprint:
 
 
 def generate(spec: str, out: Path | None = None, split: str = "all", frames: str | None = None,
-             config: TeacherConfig = TeacherConfig(), overwrite: bool = False, progress: bool = True) -> list[Path]:
+             config: TeacherConfig = TeacherConfig(), overwrite: bool = False, progress: bool = True,
+             strict: bool = False) -> list[Path]:
     """Run the teacher on every sequence of ``spec``; returns one output folder per sequence.
 
     A sequence whose folder holds the outputs of the same inputs (``fingerprint.json``,
@@ -426,14 +491,16 @@ def generate(spec: str, out: Path | None = None, split: str = "all", frames: str
                 continue
             if len(seq) < 2:
                 raise ConfigError(f"{seq.name}: need at least 2 frames, got {len(seq)}")
-            run = run_sequence(seq, config, progress)
+            skips.check_groundtruth(seq, strict)
+            run = run_sequence(seq, config, progress, strict)
             rep = write_outputs(seq, run, config, d, {"scene": spec, "split": split, "frames": frames}, fp)
             log.info("%s", summary_line(seq.name, rep))
     return dirs
 
 
 def summary_line(name: str, rep: dict) -> str:
-    s = (f"{name}: {rep['frames']} frames, {rep['edges']} edges ({rep['failed_edges']} failed, "
+    skipped = f" ({len(rep['frames_skipped'])} skipped)" if rep.get("frames_skipped") else ""
+    s = (f"{name}: {rep['frames']} frames{skipped}, {rep['edges']} edges ({rep['failed_edges']} failed, "
          f"{rep['failed_gap1_edges']} at gap 1), {rep['fps']:.1f} fps")
     if "rpe_trans_rmse_m" in rep:
         s += (f"; gap-1 RPE {1000 * rep['rpe_trans_rmse_m']:.2f} mm / {rep['rpe_rot_rmse_deg']:.3f} deg, "

@@ -22,7 +22,7 @@ import sys
 import tempfile
 import time
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +46,8 @@ LABELS = ("causal", "final")
 DEFAULT_LABELS = "final"
 #: ORB-SLAM3 states that start a map afresh (after a loss, or before the first frame)
 _FRESH = ("NOT_INITIALIZED", "NO_IMAGES_YET", "SYSTEM_NOT_READY")
+#: the state of a frame that could not be read (not given to ORB-SLAM3, which tracks on over it)
+UNREADABLE = "UNREADABLE"
 #: how long to wait, after shutdown, for the final trajectory to stop changing: ORB-SLAM3
 #: v1.0's shutdown returns before its threads finish (/work/shared/ORBSLAM3.md)
 FINAL_WAIT_S, FINAL_POLL_S = 30.0, 0.5
@@ -97,6 +99,8 @@ class OrbResult:
     track_seconds: float
     seconds: float
     log: str = ""
+    skipped: dict[int, str] = field(default_factory=dict)
+    """Why each unreadable frame (state ``UNREADABLE``, by position) could not be read."""
 
     @property
     def ok(self) -> NDArray[np.bool_]:
@@ -110,8 +114,8 @@ class OrbResult:
     def segments(self) -> NDArray[np.int64]:
         """Stretch number of each frame, (N,): a new stretch starts at every frame after a
         frame not tracked OK (its own poses then come from a relocalisation or a new map)."""
-        ok = self.ok
-        return np.cumsum(np.concatenate([[True], ~ok[:-1]]))
+        breaks = ~self.ok & np.array([s != UNREADABLE for s in self.states])  # ORB-SLAM3 never saw those
+        return np.cumsum(np.concatenate([[True], breaks[:-1]]))
 
     def poses(self, use: str) -> NDArray[np.float64]:
         """``T_world_cam`` (N, 4, 4) of the ``causal`` or ``final`` labels."""
@@ -157,16 +161,18 @@ class _Stdout:
 
 
 def run_orbslam3(seq: Sequence, vocabulary: Path, mode: str = "slam", settings: Path | None = None,
-                 n_features: int = 1000) -> OrbResult:
+                 n_features: int = 1000, strict: bool = False) -> OrbResult:
     """Track ``seq`` with ORB-SLAM3 RGB-D. ``settings``: the user's ORB-SLAM3 YAML (default:
     :func:`settings_yaml` of the sequence); ``localization`` stops mapping after the first
-    tracked frame (no new keyframes, no loop closure)."""
+    tracked frame (no new keyframes, no loop closure). A frame that cannot be read is not
+    given to ORB-SLAM3 (state ``UNREADABLE``; its edges fail, those over it are kept), or with
+    ``strict`` its :class:`DataError` stops the run."""
     if mode not in MODES:
         raise ConfigError(f"ORB-SLAM3 mode must be one of {', '.join(MODES)}, got {mode!r}")
     read_vocabulary(vocabulary)  # a malformed file would crash ORB-SLAM3's reader
     if settings is not None and not Path(settings).is_file():
         raise ConfigError(f"ORB-SLAM3 settings file {settings} not found")
-    if not any(np.any(seq.depth(k) > 0) for k in range(min(len(seq), DEPTH_CHECK_FRAMES))):
+    if not any(np.any(_depth_or_none(seq, k, strict) > 0) for k in range(min(len(seq), DEPTH_CHECK_FRAMES))):
         raise DataError(f"{seq.name}: no valid depth in the first {min(len(seq), DEPTH_CHECK_FRAMES)} frames "
                         "(ORB-SLAM3 RGB-D needs depth)")
     P = _import_pyorbslam3()
@@ -177,7 +183,7 @@ def run_orbslam3(seq: Sequence, vocabulary: Path, mode: str = "slam", settings: 
             yaml.write_text(settings_yaml(seq, n_features))
         slam = P.Slam(str(vocabulary), str(yaml), P.Sensor.RGBD, use_viewer=False)
         try:
-            res = _track(slam, seq, mode)
+            res = _track(slam, seq, mode, strict)
         finally:
             slam.shutdown()
         if _has_keyframes(res.states):
@@ -199,7 +205,17 @@ def _has_keyframes(states: list[str]) -> bool:
     return "OK" in states[(fresh[-1] + 1) if fresh else 0:]
 
 
-def _track(slam, seq: Sequence, mode: str) -> OrbResult:
+def _depth_or_none(seq: Sequence, k: int, strict: bool) -> NDArray[np.float32]:
+    """Frame ``k``'s depth, or an empty one for an unreadable frame (unless ``strict``)."""
+    try:
+        return seq.depth(k)
+    except DataError:
+        if strict:
+            raise
+        return np.zeros(0, np.float32)
+
+
+def _track(slam, seq: Sequence, mode: str, strict: bool = False) -> OrbResult:
     """Feed every frame to ``slam``; the per-frame fields of an :class:`OrbResult`."""
     n = len(seq)
     times = seq.times()
@@ -208,8 +224,16 @@ def _track(slam, seq: Sequence, mode: str) -> OrbResult:
     points, changed = np.zeros(n, np.int64), np.zeros(n, bool)
     tracking = 0.0
     localizing = False
+    skipped: dict[int, str] = {}
     for k in range(n):
-        rgb, depth = seq.rgb(k), seq.depth(k)
+        try:
+            rgb, depth = seq.rgb(k), seq.depth(k)
+        except DataError as exc:
+            if strict:
+                raise
+            skipped[k] = str(exc)
+            states.append(UNREADABLE)
+            continue
         t0 = time.perf_counter()
         r = slam.track_rgbd(rgb, depth, float(times[k]))
         tracking += time.perf_counter() - t0
@@ -223,7 +247,7 @@ def _track(slam, seq: Sequence, mode: str) -> OrbResult:
             slam.activate_localization_mode()
             localizing = True
     return OrbResult(seq.ids(), times, mode, states, valid, causal, np.full((n, 4, 4), np.nan), points,
-                     changed, tracking, 0.0)
+                     changed, tracking, 0.0, skipped=skipped)
 
 
 def _final_poses(slam, path: Path, res: OrbResult) -> NDArray[np.float64]:
@@ -340,15 +364,21 @@ def build_report(seq: Sequence, result: OrbResult, edges: list[OrbEdge], use: st
         "map_changes": int(result.map_changed.sum()),
         "fps": result.fps, "tracking_fps": len(seq) / result.track_seconds if result.track_seconds > 0 else float("nan"),
         "seconds": result.seconds,
+        "frames_skipped": [{"frame": int(result.frame_ids[p]), "why": why} for p, why in sorted(result.skipped.items())],
         "covariance_model": {"sigma_trans_gap1_m": SIGMA_TRANS_GAP1_M, "sigma_rot_gap1_deg": SIGMA_ROT_GAP1_DEG,
                              "gap_exponent": GAP_EXPONENT, "points_ref": POINTS_REF, "calibrated": False},
     }
-    gt, poses = seq.groundtruth(), result.poses(use)
+    gt, poses = seq.groundtruth(partial=True), result.poses(use)
     have = ok & np.isfinite(poses).all(axis=(1, 2))
+    if gt is not None:
+        rep["groundtruth_dropped"] = seq.groundtruth_dropped()
+        have &= np.isfinite(gt).all(axis=(1, 2))
     if gt is not None and have.sum() >= 2:
         times = seq.times()
         rep.update(trajectory_report(Trajectory(times[have], gt[have]), Trajectory(times[have], poses[have])))
-        rep["label_error_by_gap"] = label_errors_by_gap([(e.i, e.j, e.T_i_j) for e in edges if e.good], gt, seq.ids())
+        gt_ok = {int(f) for f in seq.ids()[np.isfinite(gt).all(axis=(1, 2))]}
+        rep["label_error_by_gap"] = label_errors_by_gap(
+            [(e.i, e.j, e.T_i_j) for e in edges if e.good and e.i in gt_ok and e.j in gt_ok], gt, seq.ids())
     return rep
 
 
@@ -367,9 +397,9 @@ def write_outputs(out_dir: Path, seq: Sequence, result: OrbResult, edges: list[O
               {int(f): T for f, T, h in zip(ids, poses, have) if h})
     write_edges_csv(out / "edges.csv", _edge_rows(edges, {int(f): float(t) for f, t in zip(ids, times)}, use))
     write_tum(out / "trajectory.tum", Trajectory(times[have], poses[have]))
-    gt = seq.groundtruth()
-    if gt is not None:
-        write_tum(out / "groundtruth.tum", Trajectory(times, gt))
+    gt = seq.groundtruth(partial=True)
+    if gt is not None and (known := np.isfinite(gt).all(axis=(1, 2))).any():
+        write_tum(out / "groundtruth.tum", Trajectory(times[known], gt[known]))  # without the dropped frames
     write_text(out / "orbslam3.log", result.log)
     write_json(out / "config.json", {"backend": "orbslam3", "mode": result.mode, "labels": use,
                                      "git_revision": git_revision(), **(extra or {})})

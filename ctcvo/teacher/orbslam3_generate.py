@@ -17,6 +17,7 @@ from ctcvo.data.errors import ConfigError
 from ctcvo.data.io import git_revision, write_json
 from ctcvo.data.runs import Fingerprint, claim, file_digest, frames_id, output_folder, scene_id, stage_dir, write_fingerprint
 from ctcvo.data.scenes import open_scene
+from ctcvo.teacher import skips
 from ctcvo.teacher.orbslam3 import DEFAULT_LABELS, LABELS, MODES, edges_from, run_orbslam3, write_outputs
 from ctcvo.teacher.vocabulary import build_vocabulary, descriptors_of, read_vocabulary, write_vocabulary
 
@@ -28,8 +29,11 @@ OUTPUT_FILES = ("edges.g2o", "edges.csv", "trajectory.tum", "groundtruth.tum", "
 
 def generate_orbslam3(spec: str, vocabulary: Path, out: Path | None = None, split: str = "all",
                       frames: str | None = None, gaps: int = 5, mode: str = "slam", labels: str = DEFAULT_LABELS,
-                      settings: Path | None = None, n_features: int = 1000, overwrite: bool = False) -> list[Path]:
-    """Label every sequence of ``spec`` with ORB-SLAM3 RGB-D; one output folder per sequence."""
+                      settings: Path | None = None, n_features: int = 1000, overwrite: bool = False,
+                      strict: bool = False) -> list[Path]:
+    """Label every sequence of ``spec`` with ORB-SLAM3 RGB-D; one output folder per sequence.
+    Unreadable frames and non-finite ground-truth poses as in :mod:`teacher.skips` (``strict``
+    stops at the first)."""
     if gaps < 1:
         raise ConfigError(f"gaps must be >= 1, got {gaps}")
     if mode not in MODES or labels not in LABELS:
@@ -52,7 +56,10 @@ def generate_orbslam3(spec: str, vocabulary: Path, out: Path | None = None, spli
                 log.info("%s: ORB-SLAM3 labels of the same inputs in %s: kept (runs are not deterministic)",
                          seq.name, d)
                 continue
-            result = run_orbslam3(seq, vocabulary, mode, settings, n_features)
+            skips.check_groundtruth(seq, strict)
+            result = run_orbslam3(seq, vocabulary, mode, settings, n_features, strict)
+            skips.check(seq.ids(), result.skipped, gaps)
+            skips.warn(seq.name, seq.ids(), result.skipped)
             edges = edges_from(result, gaps, labels)
             write_fingerprint(d, fp)
             rep = write_outputs(d, seq, result, edges, labels, {"scene": spec, "split": split, "frames": frames})
@@ -62,17 +69,19 @@ def generate_orbslam3(spec: str, vocabulary: Path, out: Path | None = None, spli
 
 
 def build_vocabulary_file(scenes: TypingSequence[str], out: Path, frames: TypingSequence[str | None] = (None,),
-                          k: int = 10, levels: int = 5, n_features: int = 1000, seed: int = 0) -> Path:
+                          k: int = 10, levels: int = 5, n_features: int = 1000, seed: int = 0,
+                          strict: bool = False) -> Path:
     """Build a DBoW2 vocabulary from the frames of ``scenes`` (``frames``: one range for all,
     or one per scene) and write it to ``out``, with ``out`` + ``.json`` naming its sources.
-    Never give it test frames: a vocabulary is a trained model."""
+    Never give it test frames: a vocabulary is a trained model. An unreadable frame is left
+    out with a warning (``strict``: it stops the run)."""
     if len(frames) not in (1, len(scenes)):
         raise ConfigError(f"give --frames once or once per --scene ({len(scenes)}), got {len(frames)}")
     ranges = list(frames) * len(scenes) if len(frames) == 1 else list(frames)
     images, sources = [], []
     for spec, rng in zip(scenes, ranges):
         for seq in open_scene(spec, frames=rng):
-            images += descriptors_of(seq, n_features=n_features)
+            images += descriptors_of(seq, n_features=n_features, strict=strict)
             sources.append({"scene": scene_id(spec), "sequence": seq.name, "frames": frames_id(seq.ids())})
     if not images or sum(len(d) for d in images) < k:
         raise ConfigError(f"too few ORB descriptors to build a k={k} vocabulary from {list(scenes)}")

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ctcvo.data.errors import ConfigError, FormatError
+from ctcvo.data.errors import ConfigError, DataError, FormatError
 from ctcvo.data.sequence import Sequence
 
 log = logging.getLogger(__name__)
@@ -274,13 +274,23 @@ def _is_float(t: str) -> bool:
     return True
 
 
-def descriptors_of(seq: Sequence, frames: Iterable[int] | None = None, n_features: int = 1000) -> list[NDArray[np.uint8]]:
+def descriptors_of(seq: Sequence, frames: Iterable[int] | None = None, n_features: int = 1000,
+                   strict: bool = True) -> list[NDArray[np.uint8]]:
     """ORB descriptors ((n, 32) uint8, ``cv2.ORB_create(n_features)``) of the given frame
-    positions of ``seq`` (all by default), one array per frame."""
+    positions of ``seq`` (all by default), one array per frame; without ``strict`` a frame
+    that cannot be read is left out with a warning instead of raising its :class:`DataError`."""
     orb = cv2.ORB_create(n_features)
     out = []
     for k in range(len(seq)) if frames is None else frames:
-        grey = cv2.cvtColor(seq.rgb(k), cv2.COLOR_RGB2GRAY)
+        try:
+            rgb = seq.rgb(k)
+        except DataError as exc:
+            if strict:
+                raise
+            log.warning("%s: frame %d left out of the vocabulary (--strict stops instead): %s",
+                        seq.name, int(seq.ids()[k]), exc)
+            continue
+        grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
         _, d = orb.detectAndCompute(grey, None)
         out.append(np.zeros((0, DESCRIPTOR_BYTES), np.uint8) if d is None else d)
     return out

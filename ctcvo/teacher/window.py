@@ -112,6 +112,18 @@ class EdgeWindow:
         (:meth:`add_gap1` then :meth:`add_longer`.)"""
         return self.add_gap1(frame_id, timestamp, fk, depth_offset) + self.add_longer()
 
+    def skip(self) -> None:
+        """A frame of the stream that could not be read (:mod:`teacher.skips`): it takes a
+        position, so the window still spans ``cfg.gaps`` frames of the stream, and the next
+        frame's edges start at the frames before it (the edge from the frame before it is
+        the next one's shortest, estimated as :meth:`add_gap1` estimates a gap-1 edge, with
+        the constant velocity scaled to its time as for a dropped frame)."""
+        if self._pending is not None:
+            raise RuntimeError("EdgeWindow.add_longer() must follow add_gap1() before the next frame")
+        pos, self.added = self.added, self.added + 1
+        while self.entries and pos - self.entries[0].pos >= self.cfg.gaps:
+            self.entries.popleft()
+
     def add_gap1(self, frame_id: int, timestamp: float, fk: FrameFeatures,
                  depth_offset: float = 0.0) -> list[EdgeEstimate]:
         """The first half of :meth:`add`: the gap-1 edge ending at the new frame (a list of
