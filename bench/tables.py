@@ -65,6 +65,11 @@ def select(records: dict[str, dict], prefix: str) -> dict[str, dict]:
     return {n: r for n, r in records.items() if n == prefix or n.startswith(prefix + "-")}
 
 
+def teacher_records(records: dict[str, dict]) -> dict[str, dict]:
+    """bench.teacher's records (``teacher-*`` with rows; not teacher-covariance's or teacher-noise's)."""
+    return {n: r for n, r in select(records, "teacher").items() if "rows" in r["figures"]}
+
+
 def missing(command: str) -> list[str]:
     return [f"No record yet: `{command}`."]
 
@@ -73,7 +78,7 @@ def missing(command: str) -> list[str]:
 # the tables
 # ----------------------------------------------------------------------------------
 def teacher_table(records: dict[str, dict]) -> list[str]:
-    recs = select(records, "teacher")
+    recs = teacher_records(records)
     if not recs:
         return missing("python -m bench.teacher")
     rows = []
@@ -136,6 +141,25 @@ def keyframes_table(records: dict[str, dict]) -> list[str]:
                              mm(x["chain_ate_m"]), kinds, num(x["teacher_seconds"])])
     head = ["validation range", "edges", "graph ATE mm", "gap-1 RPE mm", "1 s RPE mm", "chain ATE mm",
             "edges by kind", "teacher s"]
+    return markdown(head, rows) + ["", provenance(recs)]
+
+
+def covariance_table(records: dict[str, dict]) -> list[str]:
+    recs = select(records, "teacher-covariance")
+    if not recs:
+        return missing("python -m bench.teacher_covariance")
+    rows = []
+    for r in recs.values():
+        for model, fig in r["figures"].items():
+            scales = ", ".join(f"{s:.3g}" for s in fig["gap_scales"])
+            for name, row in fig["ranges"].items():
+                raw, cal = row["raw"], row["calibrated"]
+                rows.append([model, f"{', '.join(fig['fit'])} -> {scales}", f"{name} ({row['role']})",
+                             f"{num(raw['nees_median_over_dof'])} / {num(raw['nees_over_dof'])}",
+                             f"{num(cal['nees_median_over_dof'], 2)} / {num(cal['nees_over_dof'], 2)}",
+                             f"{num(raw['coverage_2sigma'], 2)} -> {num(cal['coverage_2sigma'], 2)}"])
+    head = ["noise model", "fitted on -> scales, gap 1-5", "range", "raw NEES/6 median / mean",
+            "calibrated NEES/6 median / mean", "2-sigma coverage"]
     return markdown(head, rows) + ["", provenance(recs)]
 
 
@@ -256,7 +280,7 @@ def summary_table(records: dict[str, dict]) -> list[str]:
 
 def results_table(records: dict[str, dict]) -> list[str]:
     """README.md's table of current results: the teacher beside its peers on the real recordings."""
-    recs = {n: r for n, r in select(records, "teacher").items()
+    recs = {n: r for n, r in teacher_records(records).items()
             if not r["figures"]["rows"][0]["scene"].startswith("synthetic/")}
     if not recs:
         return missing("python -m bench.teacher")
@@ -275,7 +299,7 @@ def results_table(records: dict[str, dict]) -> list[str]:
 
 TABLES: dict[str, Callable[[dict[str, dict]], list[str]]] = {
     "teacher": teacher_table, "online": online_table, "posegraph": posegraph_table, "keyframes": keyframes_table,
-    "learner": learner_table,
+    "learner": learner_table, "teacher-covariance": covariance_table,
     "render": render_table, "synthetic-realism": realism_table, "ablation": ablation_table,
     "teacher-noise": noise_table, "demo": demo_table, "summary": summary_table,
     "results": results_table,

@@ -63,15 +63,30 @@ def _is_float(w: str) -> bool:
     return "." in w or "e" in w.lower()
 
 
-def assert_same(path: Path, golden: str) -> None:
+def assert_same(path: Path, golden: str, exact: bool = True) -> None:
+    """``path`` equals the golden file: bit for bit on the recording machine when ``exact``
+    (files of OpenCV and Open3D only: PyTorch's kernels differ in the last digits between CPU
+    generations that share a model name), otherwise at a tight tolerance (:func:`_close`)."""
     got = path.read_text()
     want = gzip.decompress((GOLDEN / golden).read_bytes()).decode()
-    if SAME_MACHINE:
+    if SAME_MACHINE and exact:
         assert got == want, f"{path} differs from {golden} (bit-identical expected on the recording machine)"
         return
+    assert len(got.splitlines()) == len(want.splitlines()), f"{path}: other edges or frames than {golden}"
+    for k, (a, b) in enumerate(zip(got.splitlines(), want.splitlines())):
+        _close(a, b, f"{path} line {k + 1} vs {golden}")
+
+
+def _close(got: str, want: str, where: str) -> None:
+    """One line: the same tags and ids, the numbers within rtol 1e-5 (atol 1e-7); an edge's
+    information matrix (its last 21 numbers) within 1e-3 of its largest entry: the inverse
+    of an MC-dropout sample covariance magnifies the last digits of the samples."""
     (gt, gn), (wt, wn) = _numbers(got), _numbers(want)
-    assert gt == wt and gn.shape == wn.shape, f"{path}: other edges or frames than {golden}"
-    np.testing.assert_allclose(gn, wn, rtol=1e-5, atol=1e-7, err_msg=f"{path} vs {golden}")
+    assert gt == wt and gn.shape == wn.shape, f"{where}: other tags or fields"
+    info = 21 if gt and gt[0] and gt[0][0].startswith("EDGE") else 0
+    np.testing.assert_allclose(gn[:len(gn) - info], wn[:len(wn) - info], rtol=1e-5, atol=1e-7, err_msg=where)
+    if info:
+        np.testing.assert_allclose(gn[-info:], wn[-info:], rtol=0, atol=1e-3 * np.abs(wn[-info:]).max(), err_msg=where)
 
 
 def _ctcvo(*argv: object) -> None:
@@ -83,14 +98,16 @@ def _ctcvo(*argv: object) -> None:
 def test_teacher_labels_on_real_data_are_unchanged(tmp_path: Path, name: str, scene: Path) -> None:
     require_real_data(scene)
     out = tmp_path / name
-    _ctcvo("teacher", "generate", "--scene", scene, "--frames", "0:30", "--out", out)
+    _ctcvo("teacher", "generate", "--scene", scene, "--frames", "0:30", "--out", out, "--covariance", "raw")
     assert_same(out / "edges.g2o", f"{name}-0-30.g2o.gz")
 
 
 def test_synthetic_teacher_learner_and_graph_are_unchanged(tmp_path: Path, one_torch_thread: None) -> None:
-    _ctcvo("teacher", "generate", "--scene", "synthetic/tiny", "--preset", "tiny", "--out", tmp_path / "tiny")
+    # the estimator's own covariances, as recorded (calibrated ones: tests/test_covariance_model.py)
+    _ctcvo("teacher", "generate", "--scene", "synthetic/tiny", "--preset", "tiny", "--out", tmp_path / "tiny",
+           "--covariance", "raw")
     assert_same(tmp_path / "tiny" / "edges.g2o", "tiny-tiny.g2o.gz")
-    _ctcvo("teacher", "generate", "--scene", "synthetic/tiny", "--out", tmp_path / "labels")
+    _ctcvo("teacher", "generate", "--scene", "synthetic/tiny", "--out", tmp_path / "labels", "--covariance", "raw")
     assert_same(tmp_path / "labels" / "edges.g2o", "tiny-default.g2o.gz")
 
     _ctcvo("learner", "fit", "--scene", "synthetic/tiny", "--preset", "tiny", "--teacher", tmp_path / "labels",
@@ -99,15 +116,14 @@ def test_synthetic_teacher_learner_and_graph_are_unchanged(tmp_path: Path, one_t
     losses = [{k: v for k, v in r.items() if k.endswith(("_loss", "_ctc", "_reg"))} for r in history]
     want = META["tiny_learner_losses"]
     assert [sorted(r) for r in losses] == [sorted(r) for r in want]
-    if SAME_MACHINE:
-        assert losses == want
-    else:
-        np.testing.assert_allclose([v for r in losses for v in r.values()], [v for r in want for v in r.values()],
-                                   rtol=1e-5)
+    # at a tolerance even where the machine looks the same: "AMD EPYC" names several CPU generations,
+    # and PyTorch's kernels differ between them in the last digits (windows_ctc, ~5e-6, by 6e-11)
+    np.testing.assert_allclose([v for r in losses for v in r.values()], [v for r in want for v in r.values()],
+                               rtol=1e-5, atol=1e-9)
 
     _ctcvo("learner", "predict", "--checkpoint", tmp_path / "learner" / "checkpoint.pt", "--scene", "synthetic/tiny",
            "--out", tmp_path / "predict")
-    assert_same(tmp_path / "predict" / "edges.g2o", "tiny-predict.g2o.gz")
+    assert_same(tmp_path / "predict" / "edges.g2o", "tiny-predict.g2o.gz", exact=False)
     _ctcvo("posegraph", "optimize", "--scene", "synthetic/tiny", "--teacher", tmp_path / "tiny",
            "--learner", tmp_path / "predict", "--out", tmp_path / "posegraph", "--no-plots")
-    assert_same(tmp_path / "posegraph" / "trajectory.tum", "tiny-posegraph.tum.gz")
+    assert_same(tmp_path / "posegraph" / "trajectory.tum", "tiny-posegraph.tum.gz", exact=False)

@@ -293,7 +293,7 @@ def _pose_from_vals(vals: NDArray[np.float64], where: str) -> NDArray[np.float64
 # ----------------------------------------------------------------------------------
 EDGE_CSV_COLUMNS = [
     "i", "j", "t_i", "t_j", "status", "matches", "inliers", "inlier_ratio", "rmse_px",
-    "trans_m", "rot_deg", "dense_fitness", "dense_shift_m", "path", "kind",
+    "trans_m", "rot_deg", "dense_fitness", "dense_shift_m", "path", "kind", "cov_scale",
 ]
 #: edges.csv columns read as strings (every other column but the integer ones is a float)
 EDGE_CSV_STRINGS = ("status", "path", "kind")

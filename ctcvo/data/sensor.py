@@ -86,3 +86,7 @@ class Sensor:
     """Colour and depth are exposed at the same instant (a synthetic scene's renderer)."""
     depth_scale: float
     """Raw depth units per metre in the recorded depth images."""
+    noise_model: str = "kinect-v1"
+    """Whose errors the teacher's covariances are calibrated to (:mod:`teacher.covariance_model`):
+    ``kinect-v1`` (real recordings: 7-Scenes, TUM RGB-D, bags), ``synthetic`` (the renderer's
+    noisy sensor model) or ``none`` (a noise-free rendering)."""

@@ -148,10 +148,11 @@ def folder_sensor(seq_dir: Path) -> Sensor:
 def _rendered_sensor(sensor: dict) -> Sensor:
     """The :class:`Sensor` of a synthetic scene's sensor model (its ``config.json`` entry)."""
     if sensor["noise_free"]:
-        return Sensor(None, 0.0, synchronous=True, depth_scale=DEPTH_SCALE)
+        return Sensor(None, 0.0, synchronous=True, depth_scale=DEPTH_SCALE, noise_model="none")
     colour = ColourCamera(float(sensor["rgb_focal_scale"]), tuple(map(float, sensor["rgb_shift_px"])),
                           float(sensor["rgb_baseline_m"]), synchronous=True)
-    return Sensor(colour, float(sensor["rolling_shutter_s"]), synchronous=True, depth_scale=DEPTH_SCALE)
+    return Sensor(colour, float(sensor["rolling_shutter_s"]), synchronous=True, depth_scale=DEPTH_SCALE,
+                  noise_model="synthetic")
 
 
 def _read_poses(seq_dir: Path, ids: list[int]) -> tuple[NDArray[np.float64], dict[int, str]]:

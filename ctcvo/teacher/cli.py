@@ -37,6 +37,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="worker processes (default: the preset's, 2)")
     g.add_argument("--keyframes", action="store_true",
                    help="also estimate keyframe edges reaching back seconds and verified loop edges")
+    g.add_argument("--covariance", default="calibrated", choices=["calibrated", "raw"],
+                   help="calibrated: covariances scaled per gap to the sensor's real errors (fitted on validation "
+                        "data); raw: the estimator's own, far too small on real data")
     g.add_argument("--overwrite", action="store_true",
                    help="replace outputs of other inputs instead of stopping with an error")
     g.add_argument("--strict", action="store_true",
@@ -85,6 +88,7 @@ def _generate(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, workers=args.workers)
     if args.keyframes:
         cfg = dataclasses.replace(cfg, keyframes=True)
+    cfg = dataclasses.replace(cfg, covariance=args.covariance)
     if cfg.workers > 1:
         processes.start()  # the workers import Open3D and the teacher while this process does
     from ctcvo.teacher.generate import generate

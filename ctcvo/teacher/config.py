@@ -11,6 +11,7 @@ from ctcvo.data.sensor import ColourCamera
 
 DENSE_METHODS = ("auto", "hybrid", "point-to-plane")
 COLOUR_CAMERAS = ("auto", "registered", "kinect-v1")
+COVARIANCES = ("calibrated", "raw")
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,11 @@ class TeacherConfig:
     10.8), its thresholds are not swept yet, and turning it on changes the golden labels
     (bench/README.md, keyframes)."""
 
+    covariance: str = "calibrated"
+    """``calibrated``: each edge's covariance times the per-gap scale fitted against ground truth
+    for the sequence's sensor (:mod:`teacher.covariance_model`); ``raw``: the estimator's own,
+    far too small on real data."""
+
     def __post_init__(self) -> None:
         for name in ("gaps", "n_features", "workers", "threads", "chunk_frames"):
             if getattr(self, name) < 1:
@@ -68,6 +74,8 @@ class TeacherConfig:
             raise ConfigError(f"dense_method must be auto, hybrid or point-to-plane, got {self.dense_method!r}")
         if self.colour_camera not in COLOUR_CAMERAS:
             raise ConfigError(f"colour_camera must be auto, registered or kinect-v1, got {self.colour_camera!r}")
+        if self.covariance not in COVARIANCES:
+            raise ConfigError(f"covariance must be calibrated or raw, got {self.covariance!r}")
         r = self.rolling_shutter_s
         if r is not None and not (math.isfinite(r) and 0.0 <= r < 1.0):
             raise ConfigError(f"rolling_shutter_s must be in [0, 1) s, got {r!r}")

@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
+from ctcvo.data import geometry as geo
 from ctcvo.data.chain import chain_edges
 from ctcvo.data.errors import ConfigError, DataError
 from ctcvo.data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
@@ -45,8 +46,10 @@ from ctcvo.data.runs import Fingerprint, claim, frames_id, output_folder, scene_
 from ctcvo.data.scenes import open_scene
 from ctcvo.data.sensor import KINECT_V1_COLOUR, ColourCamera, Sensor
 from ctcvo.data.sequence import Sequence
+from ctcvo.data.uncertainty import mahalanobis2, nees_stats
 from ctcvo.teacher import processes, skips
 from ctcvo.teacher.config import TeacherConfig, dense_method
+from ctcvo.teacher.covariance_model import describe, gap_scale
 from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb
 from ctcvo.teacher.keyframes import keyframe_edges
 from ctcvo.teacher.maps import PhotoMaps
@@ -359,15 +362,34 @@ def chain_trajectory(ids: NDArray[np.int64], edges: list[EdgeEstimate]) -> tuple
     return chained.poses, chained.bridges
 
 
-def _edge_rows(edges: list[EdgeEstimate], ts: dict[int, float],
-               kinds: dict[tuple[int, int], str] | None = None) -> list[dict]:
-    kinds = kinds or {}
+def _edge_rows(edges: list[EdgeEstimate], ts: dict[int, float], kinds: dict[tuple[int, int], str] | None = None,
+               scale: dict[tuple[int, int], float] | None = None) -> list[dict]:
+    kinds, scale = kinds or {}, scale or {}
     return [{
         "i": e.i, "j": e.j, "t_i": f"{ts[e.i]:.6f}", "t_j": f"{ts[e.j]:.6f}", "status": e.status,
         "matches": e.matches, "inliers": e.inliers, "inlier_ratio": float(e.inlier_ratio),
         "rmse_px": float(e.rmse_px), "trans_m": float(e.diag.trans_m), "rot_deg": float(e.diag.rot_deg),
         **_dense_cells(e), "path": e.diag.path, "kind": kinds.get((e.i, e.j), "window"),
+        "cov_scale": scale.get((e.i, e.j), 1.0),
     } for e in edges]
+
+
+def _nees(frames: Sequence, good: list[Edge]) -> dict:
+    """NEES/6 (median and mean) and 2-sigma coverage of the written covariances against the
+    ground truth, over the edges whose two frames have a finite one (nothing without)."""
+    gt = frames.groundtruth(partial=True)
+    if gt is None:
+        return {}
+    pos = {int(f): p for p, f in enumerate(frames.ids())}
+    fine = [e for e in good if e.i in pos and e.j in pos and np.isfinite(gt[pos[e.i]]).all()
+            and np.isfinite(gt[pos[e.j]]).all()]
+    if not fine:
+        return {}
+    d = np.array([geo.se3_log(geo.inv_T(e.T_i_j) @ geo.relative_pose(gt[pos[e.i]], gt[pos[e.j]])) for e in fine])
+    d2 = mahalanobis2(d, np.array([e.cov for e in fine]))
+    st = nees_stats(d2)
+    return {"nees_median_over_dof": float(np.median(d2)) / 6, "nees_over_dof": st["nees_over_dof"],
+            "coverage_2sigma": st["coverage_2sigma"]}
 
 
 def _dense_cells(e: EdgeEstimate) -> dict:
@@ -441,15 +463,17 @@ def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path,
     frames = run.frames or seq  # a skipped frame has no pose (teacher.skips)
     ids, times = frames.ids(), frames.times()
     ts = {int(f): float(t) for f, t in zip(ids, times)}
-    good = [Edge(e.i, e.j, e.T_i_j, e.cov) for e in run.edges if e.ok]
+    scale = {(e.i, e.j): gap_scale(seq.sensor.noise_model, _gap(seq, e), cfg.covariance) for e in run.edges}
+    good = [Edge(e.i, e.j, e.T_i_j, e.cov * scale[e.i, e.j]) for e in run.edges if e.ok]
     write_g2o(out / "edges.g2o", good, {int(f): T for f, T in zip(ids, run.poses)})
-    write_edges_csv(out / "edges.csv", _edge_rows(run.edges, ts, run.kinds))
+    write_edges_csv(out / "edges.csv", _edge_rows(run.edges, ts, run.kinds, scale))
     write_tum(out / "trajectory.tum", Trajectory(times, run.poses))
     gt = frames.groundtruth(partial=True)
     if gt is not None and (has := np.isfinite(gt).all(axis=(1, 2))).any():
         write_tum(out / "groundtruth.tum", Trajectory(times[has], gt[has]))  # without the dropped frames
     write_json(out / "config.json", {"teacher": cfg.to_dict(), "git_revision": git_revision(), **extra})
     report = build_report(seq, run, cfg)
+    report["covariance"] = {**describe(seq.sensor.noise_model, cfg.covariance), **_nees(frames, good)}
     if fingerprint is not None:
         write_fingerprint(out, fingerprint)
     write_json(out / "report.json", json_safe(report))

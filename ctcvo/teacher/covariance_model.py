@@ -1,0 +1,53 @@
+"""Per-gap scales that make the teacher's covariances match its real errors.
+
+The covariance the estimator computes (:mod:`teacher.covariance`, the keypoint and dense
+information fused) treats every pixel's error as independent, so it is far too small: on
+real Kinect v1 recordings the median NEES/6 of the raw covariances against ground truth is
+about 35-120, so a solver that takes ``edges.g2o`` as it is trusts the edges about 50x too
+much. ``edges.g2o`` therefore carries the raw covariance times a scale per frame gap and
+sensor noise model (:attr:`data.sensor.Sensor.noise_model`), fitted against ground truth
+on validation ranges by ``python -m bench.teacher_covariance`` (record
+``bench/results/teacher-covariance.json``). The errors are heavy-tailed, so one scale cannot
+make both the median NEES (the errors' core) and the mean NEES (with the tails) consistent:
+each gap's scale makes its median consistent, times one factor for all gaps that leaves the
+median NEES/6 below 1 and the mean above it by the same factor. ``TeacherConfig.covariance = "raw"``
+(``--covariance raw``) writes the estimator's own values; ``edges.csv``'s ``cov_scale``
+column says what each edge got.
+"""
+
+from __future__ import annotations
+
+from ctcvo.data.errors import ConfigError
+
+#: Per-gap covariance scales of the default teacher, by sensor noise model. Fitted by
+#: ``python -m bench.teacher_covariance`` on validation ranges only: ``kinect-v1`` on
+#: 7-Scenes redkitchen 0:350 and TUM fr3/teddy 0:100 (checked on redkitchen 350:450 and
+#: teddy 100:200), ``synthetic`` on the validation room office 0:300 (checked on lab 0:300).
+#: A gap beyond the table (keyframe and loop edges) takes the last gap's scale.
+GAP_SCALES: dict[str, tuple[float, ...]] = {
+    "kinect-v1": (115, 80.5, 66.3, 66, 69.8),
+    "synthetic": (6.78, 9, 8.52, 10.3, 12.9),
+    "none": (1.0,),
+}
+#: where :data:`GAP_SCALES` came from, for report.json
+SOURCE = "bench/results/teacher-covariance.json (validation ranges, ground-truth NEES medians)"
+
+
+def gap_scale(noise_model: str, gap: int, covariance: str = "calibrated") -> float:
+    """The factor the covariance of an edge of ``gap`` frames gets for a sensor of
+    ``noise_model``; 1 for ``covariance="raw"``."""
+    if covariance == "raw":
+        return 1.0
+    try:
+        table = GAP_SCALES[noise_model]
+    except KeyError:
+        raise ConfigError(f"unknown sensor noise model {noise_model!r}; known: {', '.join(GAP_SCALES)}") from None
+    return table[min(max(gap, 1), len(table)) - 1]
+
+
+def describe(noise_model: str, covariance: str) -> dict:
+    """report.json's ``covariance`` entry: which model and scales were applied."""
+    if covariance == "raw":
+        return {"covariance": "raw", "noise_model": noise_model, "gap_scales": None}
+    return {"covariance": "calibrated", "noise_model": noise_model,
+            "gap_scales": list(GAP_SCALES[noise_model]), "source": SOURCE}
