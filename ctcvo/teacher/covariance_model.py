@@ -30,7 +30,7 @@ GAP_SCALES: dict[str, tuple[float, ...]] = {
     "none": (1.0,),
 }
 #: where :data:`GAP_SCALES` came from, for report.json
-SOURCE = "bench/results/teacher-covariance.json (validation ranges, ground-truth NEES medians)"
+SOURCE = "bench/results/teacher-covariance.json (per-gap median NEES against ground truth on validation ranges, one tail factor)"
 
 
 def gap_scale(noise_model: str, gap: int, covariance: str = "calibrated") -> float:
