@@ -235,7 +235,9 @@ def noise_table(records: dict[str, dict]) -> list[str]:
     return markdown(head, rows) + ["", provenance(recs)]
 
 
-def demo_table(records: dict[str, dict]) -> list[str]:
+def demo_table(records: dict[str, dict], dated: bool = True) -> list[str]:
+    """The demo's rows and time; ``dated``: with the record's revision, date and load (README.md's
+    copy names the record only: a first-contact document has no run history)."""
     r = records.get("demo")
     if not r:
         return missing("python -m bench.demo")
@@ -245,7 +247,8 @@ def demo_table(records: dict[str, dict]) -> list[str]:
     head = [f"{f['test_scene']}, {f['frames']} frames", "ATE mm", "gap-1 RPE mm / deg", "RPE 1 s mm", "se(3) L2"]
     return markdown(head, rows) + ["", f"`ctcvo demo` took {f['wall_s'] / 60:.0f} min ({f['cpu_s'] / 60:.0f} min of CPU; "
                                        f"rooms already rendered: {', '.join(r['config']['rooms_in_render_cache']) or 'none'}). "
-                                       + provenance({"demo": r})]
+                                       + (provenance({"demo": r}) if dated else
+                                          f"On {r['machine']['cpu_count']} cores; record `demo`.")]
 
 
 def summary_table(records: dict[str, dict]) -> list[str]:
@@ -301,7 +304,8 @@ TABLES: dict[str, Callable[[dict[str, dict]], list[str]]] = {
     "teacher": teacher_table, "online": online_table, "posegraph": posegraph_table, "keyframes": keyframes_table,
     "learner": learner_table, "teacher-covariance": covariance_table,
     "render": render_table, "synthetic-realism": realism_table, "ablation": ablation_table,
-    "teacher-noise": noise_table, "demo": demo_table, "summary": summary_table,
+    "teacher-noise": noise_table, "demo": demo_table, "demo-readme": lambda r: demo_table(r, dated=False),
+    "summary": summary_table,
     "results": results_table,
 }
 
