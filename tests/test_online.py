@@ -321,6 +321,40 @@ def test_online_learner_edges_equal_predict(batch, tmp_path):
     assert run.report["final"]["ate_rmse_m"] < 1.0
 
 
+def test_online_learner_runs_torch_on_its_own_thread_count(tmp_path):
+    """:meth:`OnlineLearner.add` runs torch on ``ONLINE_THREADS`` threads whatever the
+    caller's count (a pool of one per core stalled on busy cores), and gives the caller's
+    count back; each edge still gets its K samples."""
+    import torch
+
+    from ctcvo.learner import online as lo
+    from ctcvo.learner.checkpoint import save_checkpoint
+    from ctcvo.learner.config import TINY as LTINY
+    from ctcvo.learner.config import PredictConfig
+    from ctcvo.learner.model import CTCNet
+
+    torch.manual_seed(0)
+    net = CTCNet(LTINY.model)
+    net.output_scale.fill_(100.0)  # untrained heads predict about 1e-3 of it
+    save_checkpoint(tmp_path / "c.pt", net, torch.optim.Adam(net.parameters()), 0, LTINY, "ctc", [])
+    learner = lo.OnlineLearner(tmp_path / "c.pt", PredictConfig(samples=4, drop=0.2, max_gap=2),
+                               use_calibration=False)
+    seen, encode = [], learner.model.encode
+    learner.model.encode = lambda x: (seen.append(torch.get_num_threads()), encode(x))[1]
+    rng = np.random.default_rng(0)
+    before = torch.get_num_threads()
+    torch.set_num_threads(lo.ONLINE_THREADS + 1)
+    try:
+        edges = [learner.add((rng.integers(0, 256, (3, 48, 64), dtype=np.uint8), None, None)) for _ in range(4)]
+        assert torch.get_num_threads() == lo.ONLINE_THREADS + 1
+    finally:
+        torch.set_num_threads(before)
+    assert seen == [lo.ONLINE_THREADS] * 3
+    assert [[(g, h) for g, _, _, h in e] for e in edges] == [[], [(1, "lstm")], [(1, "lstm"), (2, "direct")],
+                                                               [(1, "lstm"), (2, "direct")]]
+    assert all(np.trace(c) > 1e-6 for e in edges for _, _, c, _ in e)  # 1e-8 floor: dropout spread them
+
+
 # ----------------------------------------------------------------------------------
 # the rerun rule (data/runs.py)
 # ----------------------------------------------------------------------------------
