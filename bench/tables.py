@@ -88,6 +88,15 @@ def teacher_table(records: dict[str, dict]) -> list[str]:
     return markdown(head, rows) + ["", provenance(recs)]
 
 
+def learner_cell(x: dict) -> str:
+    """The online run with a learner beside the teacher-only one of the same bench run."""
+    if "learner_fps" not in x:
+        return "-"
+    lat, paced = x["learner_latency_ms"], x["learner_30hz_latency_ms"]
+    return (f"{x.get('learner_preset', '?')} preset: {num(x['learner_fps'])} ({x['learner_fps'] / x['online_fps']:.2f}x), "
+            f"{lat['p50']:.0f} / {lat['p95']:.0f}, {paced['p50']:.0f} / {paced['p95']:.0f}")
+
+
 def online_table(records: dict[str, dict]) -> list[str]:
     recs = select(records, "online")
     if not recs:
@@ -102,10 +111,12 @@ def online_table(records: dict[str, dict]) -> list[str]:
                          num(x["batch_fps"]), f"{num(x['online_fps'])} ({x['online_fps'] / x['batch_fps']:.2f}x)",
                          f"{lat['p50']:.0f} / {lat['p95']:.0f}", f"{work['p50']:.0f} / {work['p95']:.0f}",
                          f"{paced['p50']:.0f} / {paced['p95']:.0f}",
-                         f"{mm(a['final'])} / {mm(a['causal'])} vs {mm(a['batch_posegraph'])}", mm(b)])
+                         f"{mm(a['final'])} / {mm(a['causal'])} vs {mm(a['batch_posegraph'])}", mm(b),
+                         learner_cell(x)])
     head = ["scene", "online settings", "batch teacher fps", "online fps (ratio)", "latency p50 / p95 ms",
             "own work until the pose p50 / p95 ms", "paced 30 Hz latency p50 / p95 ms",
-            "ATE mm final / causal vs batch pose graph (same edges)", "batch pose graph ATE mm (default teacher)"]
+            "ATE mm final / causal vs batch pose graph (same edges)", "batch pose graph ATE mm (default teacher)",
+            "with a learner: fps (x teacher only), latency p50 / p95 ms, paced 30 Hz p50 / p95 ms"]
     return markdown(head, rows) + ["", provenance(recs)]
 
 
