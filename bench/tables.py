@@ -97,6 +97,18 @@ def learner_cell(x: dict) -> str:
             f"{lat['p50']:.0f} / {lat['p95']:.0f}, {paced['p50']:.0f} / {paced['p95']:.0f}")
 
 
+def learner_cost(r: dict | None) -> str:
+    """The summary's words on what a learner costs ``ctcvo online`` (the ``online-learner`` record)."""
+    if not r:
+        return ""
+    x = r["figures"]["rows"][0]
+    cpu = x["learner_work_to_pose_cpu_ms"]["p50"] - x["online_work_to_pose_cpu_ms"]["p50"]
+    return (f"; with a learner ({x['learner_preset']} preset, K=10, {x['scene']}{frames_label(r['config'])}) "
+            f"{num(x['learner_fps'])} fps, {x['learner_fps'] / x['online_fps']:.2f}x the teacher alone in the same run "
+            f"({cpu:.0f} ms more CPU a frame; {r['machine']['cpu_count']} cores at load "
+            f"{r['machine']['load_average_start'][0]:.0f})")
+
+
 def online_table(records: dict[str, dict]) -> list[str]:
     recs = select(records, "online")
     if not recs:
@@ -261,7 +273,7 @@ def summary_table(records: dict[str, dict]) -> list[str]:
         x = r["figures"]["rows"][0]
         rows.append(["`ctcvo online`", "frames as they arrive -> a pose per frame, ISAM2-smoothed",
                      f"{x['scene']}{frames_label(r['config'])}, gaps {x['online_gaps']}: {num(x['online_fps'])} fps, "
-                     f"latency p95 {x['online_latency_ms']['p95']:.0f} ms"])
+                     f"latency p95 {x['online_latency_ms']['p95']:.0f} ms" + learner_cost(records.get("online-learner"))])
     return markdown(["command", "what it does", "measured (bench/results/)"], rows)
 
 
