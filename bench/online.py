@@ -12,7 +12,8 @@ For each scene, on the same frames:
   percentiles from the frame's arrival, every frame taken (a run slower than 30 fps falls
   further behind with each frame), and with ``drop_late`` (the newest frame taken, the
   ones in between skipped): frames taken and skipped, latency, final ATE on its frames;
-* **online with the learner** (``--checkpoint``): the same two figures;
+* **online with the learner** (``--checkpoint``): as fast as frames come and paced at 30 Hz,
+  frames per second (beside the teacher-only run's), latency, own work and its CPU time;
 * **accuracy**: ATE of the online run's trajectories - causal (each frame's estimate when
   it arrived), ISAM2 after the last frame, final (ISAM2 then the batch solve warm-started
   from it) - against batch ``posegraph optimize`` on the same edges (the online run's
@@ -50,6 +51,7 @@ from bench import record  # noqa: E402
 from ctcvo.data import live  # noqa: E402
 from ctcvo.data.scenes import open_scene  # noqa: E402
 from ctcvo.data.sensor import KINECT_V1_READOUT_S  # noqa: E402
+from ctcvo.learner.checkpoint import load_checkpoint  # noqa: E402
 from ctcvo.pipeline import online  # noqa: E402
 from ctcvo.teacher.config import DEFAULT  # noqa: E402
 
@@ -132,11 +134,15 @@ def bench_scene(spec: str, frames: str, checkpoint: Path | None, tmp: Path, tcfg
                             "teacher_chain": rep["teacher_chain"]["ate_rmse_m"]}
             row["final_solve_s"] = (rep.get("final_polish") or {}).get("seconds")
     if checkpoint is not None:
+        row["learner_preset"] = load_checkpoint(checkpoint)["preset"]
         for name, src in (("learner", live.SequenceSource(seq)), ("learner_30hz", Paced(seq, decoded, 30.0))):
+            wall, cpu = time.perf_counter(), time.process_time()
             res = online.run(src, tmp / seq.name / name, tcfg, checkpoint=checkpoint, cfg=ocfg, progress=False)
+            row[f"{name}_cores_used"] = (time.process_time() - cpu) / (time.perf_counter() - wall)
             row[f"{name}_fps"] = res.fps
             row[f"{name}_latency_ms"] = res.latency_ms
             row[f"{name}_work_ms"] = res.report["work_ms"]
+            row[f"{name}_work_to_pose_cpu_ms"] = res.report["work_to_pose_cpu_ms"]
     row["load_avg_1min"].append(os.getloadavg()[0])
     return row
 
@@ -180,9 +186,6 @@ def table(rows: list[dict]) -> str:
 
 
 def main() -> int:
-    import torch
-
-    torch.set_num_threads(1)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=SCENES)
     ap.add_argument("--frames", default="0:300")

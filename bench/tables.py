@@ -93,6 +93,27 @@ def teacher_table(records: dict[str, dict]) -> list[str]:
     return markdown(head, rows) + ["", provenance(recs)]
 
 
+def learner_cell(x: dict) -> str:
+    """The online run with a learner beside the teacher-only one of the same bench run."""
+    if "learner_fps" not in x:
+        return "-"
+    lat, paced = x["learner_latency_ms"], x["learner_30hz_latency_ms"]
+    return (f"{x.get('learner_preset', '?')} preset: {num(x['learner_fps'])} ({x['learner_fps'] / x['online_fps']:.2f}x), "
+            f"{lat['p50']:.0f} / {lat['p95']:.0f}, {paced['p50']:.0f} / {paced['p95']:.0f}")
+
+
+def learner_cost(r: dict | None) -> str:
+    """The summary's words on what a learner costs ``ctcvo online`` (the ``online-learner`` record)."""
+    if not r:
+        return ""
+    x = r["figures"]["rows"][0]
+    cpu = x["learner_work_to_pose_cpu_ms"]["p50"] - x["online_work_to_pose_cpu_ms"]["p50"]
+    return (f"; with a learner ({x['learner_preset']} preset, K=10, {x['scene']}{frames_label(r['config'])}) "
+            f"{num(x['learner_fps'])} fps, {x['learner_fps'] / x['online_fps']:.2f}x the teacher alone in the same run "
+            f"({cpu:.0f} ms more CPU a frame; {r['machine']['cpu_count']} cores at load "
+            f"{r['machine']['load_average_start'][0]:.0f})")
+
+
 def online_table(records: dict[str, dict]) -> list[str]:
     recs = select(records, "online")
     if not recs:
@@ -107,10 +128,12 @@ def online_table(records: dict[str, dict]) -> list[str]:
                          num(x["batch_fps"]), f"{num(x['online_fps'])} ({x['online_fps'] / x['batch_fps']:.2f}x)",
                          f"{lat['p50']:.0f} / {lat['p95']:.0f}", f"{work['p50']:.0f} / {work['p95']:.0f}",
                          f"{paced['p50']:.0f} / {paced['p95']:.0f}",
-                         f"{mm(a['final'])} / {mm(a['causal'])} vs {mm(a['batch_posegraph'])}", mm(b)])
+                         f"{mm(a['final'])} / {mm(a['causal'])} vs {mm(a['batch_posegraph'])}", mm(b),
+                         learner_cell(x)])
     head = ["scene", "online settings", "batch teacher fps", "online fps (ratio)", "latency p50 / p95 ms",
             "own work until the pose p50 / p95 ms", "paced 30 Hz latency p50 / p95 ms",
-            "ATE mm final / causal vs batch pose graph (same edges)", "batch pose graph ATE mm (default teacher)"]
+            "ATE mm final / causal vs batch pose graph (same edges)", "batch pose graph ATE mm (default teacher)",
+            "with a learner: fps (x teacher only), latency p50 / p95 ms, paced 30 Hz p50 / p95 ms"]
     return markdown(head, rows) + ["", provenance(recs)]
 
 
@@ -277,7 +300,7 @@ def summary_table(records: dict[str, dict]) -> list[str]:
         x = r["figures"]["rows"][0]
         rows.append(["`ctcvo online`", "frames as they arrive -> a pose per frame, ISAM2-smoothed",
                      f"{x['scene']}{frames_label(r['config'])}, gaps {x['online_gaps']}: {num(x['online_fps'])} fps, "
-                     f"latency p95 {x['online_latency_ms']['p95']:.0f} ms"])
+                     f"latency p95 {x['online_latency_ms']['p95']:.0f} ms" + learner_cost(records.get("online-learner"))])
     return markdown(["command", "what it does", "measured (bench/results/)"], rows)
 
 

@@ -42,3 +42,10 @@ def test_update_rewrites_only_between_the_markers():
     assert tables.update(new, rec) == new
     with pytest.raises(SystemExit, match="unknown table"):
         tables.update("<!-- table: nope -->\n<!-- /table -->", rec)
+
+
+def test_online_learner_cell_puts_the_learner_beside_the_same_runs_teacher():
+    row = {"online_fps": 20.0, "learner_fps": 12.0, "learner_preset": "demo",
+           "learner_latency_ms": {"p50": 101.2, "p95": 230.0}, "learner_30hz_latency_ms": {"p50": 90.0, "p95": 150.4}}
+    assert tables.learner_cell(row) == "demo preset: 12.0 (0.60x), 101 / 230, 90 / 150"
+    assert tables.learner_cell({"online_fps": 20.0}) == "-"

@@ -47,6 +47,28 @@ def test_mc_dropout_shapes_and_spread() -> None:
     assert q.shape == (5, 1, 3, 6)
 
 
+def test_mc_dropout_in_one_pass_equals_one_pass_per_sample() -> None:
+    """The K samples of a head come from one pass over a (K, ...) batch; with the same seed
+    they equal the K passes a loop would make (same masks, same outputs), each its own mask."""
+    net = CTCNet(TINY.model).eval()
+    z = net.encode(_pairs(4, TINY.model))
+    K, p = 6, 0.3
+    torch.manual_seed(3)
+    batched = net.direct_mc(z, K, p)
+    torch.manual_seed(3)
+    h = net.direct_hidden(z)
+    looped = torch.stack([net.direct_out(h, p) for _ in range(K)])
+    torch.testing.assert_close(batched, looped, rtol=0, atol=1e-7)
+    assert all(not torch.equal(batched[0], batched[k]) for k in range(1, K))  # a mask per sample
+    torch.manual_seed(3)
+    batched = net.sequential_mc(z[None], K, p)
+    torch.manual_seed(3)
+    h = net.lstm_hidden_states(z[None])
+    looped = torch.stack([net.sequential_out(h, p) for _ in range(K)])
+    torch.testing.assert_close(batched, looped, rtol=0, atol=1e-7)
+    assert batched.shape == (K, 1, 4, 6) and not torch.equal(batched[0], batched[1])
+
+
 @pytest.mark.slow
 def test_pretrained_init(tmp_path) -> None:
     full = CTCNet(PRESETS["paper"].model)

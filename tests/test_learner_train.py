@@ -106,7 +106,7 @@ def test_every_variant_trains_two_steps(variant: str, fixture_seq, tmp_path) -> 
     assert hist[1][f"{second}_ctc"] > 0 if variant == "ctc" else hist[1][f"{second}_ctc"] == 0
     # every epoch is scored beside the trivial baselines, against ground truth when there is one
     for h in hist:
-        assert h["train_reference"] == "ground truth"
+        assert h["train_reference"] == "ground truth" and h["labels"] == VARIANTS[variant][1]
         assert 0 < h["train_constant_velocity_se3_l2"] < h["train_zero_motion_se3_l2"]
         assert np.isfinite(h["train_se3_l2"])
     cfg = json.loads((tmp_path / "run" / "config.json").read_text())
@@ -784,6 +784,10 @@ def test_no_skill_warning_against_constant_velocity(caplog) -> None:
     with caplog.at_level(logging.INFO, logger="ctcvo.learner.evaluate"):
         warn_if_no_skill({**entry, "val_constant_velocity_se3_l2": 0.009})
     assert [r.levelname for r in caplog.records] == ["INFO"]
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="ctcvo.learner.evaluate"):
+        warn_if_no_skill({**entry, "val_reference": "teacher"})
+    assert all("against teacher labels" in r.getMessage() for r in caplog.records)
 
 
 def test_epoch_line_names_its_reference_and_an_untrained_lstm() -> None:
@@ -793,9 +797,14 @@ def test_epoch_line_names_its_reference_and_an_untrained_lstm() -> None:
              "val_lstm_se3_l2": 0.01, "val_zero_motion_se3_l2": 0.01, "val_constant_velocity_se3_l2": 0.007,
              "val_reference": "teacher"}
     line = epoch_line(entry)
-    assert "val se(3) L2 vs teacher" in line and "not trained yet" in line
-    assert "loss x zero motion on the labels: pairs_reg=0.5" in line
+    assert "val se(3) L2 vs teacher labels direct" in line and "not trained yet" in line
+    assert "loss x zero motion on the training labels: pairs_reg=0.5" in line  # a history without "labels"
     assert "not trained yet" not in epoch_line({**entry, "phase": "pairs+windows"})
+    # the loss names what the variant trains on, next to figures against ground truth
+    line = epoch_line({**entry, "labels": "teacher", "val_reference": "ground truth"})
+    assert line.startswith("loss x zero motion on the teacher labels: pairs_reg=0.5 | val se(3) L2 vs ground truth ")
+    assert epoch_line({**entry, "labels": "gt"}).startswith("loss x zero motion on the ground-truth labels: ")
+    assert "on the teacher labels redrawn from their covariances: " in epoch_line({**entry, "labels": "aug"})
 
 
 @pytest.mark.slow

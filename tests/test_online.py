@@ -321,6 +321,83 @@ def test_online_learner_edges_equal_predict(batch, tmp_path):
     assert run.report["final"]["ate_rmse_m"] < 1.0
 
 
+def _untrained_checkpoint(path: Path) -> Path:
+    """A tiny-preset learner checkpoint, untrained (seeded), its outputs scaled up so that
+    dropout spreads them well above the covariance floor."""
+    import torch
+
+    from ctcvo.learner.checkpoint import save_checkpoint
+    from ctcvo.learner.config import TINY as LTINY
+    from ctcvo.learner.model import CTCNet
+
+    torch.manual_seed(0)
+    net = CTCNet(LTINY.model)
+    net.output_scale.fill_(100.0)  # untrained heads predict about 1e-3 of it
+    save_checkpoint(path, net, torch.optim.Adam(net.parameters()), 0, LTINY, "ctc", [])
+    return path
+
+
+def test_online_learner_runs_torch_on_its_own_thread_count(tmp_path):
+    """:meth:`OnlineLearner.add` runs torch on ``ONLINE_THREADS`` threads whatever the
+    caller's count (a pool of one per core stalled on busy cores), and gives the caller's
+    count back; each edge still gets its K samples."""
+    import torch
+
+    from ctcvo.learner import online as lo
+    from ctcvo.learner.config import PredictConfig
+
+    learner = lo.OnlineLearner(_untrained_checkpoint(tmp_path / "c.pt"), PredictConfig(samples=4, drop=0.2, max_gap=2),
+                               use_calibration=False)
+    seen, encode = [], learner.model.encode
+    learner.model.encode = lambda x: (seen.append(torch.get_num_threads()), encode(x))[1]
+    rng = np.random.default_rng(0)
+    before = torch.get_num_threads()
+    torch.set_num_threads(lo.ONLINE_THREADS + 1)
+    try:
+        edges = [learner.add((rng.integers(0, 256, (3, 48, 64), dtype=np.uint8), None, None)) for _ in range(4)]
+        assert torch.get_num_threads() == lo.ONLINE_THREADS + 1
+    finally:
+        torch.set_num_threads(before)
+    assert seen == [lo.ONLINE_THREADS] * 3
+    assert [[(g, h) for g, _, _, h in e] for e in edges] == [[], [(1, "lstm")], [(1, "lstm"), (2, "direct")],
+                                                               [(1, "lstm"), (2, "direct")]]
+    assert all(np.trace(c) > 1e-6 for e in edges for _, _, c, _ in e)  # 1e-8 floor: dropout spread them
+
+
+@pytest.mark.slow
+def test_learner_beside_the_teacher_gives_the_serial_edges(tmp_path, monkeypatch):
+    """The learner's edges of each frame come from a helper thread while the teacher
+    estimates its own; with dropout on (same seed) they are those of a serial run, byte
+    for byte, and the run's CPU time counts the helper's share."""
+    from ctcvo.learner.config import PredictConfig
+    from ctcvo.learner.online import OnlineLearner
+
+    ckpt, cfg = _untrained_checkpoint(tmp_path / "c.pt"), PredictConfig(samples=4, drop=0.2, max_gap=2)
+    threads, add = [], OnlineLearner.add
+    monkeypatch.setattr(OnlineLearner, "add", lambda self, x: (threads.append(threading.current_thread().name),
+                                                              add(self, x))[1])
+    learn = online_loop.Estimator._learner
+    monkeypatch.setattr(online_loop.Estimator, "_learner", lambda self, x: (learn(self, x)[0], 1.0))  # its CPU s
+    beside = online.run(online.open_source("synthetic/tiny", "0:8"), tmp_path / "beside", TCFG, checkpoint=ckpt,
+                        predict_cfg=cfg, progress=False)
+    assert len(threads) == 8 and all(t.startswith("vo-online-learner") for t in threads)
+    init = online_loop.Estimator.__init__
+
+    def serial(self, *args) -> None:
+        init(self, *args)
+        self.pool.shutdown()
+        self.pool = None
+
+    monkeypatch.setattr(online_loop.Estimator, "__init__", serial)
+    threads.clear()
+    alone = online.run(online.open_source("synthetic/tiny", "0:8"), tmp_path / "serial", TCFG, checkpoint=ckpt,
+                       predict_cfg=cfg, progress=False)
+    assert threads == ["MainThread"] * 8
+    a, b = ((run.out / "learner" / "edges.g2o").read_bytes() for run in (beside, alone))
+    assert a == b and beside.report["learner_edges"] == 7 + 6
+    assert beside.report["work_to_pose_cpu_ms"]["p50"] > 1000  # the 1 s the learner said it took
+
+
 # ----------------------------------------------------------------------------------
 # the rerun rule (data/runs.py)
 # ----------------------------------------------------------------------------------

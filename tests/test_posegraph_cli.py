@@ -278,3 +278,19 @@ def test_edge_use_says_why_edges_were_left_out():
     assert "learner 12 of 735 (gap(s) 1, 2 no better than zero motion on its validation pairs: left out" in line
     assert report.edge_use({**every, "skill_gate": {}, "edges_total": 1470}) == \
         "Edges used in the fused graph: teacher 735 of 735, learner 735 of 735."
+
+
+def test_each_solver_line_names_its_graph(dirs, tmp_path, caplog):
+    """optimize solves two graphs (fused, and the teacher's edges alone as the control): each
+    solver line says which one it is about, and each graph's summary line comes once."""
+    import logging
+
+    t, l = dirs
+    caplog.set_level(logging.INFO, logger="ctcvo.posegraph.graph")
+    assert main(["optimize", "--teacher", str(t), "--learner", str(l), "--out", str(tmp_path / "out"),
+                 "--no-plots", "--learner-edges", "all"]) == 0
+    lines = [r.getMessage() for r in caplog.records if r.name == "ctcvo.posegraph.graph"]
+    labels = (f"{report.ROW_LABELS['fused']}: ", f"{report.ROW_LABELS['teacher_graph']}: ")
+    assert lines and all(s.startswith(labels) for s in lines), lines
+    summaries = [s for s in lines if " poses, " in s]
+    assert [s.split(": ")[0] for s in summaries] == [x[:-2] for x in labels]

@@ -97,13 +97,24 @@ class Evaluator:
         return out
 
 
+#: what each label source of a variant (``learner.config.VARIANTS``) trains on, for the log
+LABEL_NAMES = {"gt": "ground-truth labels", "teacher": "teacher labels",
+               "aug": "teacher labels redrawn from their covariances"}
+
+
+def reference(entry: dict, name: str) -> str:
+    """What set ``name``'s se(3) L2 figures of a history entry were measured against."""
+    ref = entry.get(f"{name}_reference", "the reference")
+    return "teacher labels" if ref == "teacher" else ref
+
+
 def epoch_line(entry: dict) -> str:
-    """The epoch's log line: the loss terms (1.0 = zero motion on the training labels), then
-    each set's se(3) L2 beside zero motion and constant velocity, naming the reference; an
-    LSTM head not trained yet (phase 1, pairs only) is marked so."""
-    parts = [", ".join(f"{k}={entry[k]:.4g}" for k in ("pairs_reg", "windows_reg", "windows_ctc") if k in entry)]
-    if parts[0]:
-        parts[0] = "loss x zero motion on the labels: " + parts[0]
+    """The epoch's log line: the loss terms (1.0 = zero motion on the training labels, which
+    it names), then each set's se(3) L2 beside zero motion and constant velocity, naming the
+    reference; an LSTM head not trained yet (phase 1, pairs only) is marked so."""
+    terms = ", ".join(f"{k}={entry[k]:.4g}" for k in ("pairs_reg", "windows_reg", "windows_ctc") if k in entry)
+    labels = LABEL_NAMES.get(entry.get("labels", ""), "training labels")  # histories before the key: unnamed
+    parts = [f"loss x zero motion on the {labels}: {terms}"] if terms else []
     lstm_untrained = "windows" not in str(entry.get("phase", "windows"))
     for name in ("train", "val"):
         if f"{name}_se3_l2" in entry:
@@ -112,7 +123,7 @@ def epoch_line(entry: dict) -> str:
                 lstm += " (not trained yet: phase 1 trains the direct head)"
             heads = (f"direct {entry[f'{name}_direct_se3_l2']:.5f}, {lstm}" if lstm
                      else f"{entry[f'{name}_se3_l2']:.5f}")
-            parts.append(f"{name} se(3) L2 vs {entry[f'{name}_reference']} {heads} (zero motion "
+            parts.append(f"{name} se(3) L2 vs {reference(entry, name)} {heads} (zero motion "
                          f"{entry[f'{name}_zero_motion_se3_l2']:.5f}, constant velocity "
                          f"{entry[f'{name}_constant_velocity_se3_l2']:.5f})")
     return " | ".join(parts)
@@ -127,7 +138,7 @@ def warn_if_no_skill(entry: dict) -> None:
         if err is None or zero is None or not (math.isfinite(err) and math.isfinite(zero)):
             continue
         where = "validation" if name == "val" else "training"
-        ref = entry.get(f"{name}_reference", "the reference")
+        ref = reference(entry, name)
         cv = entry.get(f"{name}_constant_velocity_se3_l2")
         if err >= zero:
             log.warning("!!! the trained model is NOT better than zero motion on its %s frames: se(3) L2 %.5f vs "

@@ -8,8 +8,10 @@ sequence; the network, its calibration and the MC-dropout settings are those of
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from collections import deque
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +26,27 @@ from ctcvo.learner.dataset import Frames, grey2x_input, invdepth_input, rgb_inpu
 from ctcvo.learner.mcdropout import COV_FLOOR
 
 log = logging.getLogger(__name__)
+
+#: torch intra-op threads of :meth:`OnlineLearner.add`. torch's default (one per core) made the
+#: learner 8x slower on the 2-core VM when the cores were busy (219 against 26 ms a frame,
+#: redkitchen 0:80 at load 9; ``ctcvo online`` 2 against 8 fps, 0:150): its OpenMP workers
+#: wait at each layer's barrier for a core that the teacher or another process holds. Five
+#: pairs a frame at 128x96 give a second thread little to share even on an idle machine.
+ONLINE_THREADS = 1
+
+
+@contextlib.contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """torch's intra-op thread count set to ``n`` within the block, then restored."""
+    before = torch.get_num_threads()
+    if before == n:
+        yield
+        return
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 class OnlineLearner:
@@ -66,28 +89,10 @@ class OnlineLearner:
         G = min(self.cfg.max_gap, len(self.buf) - 1)
         if G < 1:
             return []
-        stack = [None if self.buf[0][c] is None else np.stack([b[c] for b in self.buf]) for c in range(3)]
-        frames = Frames(stack[0], stack[1], stack[2], self.mode)
-        last = len(self.buf) - 1
-        gaps = np.arange(1, G + 1)
-        with torch.no_grad():
-            z = self.model.encode(frames.pairs(torch.as_tensor(last - gaps), torch.full((G,), last)).to(
-                self.model.output_scale.device))
-            out: list[tuple[str, torch.Tensor]] = []
-            if self.uses_lstm:
-                if (k - 1) % self.window == 0:
-                    self.z1 = []
-                self.z1.append(z[0])
-                out.append(("lstm", self.model.sequential_mc(torch.stack(self.z1)[None], self.cfg.samples,
-                                                             self.cfg.drop)[:, 0, -1]))
-                rest = z[1:]
-            else:
-                rest = z
-            if len(rest):
-                d = self.model.direct_mc(rest, self.cfg.samples, self.cfg.drop)  # (K, n, 6)
-                out += [("direct", d[:, n]) for n in range(d.shape[1])]
+        with torch_threads(ONLINE_THREADS), torch.no_grad():
+            out = self._samples(k, G)
         res = []
-        for g, (head, samples) in zip(gaps.tolist(), out):
+        for g, (head, samples) in zip(range(1, G + 1), out):
             s = samples.double().cpu().numpy()
             mean = s.mean(0)
             dev = s - mean
@@ -97,3 +102,26 @@ class OnlineLearner:
                 cov = self.calibration.apply(cov[None], [head], np.array([g]))[0]
             res.append((g, mean, cov, head))
         return res
+
+    def _samples(self, k: int, G: int) -> list[tuple[str, torch.Tensor]]:
+        """(head, K dropout samples (K, 6)) of the edges (k-g, k), g = 1..G: the G pairs in one
+        encoder pass, each head's K samples in one pass of the layers after its dropout
+        (:meth:`CTCNet.direct_mc`, :meth:`CTCNet.sequential_mc`)."""
+        stack = [None if self.buf[0][c] is None else np.stack([b[c] for b in self.buf]) for c in range(3)]
+        frames = Frames(stack[0], stack[1], stack[2], self.mode)
+        last = len(self.buf) - 1
+        gaps = torch.arange(1, G + 1)
+        z = self.model.encode(frames.pairs(last - gaps, torch.full((G,), last)).to(self.model.output_scale.device))
+        out: list[tuple[str, torch.Tensor]] = []
+        rest = z
+        if self.uses_lstm:
+            if (k - 1) % self.window == 0:
+                self.z1 = []
+            self.z1.append(z[0])
+            out.append(("lstm", self.model.sequential_mc(torch.stack(self.z1)[None], self.cfg.samples,
+                                                         self.cfg.drop)[:, 0, -1]))
+            rest = z[1:]
+        if len(rest):
+            d = self.model.direct_mc(rest, self.cfg.samples, self.cfg.drop)  # (K, G', 6)
+            out += [("direct", d[:, n]) for n in range(d.shape[1])]
+        return out

@@ -241,7 +241,8 @@ def _write_sequence(seq: Sequence, out_dir: Path, edges: tuple[EdgeSet, EdgeSet]
         write_tum(out_dir / "groundtruth.tum", gt_traj)
         report.update(trajectory_report(gt_traj, Trajectory(seq.times(), poses)))
         report["baselines"] = baseline_reports(gt_traj)
-        log.info("%s: se(3) L2 %.5f, ATE %.4f m (zero motion %.5f / %.4f m, constant velocity %.5f / %.4f m)",
+        log.info("%s: against ground truth, se(3) L2 %.5f, ATE %.4f m (zero motion %.5f / %.4f m, constant "
+                 "velocity %.5f / %.4f m)",
                  seq.name, report["se3_l2_mean"], report["ate_rmse_m"],
                  *(report["baselines"][b][k] for b in BASELINES for k in ("se3_l2_mean", "ate_rmse_m")))
         cal, err, d2 = calibration(edges, gt)

@@ -70,7 +70,7 @@ from ctcvo.learner.config import (
 )
 from ctcvo.learner.dataset import SequenceData, check_labels, find_teacher_edges, hull_range, load_sequences
 from ctcvo.learner.device import Dist, setup_dist
-from ctcvo.learner.evaluate import Evaluator, epoch_line, warn_if_no_skill
+from ctcvo.learner.evaluate import LABEL_NAMES, Evaluator, epoch_line, warn_if_no_skill
 from ctcvo.learner.model import CTCNet, load_pretrained_vgg
 
 log = logging.getLogger(__name__)
@@ -437,8 +437,8 @@ def _load_data(spec: FitSpec, opened: list[tuple[str, list]], val_opened: list[t
         train_data, val_data = load(opened, spec.frames), load(val_opened, spec.val_frames)
     check_labels(train_data)
     scale = L.target_scale(torch.cat([d.labels for d in train_data], 1), torch.cat([d.mask for d in train_data], 1))
-    log.info("target scale (gap-1 RMS of the training labels): v %s mm, w %s mrad",
-             np.array2string(scale[1, :3].numpy() * 1e3, precision=2),
+    log.info("target scale (gap-1 RMS of the %s it trains on): v %s mm, w %s mrad",
+             LABEL_NAMES[spec.label_source], np.array2string(scale[1, :3].numpy() * 1e3, precision=2),
              np.array2string(scale[1, 3:].numpy() * 1e3, precision=2))
     if dd.device.type == "cuda":  # the cached frames live on the GPU: no host-to-device copy per step
         for d in train_data + val_data:
@@ -563,7 +563,8 @@ def _train_epoch(net: torch.nn.Module, model: CTCNet, opt: torch.optim.Optimizer
         bars.step(phase, step, {"epoch": f"{epoch + 1}/{cfg.epochs}", **({"W": str(W)} if W else {}),
                                 **{k: f"{v:.3g}" for k, v in items.items()}})
     entry: dict[str, Any] = {"epoch": epoch + 1, "steps": last, "phase": "+".join(sums), "window": W,
-                             "lr": lr_at(cfg, last - 1), "train_seconds": round(time.perf_counter() - t_epoch, 2)}
+                             "lr": lr_at(cfg, last - 1), "train_seconds": round(time.perf_counter() - t_epoch, 2),
+                             "labels": spec.label_source}
     for phase, acc in sums.items():  # losses are normalised: 1.0 = zero motion on the labels
         entry.update({f"{phase}_{k}": acc[k] / acc["steps"] for k in ("loss", "ctc", "reg")})
     if dd.main:

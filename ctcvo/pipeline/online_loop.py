@@ -1,6 +1,7 @@
 """The frame loop of ``ctcvo online``: a helper thread takes each frame from the source and
 prepares it (:class:`Prefetcher`); this thread estimates its edges, adds them to the graph
-and writes its pose (:class:`Estimator`)."""
+and writes its pose (:class:`Estimator`), while a second helper thread gives the learner's
+edges of the same frame."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TextIO
 
@@ -199,17 +201,21 @@ class Timings:
     to_pose: list[float] = field(default_factory=list)
     """The same until the frame's pose is written."""
     cpu_to_pose: list[float] = field(default_factory=list)
-    """The CPU time of that work (both threads' shares): what a core each gives."""
+    """The CPU time of that work (every thread's share: prepare, teacher, learner): what a core each gives."""
 
 
 class Estimator:
     """Each prepared frame's edges (teacher and learner) into the ISAM2 graph, and its
-    current pose appended to the open trajectory file ``fh``."""
+    current pose appended to the open trajectory file ``fh``. The learner's edges of a frame
+    are estimated in a helper thread while this one estimates the teacher's (torch and
+    Open3D release the GIL; the learner sees the same frames in the same order, so its
+    edges are those of a serial run); :meth:`close` ends that thread."""
 
     def __init__(self, teacher: OnlineTeacher, learner: OnlineLearner | None, graph: OnlineGraph,
                  cfg: OnlineConfig, fh: TextIO) -> None:
         self.teacher, self.learner, self.graph, self.cfg, self.fh = teacher, learner, graph, cfg, fh
         self.omp = ThreadpoolController()
+        self.pool = (ThreadPoolExecutor(1, thread_name_prefix="vo-online-learner") if learner is not None else None)
         self.t_edges: list = []
         self.l_edges: list[Edge] = []
         self.gts: list = []
@@ -224,14 +230,27 @@ class Estimator:
         self.t_edges += edges
         return edges
 
+    def _learner(self, inputs: tuple) -> tuple[list, float]:
+        """The learner's edges of a frame and the CPU time they took (in the helper thread)."""
+        c0 = time.thread_time()
+        return self.learner.add(inputs), time.thread_time() - c0
+
+    def close(self) -> None:
+        """End the learner's helper thread (after the frame it holds)."""
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+
     def step(self, item: tuple, posed: threading.Semaphore) -> None:
         """Frame ``item`` (from :meth:`Prefetcher.get`): edges, graph, pose, timings."""
         t_arr, frame, feats, inputs, t_prep, c_prep = item
         t_take, c_take = time.perf_counter(), time.thread_time()
         teacher, after_gap1 = self.teacher, self.cfg.pose_after_gap1
+        learned = self.pool.submit(self._learner, inputs) if self.pool is not None else None
         new = teacher_edges(self._teacher(teacher.add_gap1 if after_gap1 else teacher.add, frame, feats))
         if self.learner is not None:
-            for g, mean, cov, head in self.learner.add(inputs):
+            estimates, c_learn = learned.result() if learned is not None else self._learner(inputs)
+            c_prep += c_learn
+            for g, mean, cov, head in estimates:
                 e = Edge(teacher.ids[-1 - g], teacher.ids[-1], geo.se3_exp(mean), cov, {"source": "learner", "head": head})
                 self.l_edges.append(e)
                 new.append(e)
@@ -306,6 +325,7 @@ def drive(source: FrameSource, est: Estimator, cfg: OnlineConfig, max_frames: in
                 bar.close()
             pre.thread.join(timeout=5.0)
             pre.drain()
+            est.close()
     return interrupted, time.perf_counter() - t_start, source.skipped + pre.replaced
 
 

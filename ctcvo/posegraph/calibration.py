@@ -203,7 +203,7 @@ def fit_gap_scales(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial:
         s_e = np.array([scale.get(int(g), scale[min(gaps, key=lambda x: abs(x - g))]) if g else 1.0 for g in gap])
         covs = a.cov * s_e[:, None, None]
         scaled = [dataclasses.replace(e, cov=c) for e, c in zip(edges, covs)]
-        poses = solve(frame_ids, scaled, poses, solve_cfg).poses
+        poses = solve(frame_ids, scaled, poses, solve_cfg, label=f"per-gap scales, round {it + 1}").poses
         r2 = pe.edge_residuals(poses, a.pos, geo.orthonormalize(a.T), np.linalg.inv(covs)) ** 2
         rho = np.zeros(len(edges))
         for lo in range(0, len(frame_ids) - 1, BLOCK_FRAMES):

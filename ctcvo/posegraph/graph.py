@@ -101,8 +101,10 @@ class _Problem:
     covariance scales (first solve, calibration, outlier pass)."""
 
     def __init__(self, frame_ids: NDArray[np.int64], a: EdgeArrays, initial: NDArray[np.float64],
-                 cfg: PoseGraphConfig) -> None:
+                 cfg: PoseGraphConfig, label: str = "") -> None:
         self.frame_ids, self.a, self.cfg = frame_ids, a, cfg
+        self.tag = f"{label}: " if label else ""
+        """Prefix of this graph's log lines (which of a run's graphs they are about)."""
         self.T = geo.orthonormalize(a.T)
         self.measured = pose3s(self.T)  # the one per-edge conversion
         self.prior = prior_factor(frame_ids[0], initial[0])
@@ -216,7 +218,7 @@ def _calibrate(prob: _Problem, st: _State, names: list[str], fixed_sources: Sequ
             break
         st.src_scale = new
         calib["iterations"] += 1
-        log.info("covariance scales %s; re-solving", ", ".join(f"{n} {v:.3g}" for n, v in zip(names, new)))
+        log.info("%scovariance scales %s; re-solving", prob.tag, ", ".join(f"{n} {v:.3g}" for n, v in zip(names, new)))
         st.resolve(prob)
     calib["sources"] = {n: {**v, "scale": float(st.src_scale[k])} for k, (n, v) in enumerate(calib["sources"].items())}
     return calib
@@ -231,13 +233,13 @@ def _reject_outliers(prob: _Problem, st: _State, first_res: NDArray[np.float64])
     flagged = first_res > prob.cfg.residual_threshold
     if flagged.any():
         st.drop, st.weak = outlier_masks(len(prob.frame_ids), prob.a.pos, flagged, np.argsort(first_res))
-        log.info("re-solving without %d outlier edge(s)", int(flagged.sum()))
+        log.info("%sre-solving without %d outlier edge(s)", prob.tag, int(flagged.sum()))
         st.resolve(prob)  # warm start from the first solution (the prior stays on the first frame)
     return flagged
 
 
 def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: NDArray[np.float64] | None = None,
-          cfg: PoseGraphConfig = DEFAULT, fixed_sources: Sequence[str] = ()) -> SolveResult:
+          cfg: PoseGraphConfig = DEFAULT, fixed_sources: Sequence[str] = (), label: str = "") -> SolveResult:
     """Optimise the pose graph.
 
     Args:
@@ -247,6 +249,8 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: NDArray[
         cfg: solver, kernel and outlier settings.
         fixed_sources: sources whose covariances were already calibrated on validation
             data (or deliberately set): they keep scale 1 in the per-source calibration.
+        label: which graph this is, at the start of its log lines (a run that solves two
+            graphs, such as ``posegraph optimize``'s fused and teacher-only ones).
 
     Steps: validate; first (robust) solve; with ``cfg.calibrate``, estimate one covariance
     scale per source from the whitened residuals and re-solve (warm-started) until the
@@ -257,7 +261,7 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: NDArray[
     """
     t0, c0 = time.perf_counter(), time.process_time()
     frame_ids, edges, a, initial = _prepare(frame_ids, edges, initial)
-    prob = _Problem(frame_ids, a, initial, cfg)
+    prob = _Problem(frame_ids, a, initial, cfg, label)
     names = list(dict.fromkeys(a.source))
     index = {n: k for k, n in enumerate(names)}
     none = np.zeros(len(edges), bool)
@@ -284,8 +288,8 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: NDArray[
         first_residuals=first_res, cpu_s=time.process_time() - c0,
         source_scales={n: float(v) for n, v in zip(names, st.src_scale)}, calibration=calib,
     )
-    log.info("%s: %d poses, %d edges (%d outliers), error %.4g -> %.4g in %.2f s", cfg.solver, len(frame_ids),
-             len(edges), len(outliers), res.initial_error, res.final_error, res.time_s)
+    log.info("%s%s: %d poses, %d edges (%d outliers), error %.4g -> %.4g in %.2f s", prob.tag, cfg.solver,
+             len(frame_ids), len(edges), len(outliers), res.initial_error, res.final_error, res.time_s)
     return res
 
 

@@ -214,7 +214,7 @@ class OnlineGraph:
         t0 = time.perf_counter()
         try:
             res = solve(np.array(self.ids, dtype=np.int64), self.edges, self.isam2_poses,
-                        dataclasses.replace(self.cfg, solver="lm"))
+                        dataclasses.replace(self.cfg, solver="lm"), label="final batch solve")
         except GraphError as exc:  # e.g. a frame no edge reaches: keep the ISAM2 estimate
             log.warning("final batch solve skipped (%s); the ISAM2 estimate is the final trajectory", exc)
             return self.isam2_poses

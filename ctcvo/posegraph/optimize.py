@@ -271,11 +271,12 @@ def _groundtruth(srcs: dict[str, Source], frames: Frames, scene: str | None, spl
 
 
 def _solve_graph(srcs: dict[str, Source], used: list[str], frames: Frames, edges: list, guide, cfg: PoseGraphConfig,
-                 fixed: list[str]) -> _Graph:
-    """Solve the graph of ``edges`` (sources ``used``), bridged where it is disconnected."""
+                 fixed: list[str], label: str) -> _Graph:
+    """Solve the graph of ``edges`` (sources ``used``), bridged where it is disconnected;
+    ``label`` names it in the solver's log lines."""
     bridges = pe.bridge_edges(frames.ids, edges, guide, pe.bridge_cov(frames.ids, edges))
     initial, init_how = fusion.initial_poses(srcs, used, frames, edges + bridges)
-    result = solve(frames.ids, edges + bridges, initial, cfg, fixed_sources=fixed + ["bridge"])
+    result = solve(frames.ids, edges + bridges, initial, cfg, fixed_sources=fixed + ["bridge"], label=label)
     return _Graph(result, edges, bridges, init_how)
 
 
@@ -303,14 +304,15 @@ def optimize_sequence(srcs: dict[str, Source], out: Path, cfg: PoseGraphConfig =
     gt, gt_from = _groundtruth(srcs, frames, scene, split, seq_name)
 
     guide = fusion.guide_poses(srcs, used, frames)
-    fused = _solve_graph(srcs, used, frames, edges, guide, cfg, fixed)
+    fused = _solve_graph(srcs, used, frames, edges, guide, cfg, fixed, rep.ROW_LABELS["fused"])
     if fused.bridges:
         log.warning("the graph's edges leave it disconnected: %d bridge edge(s) from %s (%s)", len(fused.bridges),
                     "the chained trajectory" if guide is not None else "zero motion",
                     ", ".join(f"{b.i}->{b.j}" for b in fused.bridges[:5]) + (" ..." if len(fused.bridges) > 5 else ""))
     teacher_graph = None  # the control; with the teacher's edges alone in the graph, the fused row is it
     if "teacher" in srcs and srcs["teacher"].edges and used != ["teacher"]:
-        teacher_graph = _solve_graph(srcs, ["teacher"], frames, srcs["teacher"].edges, guide, cfg, fixed)
+        teacher_graph = _solve_graph(srcs, ["teacher"], frames, srcs["teacher"].edges, guide, cfg, fixed,
+                                     rep.ROW_LABELS["teacher_graph"])
     rows, blocks = _rows(srcs, used, frames, gt, cfg, fused, teacher_graph, raw_teacher)
     report = {
         "stage": "posegraph", "scene": scene, "name": seq_name, "git": git_revision(), "config": cfg.to_dict(),
