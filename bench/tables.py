@@ -72,20 +72,43 @@ def missing(command: str) -> list[str]:
 # ----------------------------------------------------------------------------------
 # the tables
 # ----------------------------------------------------------------------------------
+TEACHER_HEAD = ["scene", "frames", "method", "fps", "fps / Open3D", "gap-1 fails / lost frames", "gap-1 RPE mm",
+                "gap-1 RPE deg", "1 s RPE mm", "1 s RPE deg", "ATE mm", "se(3) L2"]
+
+
+def spread(x: dict, key: str, show: Callable[[float | None], str]) -> str:
+    """``x[key]`` shown by ``show``; for a row of several runs (ORB-SLAM3) the median with
+    its min-max over the runs."""
+    lo_hi = x.get("spread", {}).get(key)
+    if lo_hi is None or x.get("runs", 1) < 2:
+        return show(x.get(key))
+    return f"{show(x.get(key))} ({show(lo_hi[0])}-{show(lo_hi[1])})"
+
+
+def teacher_cells(x: dict, frames: str) -> list[str]:
+    """One row of the teacher table: a method on one scene (bench.teacher's record rows)."""
+    fails = (f"lost {'/'.join(map(str, x['lost_frames_per_run']))}" if "lost_frames_per_run" in x
+             else str(x["gap1_failures"]))
+    runs = f", {x['runs']} runs" if "runs" in x else ""
+    return [scene_label(x["scene"]) + frames, str(x["frames"]), x["method"] + runs, spread(x, "fps", num),
+            f"{num(x.get('fps_vs_open3d'))}x", fails, spread(x, "rpe_trans_rmse_m", lambda v: mm(v, 2)),
+            spread(x, "rpe_rot_rmse_deg", lambda v: num(v, 3)), spread(x, "rpe_1s_trans_m", mm),
+            spread(x, "rpe_1s_rot_deg", lambda v: num(v, 2)), spread(x, "ate_rmse_m", mm),
+            spread(x, "se3_l2_mean", lambda v: num(v, 5))]
+
+
+def teacher_records(records: dict[str, dict]) -> dict[str, dict]:
+    """The records of bench.teacher (``teacher-*`` with rows of methods)."""
+    return {n: r for n, r in select(records, "teacher").items()
+            if r["figures"].get("rows") and "method" in r["figures"]["rows"][0]}
+
+
 def teacher_table(records: dict[str, dict]) -> list[str]:
-    recs = select(records, "teacher")
+    recs = teacher_records(records)
     if not recs:
         return missing("python -m bench.teacher")
-    rows = []
-    for r in recs.values():
-        for x in r["figures"]["rows"]:
-            rows.append([scene_label(x["scene"]) + frames_label(r["config"]), str(x["frames"]), x["method"],
-                         num(x["fps"]), f"{num(x.get('fps_vs_open3d'))}x", str(x["gap1_failures"]),
-                         mm(x["rpe_trans_rmse_m"], 2), num(x["rpe_rot_rmse_deg"], 3), mm(x["ate_rmse_m"]),
-                         num(x["se3_l2_mean"], 5)])
-    head = ["scene", "frames", "method", "fps", "fps / Open3D", "gap-1 fails", "gap-1 RPE mm", "gap-1 RPE deg",
-            "ATE mm", "se(3) L2"]
-    return markdown(head, rows) + ["", provenance(recs)]
+    rows = [teacher_cells(x, frames_label(r["config"])) for r in recs.values() for x in r["figures"]["rows"]]
+    return markdown(TEACHER_HEAD, rows) + ["", provenance(recs)]
 
 
 def online_table(records: dict[str, dict]) -> list[str]:
@@ -256,7 +279,7 @@ def summary_table(records: dict[str, dict]) -> list[str]:
 
 def results_table(records: dict[str, dict]) -> list[str]:
     """README.md's table of current results: the teacher beside its peers on the real recordings."""
-    recs = {n: r for n, r in select(records, "teacher").items()
+    recs = {n: r for n, r in teacher_records(records).items()
             if not r["figures"]["rows"][0]["scene"].startswith("synthetic/")}
     if not recs:
         return missing("python -m bench.teacher")
@@ -264,12 +287,13 @@ def results_table(records: dict[str, dict]) -> list[str]:
     for r in recs.values():
         by = {x["method"].split()[0]: x for x in r["figures"]["rows"]}
         cells = [f"{mm(x['rpe_trans_rmse_m'], 2)} / {num(x['rpe_rot_rmse_deg'], 3)} / {mm(x['ate_rmse_m'])}"
-                 if x else "-" for x in (by.get("this"), by.get("Open3D"), by.get("cv2.Odometry"))]
+                 if x else "-" for x in (by.get("this"), by.get("teacher"), by.get("ORB-SLAM3"), by.get("Open3D"),
+                                         by.get("cv2.Odometry"))]
         me = by["this"]
         rows.append([scene_label(me["scene"]) + frames_label(r["config"]), *cells,
                      f"{num(me['fps'])} ({num(me.get('fps_vs_open3d'))}x)"])
-    head = ["recording, frames", "teacher: gap-1 mm / deg / ATE mm", "Open3D hybrid", "OpenCV RGB_DEPTH",
-            "teacher fps (x Open3D)"]
+    head = ["recording, frames", "teacher: gap-1 mm / deg / ATE mm", "teacher pose graph", "ORB-SLAM3 (median of runs)",
+            "Open3D hybrid", "OpenCV RGB_DEPTH", "teacher fps (x Open3D)"]
     return markdown(head, rows) + ["", "Records: " + ", ".join(f"`{n}`" for n in recs) + " (bench/README.md)."]
 
 
