@@ -115,7 +115,7 @@ def _teacher_rows(seq) -> list[dict]:
     cv2.setNumThreads(os.cpu_count() or 1)
     pos = {int(f): p for p, f in enumerate(seq.ids())}
     gap1 = [e for e in run.edges if pos[e.j] - pos[e.i] == 1]
-    paths = Counter(e.info.get("path", "none") for e in gap1)
+    paths = Counter(e.diag.path for e in gap1)
     fails = sum(1 for e in gap1 if not e.ok)
     t0 = time.perf_counter()
     graph = solve(seq.ids(), [Edge(e.i, e.j, e.T_i_j, e.cov) for e in run.edges if e.ok], run.poses).poses
