@@ -234,6 +234,27 @@ def noise_table(records: dict[str, dict]) -> list[str]:
     return markdown(head, rows) + ["", provenance(recs)]
 
 
+def orbslam3_covariance_table(records: dict[str, dict]) -> list[str]:
+    r = records.get("orbslam3-covariance")
+    if not r:
+        return missing("python -m bench.orbslam3_covariance --vocabulary VOC.txt")
+    f = r["figures"]
+    by = f["nees_by_gap"]
+    def cell(x: dict) -> str:
+        return f"{num(x['nees_over_6'], 2)} / {num(x['median_nees_over_chi2_median'], 2)} / {num(x['coverage_1sigma'], 2)}"
+
+    rows = [[g, str(x["edges"])] + [cell(by[m][g]) for m in ("placeholder", "fit", "fit_with_points")]
+            for g, x in by["fit"].items()]
+    fit, fp, nll = f["fit"], f["fit_with_points"], f["nll_per_edge"]
+    text = (f"Fit: sigma_trans(1) {mm(fit['sigma_trans_gap1_m'], 2)} mm, sigma_rot(1) {num(fit['sigma_rot_gap1_deg'], 3)} deg, "
+            f"gap exponent {num(fit['gap_exponent'], 2)}; with the points factor {mm(fp['sigma_trans_gap1_m'], 2)} mm, "
+            f"{num(fp['sigma_rot_gap1_deg'], 3)} deg, {num(fp['gap_exponent'], 2)}. NLL per edge: placeholder "
+            f"{num(nll['placeholder'], 2)}, fit {num(nll['fit'], 2)}, fit with points {num(nll['fit_with_points'], 2)}.")
+    head = ["gap", "edges", "placeholder: NEES/6 / median NEES/chi2 / 1-sigma coverage", "fit (no points factor)",
+            "fit with points factor"]
+    return markdown(head, rows) + ["", text, "", provenance({"orbslam3-covariance": r})]
+
+
 def demo_table(records: dict[str, dict]) -> list[str]:
     r = records.get("demo")
     if not r:
@@ -301,7 +322,7 @@ TABLES: dict[str, Callable[[dict[str, dict]], list[str]]] = {
     "teacher": teacher_table, "online": online_table, "posegraph": posegraph_table, "keyframes": keyframes_table,
     "learner": learner_table,
     "render": render_table, "synthetic-realism": realism_table, "ablation": ablation_table,
-    "teacher-noise": noise_table, "demo": demo_table, "summary": summary_table,
+    "teacher-noise": noise_table, "orbslam3-covariance": orbslam3_covariance_table, "demo": demo_table, "summary": summary_table,
     "results": results_table,
 }
 
