@@ -15,7 +15,8 @@ groundtruth`` fits its per-gap scales (a median, not a mean: the errors are heav
   divided out;
 * the tracked-map-points factor ``clip(sqrt(POINTS_REF / points), *POINTS_SCALE)`` is tested
   by refitting the model with it and comparing the Gaussian negative log-likelihood per edge
-  (lower is better) and the NEES/6 of the edges with the fewest and the most points.
+  (lower is better), on the ranges fitted and on each range left out of the fit (fitted on
+  the other), and the NEES/6 of the edges with the fewest and the most points.
 
 Reported per gap before (the placeholder model) and after (the fit): NEES/6 (the mean, as
 every report.json gives it), median NEES / median chi2_6 (1 when the median is consistent)
@@ -124,6 +125,19 @@ def evaluate(e: dict[str, np.ndarray]) -> dict:
                                           "points_thirds": [float(np.quantile(e["points"], q)) for q in (1 / 3, 2 / 3)]}}
 
 
+def held_out(e: dict[str, np.ndarray]) -> dict[str, dict]:
+    """Leave one range out: both models fitted on the other ranges, their NLL per edge and
+    NEES/6 on the range left out (does the points factor carry over to another recording?)."""
+    out = {}
+    for name in np.unique(e["range"]):
+        tr, te = ({k: v[m] for k, v in e.items()} for m in (e["range"] != name, e["range"] == name))
+        plain, pts = fit(tr, False), fit(tr, True)
+        out[str(name)] = {"nll_fit": nll(te, plain, False), "nll_fit_with_points": nll(te, pts, True),
+                          "nees_over_6_fit": float(np.mean(nees_of(te, plain, False)) / 6),
+                          "nees_over_6_fit_with_points": float(np.mean(nees_of(te, pts, True)) / 6)}
+    return out
+
+
 def collect(specs: list[str], vocabulary: Path, runs: int) -> tuple[dict, dict]:
     """Pooled edge errors of ``runs`` SLAM runs of every validation range, and a summary per run."""
     pooled: list[dict] = []
@@ -154,7 +168,7 @@ def main() -> None:
         ap.error(f"--vocabulary {args.vocabulary}: no such file")
     rec = record.from_args(args, placeholder=PLACEHOLDER)
     e, summary = collect(args.scenes, args.vocabulary, args.runs)
-    figures = {"runs": summary, **evaluate(e)}
+    figures = {"runs": summary, **evaluate(e), "held_out": held_out(e) if len(summary) > 1 else {}}
     for name in summary:  # the pooled fits' NEES on each range alone
         sub = {k: v[e["range"] == name] for k, v in e.items()}
         figures.setdefault("nees_by_range", {})[name] = {
