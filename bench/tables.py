@@ -273,7 +273,8 @@ def summary_table(records: dict[str, dict]) -> list[str]:
     rows = []
     t = records.get("teacher-redkitchen-test")
     if t:
-        me, o3d = t["figures"]["rows"][0], t["figures"]["rows"][1]
+        by = {x["method"].split()[0]: x for x in t["figures"]["rows"]}
+        me, o3d = by["this"], by["Open3D"]
         rows.append(["`ctcvo teacher generate`", "RGB-D frames -> relative-pose labels of gaps 1-5 with 6x6 covariances",
                      f"redkitchen 450:600: gap-1 error {mm(me['rpe_trans_rmse_m'], 2)} mm / "
                      f"{num(me['rpe_rot_rmse_deg'], 3)} deg (Open3D {mm(o3d['rpe_trans_rmse_m'], 2)} / "
