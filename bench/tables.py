@@ -65,11 +65,6 @@ def select(records: dict[str, dict], prefix: str) -> dict[str, dict]:
     return {n: r for n, r in records.items() if n == prefix or n.startswith(prefix + "-")}
 
 
-def teacher_records(records: dict[str, dict]) -> dict[str, dict]:
-    """bench.teacher's records (``teacher-*`` with rows; not teacher-covariance's or teacher-noise's)."""
-    return {n: r for n, r in select(records, "teacher").items() if "rows" in r["figures"]}
-
-
 def missing(command: str) -> list[str]:
     return [f"No record yet: `{command}`."]
 
@@ -77,20 +72,43 @@ def missing(command: str) -> list[str]:
 # ----------------------------------------------------------------------------------
 # the tables
 # ----------------------------------------------------------------------------------
+TEACHER_HEAD = ["scene", "frames", "method", "fps", "fps / Open3D", "gap-1 fails / lost frames", "gap-1 RPE mm",
+                "gap-1 RPE deg", "1 s RPE mm", "1 s RPE deg", "ATE mm", "se(3) L2"]
+
+
+def spread(x: dict, key: str, show: Callable[[float | None], str]) -> str:
+    """``x[key]`` shown by ``show``; for a row of several runs (ORB-SLAM3) the median with
+    its min-max over the runs."""
+    lo_hi = x.get("spread", {}).get(key)
+    if lo_hi is None or x.get("runs", 1) < 2:
+        return show(x.get(key))
+    return f"{show(x.get(key))} ({show(lo_hi[0])}-{show(lo_hi[1])})"
+
+
+def teacher_cells(x: dict, frames: str) -> list[str]:
+    """One row of the teacher table: a method on one scene (bench.teacher's record rows)."""
+    fails = (f"lost {'/'.join(map(str, x['lost_frames_per_run']))}" if "lost_frames_per_run" in x
+             else str(x["gap1_failures"]))
+    runs = f", {x['runs']} runs" if "runs" in x else ""
+    return [scene_label(x["scene"]) + frames, str(x["frames"]), x["method"] + runs, spread(x, "fps", num),
+            f"{num(x.get('fps_vs_open3d'))}x", fails, spread(x, "rpe_trans_rmse_m", lambda v: mm(v, 2)),
+            spread(x, "rpe_rot_rmse_deg", lambda v: num(v, 3)), spread(x, "rpe_1s_trans_m", mm),
+            spread(x, "rpe_1s_rot_deg", lambda v: num(v, 2)), spread(x, "ate_rmse_m", mm),
+            spread(x, "se3_l2_mean", lambda v: num(v, 5))]
+
+
+def teacher_records(records: dict[str, dict]) -> dict[str, dict]:
+    """The records of bench.teacher (``teacher-*`` with rows of methods)."""
+    return {n: r for n, r in select(records, "teacher").items()
+            if r["figures"].get("rows") and "method" in r["figures"]["rows"][0]}
+
+
 def teacher_table(records: dict[str, dict]) -> list[str]:
     recs = teacher_records(records)
     if not recs:
         return missing("python -m bench.teacher")
-    rows = []
-    for r in recs.values():
-        for x in r["figures"]["rows"]:
-            rows.append([scene_label(x["scene"]) + frames_label(r["config"]), str(x["frames"]), x["method"],
-                         num(x["fps"]), f"{num(x.get('fps_vs_open3d'))}x", str(x["gap1_failures"]),
-                         mm(x["rpe_trans_rmse_m"], 2), num(x["rpe_rot_rmse_deg"], 3), mm(x["ate_rmse_m"]),
-                         num(x["se3_l2_mean"], 5)])
-    head = ["scene", "frames", "method", "fps", "fps / Open3D", "gap-1 fails", "gap-1 RPE mm", "gap-1 RPE deg",
-            "ATE mm", "se(3) L2"]
-    return markdown(head, rows) + ["", provenance(recs)]
+    rows = [teacher_cells(x, frames_label(r["config"])) for r in recs.values() for x in r["figures"]["rows"]]
+    return markdown(TEACHER_HEAD, rows) + ["", provenance(recs)]
 
 
 def learner_cell(x: dict) -> str:
@@ -258,6 +276,27 @@ def noise_table(records: dict[str, dict]) -> list[str]:
     return markdown(head, rows) + ["", provenance(recs)]
 
 
+def orbslam3_covariance_table(records: dict[str, dict]) -> list[str]:
+    r = records.get("orbslam3-covariance")
+    if not r:
+        return missing("python -m bench.orbslam3_covariance --vocabulary VOC.txt")
+    f = r["figures"]
+    by = f["nees_by_gap"]
+    def cell(x: dict) -> str:
+        return f"{num(x['nees_over_6'], 2)} / {num(x['median_nees_over_chi2_median'], 2)} / {num(x['coverage_1sigma'], 2)}"
+
+    rows = [[g, str(x["edges"])] + [cell(by[m][g]) for m in ("placeholder", "fit", "fit_with_points")]
+            for g, x in by["fit"].items()]
+    fit, fp, nll = f["fit"], f["fit_with_points"], f["nll_per_edge"]
+    text = (f"Fit: sigma_trans(1) {mm(fit['sigma_trans_gap1_m'], 2)} mm, sigma_rot(1) {num(fit['sigma_rot_gap1_deg'], 3)} deg, "
+            f"gap exponent {num(fit['gap_exponent'], 2)}; with the points factor {mm(fp['sigma_trans_gap1_m'], 2)} mm, "
+            f"{num(fp['sigma_rot_gap1_deg'], 3)} deg, {num(fp['gap_exponent'], 2)}. NLL per edge: placeholder "
+            f"{num(nll['placeholder'], 2)}, fit {num(nll['fit'], 2)}, fit with points {num(nll['fit_with_points'], 2)}.")
+    head = ["gap", "edges", "placeholder: NEES/6 / median NEES/chi2 / 1-sigma coverage", "fit (no points factor)",
+            "fit with points factor"]
+    return markdown(head, rows) + ["", text, "", provenance({"orbslam3-covariance": r})]
+
+
 def demo_table(records: dict[str, dict], dated: bool = True) -> list[str]:
     """The demo's rows and time; ``dated``: with the record's revision, date and load (README.md's
     copy names the record only: a first-contact document has no run history)."""
@@ -279,7 +318,8 @@ def summary_table(records: dict[str, dict]) -> list[str]:
     rows = []
     t = records.get("teacher-redkitchen-test")
     if t:
-        me, o3d = t["figures"]["rows"][0], t["figures"]["rows"][1]
+        by = {x["method"].split()[0]: x for x in t["figures"]["rows"]}
+        me, o3d = by["this"], by["Open3D"]
         rows.append(["`ctcvo teacher generate`", "RGB-D frames -> relative-pose labels of gaps 1-5 with 6x6 covariances",
                      f"redkitchen 450:600: gap-1 error {mm(me['rpe_trans_rmse_m'], 2)} mm / "
                      f"{num(me['rpe_rot_rmse_deg'], 3)} deg (Open3D {mm(o3d['rpe_trans_rmse_m'], 2)} / "
@@ -314,12 +354,13 @@ def results_table(records: dict[str, dict]) -> list[str]:
     for r in recs.values():
         by = {x["method"].split()[0]: x for x in r["figures"]["rows"]}
         cells = [f"{mm(x['rpe_trans_rmse_m'], 2)} / {num(x['rpe_rot_rmse_deg'], 3)} / {mm(x['ate_rmse_m'])}"
-                 if x else "-" for x in (by.get("this"), by.get("Open3D"), by.get("cv2.Odometry"))]
+                 if x else "-" for x in (by.get("this"), by.get("teacher"), by.get("ORB-SLAM3"), by.get("Open3D"),
+                                         by.get("cv2.Odometry"))]
         me = by["this"]
         rows.append([scene_label(me["scene"]) + frames_label(r["config"]), *cells,
                      f"{num(me['fps'])} ({num(me.get('fps_vs_open3d'))}x)"])
-    head = ["recording, frames", "teacher: gap-1 mm / deg / ATE mm", "Open3D hybrid", "OpenCV RGB_DEPTH",
-            "teacher fps (x Open3D)"]
+    head = ["recording, frames", "teacher: gap-1 mm / deg / ATE mm", "teacher pose graph", "ORB-SLAM3 (median of runs)",
+            "Open3D hybrid", "OpenCV RGB_DEPTH", "teacher fps (x Open3D)"]
     return markdown(head, rows) + ["", "Records: " + ", ".join(f"`{n}`" for n in recs) + " (bench/README.md)."]
 
 
@@ -327,8 +368,8 @@ TABLES: dict[str, Callable[[dict[str, dict]], list[str]]] = {
     "teacher": teacher_table, "online": online_table, "posegraph": posegraph_table, "keyframes": keyframes_table,
     "learner": learner_table, "teacher-covariance": covariance_table,
     "render": render_table, "synthetic-realism": realism_table, "ablation": ablation_table,
-    "teacher-noise": noise_table, "demo": demo_table, "demo-readme": lambda r: demo_table(r, dated=False),
-    "summary": summary_table,
+    "teacher-noise": noise_table, "orbslam3-covariance": orbslam3_covariance_table, "demo": demo_table,
+    "demo-readme": lambda r: demo_table(r, dated=False), "summary": summary_table,
     "results": results_table,
 }
 

@@ -1,17 +1,20 @@
 """Teacher benchmark: this teacher vs Open3D's hybrid RGB-D odometry vs OpenCV's
-``cv2.Odometry`` (RGB_DEPTH), side by side on the same frames in one run.
+``cv2.Odometry`` (RGB_DEPTH) vs ORB-SLAM3 RGB-D, side by side on the same frames in one run.
 
 For each scene: frames per second end to end (decode included; the teacher also
-estimates its gap 2..K edges, the peers only gap 1) and gap-1 RPE (trans, rot), ATE and
-the paper's se(3) L2 of the chained gap-1 trajectory, all metrics through evo; for the
-teacher also its constant-velocity bridges, failed gap-1 edges and the paths that made its
-gap-1 edges (see teacher/odometry.py's fallback chain), and its ratios to Open3D (gap-1
-error, fps).
+estimates its gap 2..K edges, the odometry peers only gap 1), ATE (SE(3)-aligned), RPE at
+1 frame and at 1 s (translation, rotation) and the paper's se(3) L2, all through evo, of the
+teacher's chained gap-1 trajectory, of the pose graph of all its edges (``teacher pose
+graph``: what ``posegraph optimize`` makes of the teacher's edges.g2o) and of each peer; for
+the teacher also its constant-velocity bridges, failed gap-1 edges and the paths that made
+its gap-1 edges (teacher/odometry.py's fallback chain), and every row's ratios to Open3D.
+With ``--orbslam3-vocabulary`` ORB-SLAM3 runs ``--orbslam3-runs`` times per scene: median and
+min-max of each figure, and the frames it lost (bench/orbslam3_peer.py).
 
     .venv/bin/python -m bench.teacher          # every synthetic preset, stress scenes included,
                                                # redkitchen and TUM fr1/xyz images; teacher + Open3D
     .venv/bin/python -m bench.teacher --scenes ../shared/data/7scenes/redkitchen/seq-sample --frames 450:600 \
-        --peers open3d cv2 --name teacher-redkitchen-test
+        --peers open3d cv2 --orbslam3-vocabulary VOC.txt --name teacher-redkitchen-test
     .venv/bin/python -m bench.teacher --scenes synthetic/stress-far --synthetic-frames 60   # a 60-frame walk
 
 The record is ``bench/results/<name>.json`` (bench/record.py), rewritten after every scene so
@@ -36,12 +39,13 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from bench import record  # noqa: E402
+from bench import record, tables  # noqa: E402
+from bench.orbslam3_peer import metrics, one_second, orbslam3_row  # noqa: E402
 from ctcvo.data import geometry as geo  # noqa: E402
 from ctcvo.data.chain import chain_steps  # noqa: E402
-from ctcvo.data.formats import Trajectory  # noqa: E402
-from ctcvo.data.metrics import trajectory_report  # noqa: E402
+from ctcvo.data.formats import Edge, Trajectory  # noqa: E402
 from ctcvo.data.scenes import open_scene  # noqa: E402
+from ctcvo.posegraph.graph import solve  # noqa: E402
 from ctcvo.teacher.config import TeacherConfig  # noqa: E402
 from ctcvo.teacher.generate import run_sequence  # noqa: E402
 
@@ -100,7 +104,30 @@ def run_opencv(seq) -> tuple[np.ndarray, float, int]:
     return chain_steps(rel), time.perf_counter() - t0, fails
 
 
-def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frames: int | None = None) -> list[dict]:
+def _teacher_rows(seq) -> list[dict]:
+    """The teacher's chained gap-1 trajectory, and the pose graph of all its good edges
+    (:func:`ctcvo.posegraph.graph.solve`, the default config, as ``posegraph optimize`` solves
+    its edges.g2o), its time added to the teacher's."""
+    # The teacher runs as `teacher generate` runs it (one OpenCV thread per process,
+    # data.sequence's default: it uses the cores through its own processes and threads).
+    cv2.setNumThreads(1)
+    run = run_sequence(seq, TeacherConfig(), progress=False)
+    cv2.setNumThreads(os.cpu_count() or 1)
+    pos = {int(f): p for p, f in enumerate(seq.ids())}
+    gap1 = [e for e in run.edges if pos[e.j] - pos[e.i] == 1]
+    paths = Counter(e.diag.path for e in gap1)
+    fails = sum(1 for e in gap1 if not e.ok)
+    t0 = time.perf_counter()
+    graph = solve(seq.ids(), [Edge(e.i, e.j, e.T_i_j, e.cov) for e in run.edges if e.ok], run.poses).poses
+    solve_s = time.perf_counter() - t0
+    return [{"method": "this teacher (gaps 1-5)", "poses": run.poses, "seconds": run.seconds, "fails": fails,
+             "cv_bridges": sum(1 for b in run.bridges if b["method"] == "constant velocity"),
+             "gap1_paths": dict(sorted(paths.items()))},
+            {"method": "teacher pose graph (gaps 1-5)", "poses": graph, "seconds": run.seconds + solve_s,
+             "fails": fails, "solve_s": solve_s}]
+
+
+def _open_sequence(spec: str, frames: str | None, synthetic_frames: int | None):
     if synthetic_frames and spec.startswith("synthetic/"):  # a shorter walk of the preset (rendered anew)
         from dataclasses import replace
 
@@ -109,42 +136,36 @@ def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frame
 
         name = spec.split("/", 1)[1]
         seq = synthetic_sequence(name, config=replace(resolve_preset(name), frames=synthetic_frames))
-        seq = seq.select(*[int(v) if v else None for v in frames.split(":")]) if frames else seq
-    else:
-        seq = open_scene(spec, frames=frames)[0]
+        return seq.select(*[int(v) if v else None for v in frames.split(":")]) if frames else seq
+    return open_scene(spec, frames=frames)[0]
+
+
+def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frames: int | None = None,
+                orbslam3_vocabulary: Path | None = None, orbslam3_runs: int = 3) -> list[dict]:
+    seq = _open_sequence(spec, frames, synthetic_frames)
     gt = Trajectory(seq.times(), seq.groundtruth())
-    rows = []
-    # Each method runs as it is meant to be used: the teacher as `teacher generate` runs it
-    # (one OpenCV thread per process, data.sequence's default: it uses the cores through
-    # its own processes and threads), the single-process peers with OpenCV and OpenMP on
-    # every core, whatever OMP_NUM_THREADS says (it limits only the teacher here).
-    cores = os.cpu_count() or 1
-    cv2.setNumThreads(1)
-    run = run_sequence(seq, TeacherConfig(), progress=False)
-    cv2.setNumThreads(cores)
-    pos = {int(f): p for p, f in enumerate(seq.ids())}
-    gap1 = [e for e in run.edges if pos[e.j] - pos[e.i] == 1]
-    paths = Counter(e.info.get("path", "none") for e in gap1)
-    rows.append({"method": "this teacher (gaps 1-5)", "poses": run.poses, "seconds": run.seconds,
-                 "fails": sum(1 for e in gap1 if not e.ok),
-                 "cv_bridges": sum(1 for b in run.bridges if b["method"] == "constant velocity"),
-                 "gap1_paths": dict(sorted(paths.items()))})
-    with threadpool_limits(cores, user_api="openmp"):
+    rows = _teacher_rows(seq)
+    # The single-process peers run with OpenCV and OpenMP on every core, whatever
+    # OMP_NUM_THREADS says (it limits only the teacher here).
+    with threadpool_limits(os.cpu_count() or 1, user_api="openmp"):
         if "open3d" in peers:
             poses, sec, fails = run_open3d(seq)
             rows.append({"method": "Open3D hybrid (gap 1)", "poses": poses, "seconds": sec, "fails": fails})
         if "cv2" in peers:
             poses, sec, fails = run_opencv(seq)
             rows.append({"method": "cv2.Odometry RGB_DEPTH (gap 1)", "poses": poses, "seconds": sec, "fails": fails})
+    second = one_second(seq.times())
     out = []
     for r in rows:
-        rep = trajectory_report(gt, Trajectory(seq.times(), r["poses"]))
-        extra = {k: r[k] for k in ("cv_bridges", "gap1_paths") if k in r}
+        rep = metrics(gt, Trajectory(seq.times(), r["poses"]), second)
+        extra = {k: r[k] for k in ("cv_bridges", "gap1_paths", "solve_s") if k in r}
         out.append({"scene": spec, "frames": len(seq), "method": r["method"], "fps": len(seq) / r["seconds"],
                     "gap1_failures": r["fails"], **extra, **rep})
         print(f"{spec}: {out[-1]}", file=sys.stderr, flush=True)
-    if "open3d" in peers:
-        base = out[1]
+    if orbslam3_vocabulary is not None:
+        out.append({"scene": spec, "frames": len(seq), **orbslam3_row(seq, orbslam3_vocabulary, orbslam3_runs)})
+    base = next((r for r in out if r["method"].startswith("Open3D")), None)
+    if base is not None:
         for r in out:
             r["fps_vs_open3d"] = r["fps"] / base["fps"]
             r["rpe_vs_open3d"] = r["rpe_trans_rmse_m"] / base["rpe_trans_rmse_m"]
@@ -160,26 +181,26 @@ def main() -> None:
                     help="methods run beside the teacher (default: Open3D's hybrid odometry)")
     ap.add_argument("--synthetic-frames", type=int, default=None,
                     help="render each synthetic preset with this many frames instead of its own (a shorter walk)")
+    ap.add_argument("--orbslam3-vocabulary", type=Path, default=None,
+                    help="a DBoW2 vocabulary (ctcvo teacher vocabulary, from training frames): adds ORB-SLAM3's row")
+    ap.add_argument("--orbslam3-runs", type=int, default=3,
+                    help="ORB-SLAM3 SLAM runs per scene (median and min-max reported)")
     record.add_arguments(ap, "teacher")
     args = ap.parse_args()
+    if args.orbslam3_runs < 1:
+        ap.error(f"--orbslam3-runs must be >= 1, got {args.orbslam3_runs}")
+    if args.orbslam3_vocabulary is not None and not args.orbslam3_vocabulary.is_file():
+        ap.error(f"--orbslam3-vocabulary {args.orbslam3_vocabulary}: no such file")
     rec = record.from_args(args, teacher=TeacherConfig())
     results = []
     for spec in args.scenes:
         if not spec.startswith("synthetic/") and not Path(spec).exists():
             print(f"skipping {spec}: not found", file=sys.stderr)
             continue
-        results += bench_scene(spec, args.frames, args.peers, args.synthetic_frames)
+        results += bench_scene(spec, args.frames, args.peers, args.synthetic_frames, args.orbslam3_vocabulary,
+                               args.orbslam3_runs)
         rec.finish({"rows": results})  # after every scene, so a long run that is cut short keeps what it measured
-    print("| scene | frames | method | fps | fps / Open3D | gap-1 fails | CV bridges | RPE trans (mm) | RPE / Open3D "
-          "| RPE rot (deg) | ATE (mm) | se(3) L2 | teacher gap-1 paths |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for r in results:
-        name = Path(r["scene"]).name if not r["scene"].startswith("synthetic/") else r["scene"]
-        paths = " ".join(f"{k} {v}" for k, v in r.get("gap1_paths", {}).items())
-        print(f"| {name} | {r['frames']} | {r['method']} | {r['fps']:.1f} | {r.get('fps_vs_open3d', float('nan')):.1f}x | "
-              f"{r['gap1_failures']} | {r.get('cv_bridges', '')} | {1000 * r['rpe_trans_rmse_m']:.2f} | "
-              f"{r.get('rpe_vs_open3d', float('nan')):.2f} | {r['rpe_rot_rmse_deg']:.3f} | {1000 * r['ate_rmse_m']:.1f} | "
-              f"{r['se3_l2_mean']:.5f} | {paths} |")
+    print("\n".join(tables.markdown(tables.TEACHER_HEAD, [tables.teacher_cells(r, "") for r in results])))
 
 
 if __name__ == "__main__":

@@ -55,14 +55,13 @@ FINAL_WAIT_S, FINAL_POLL_S = 30.0, 0.5
 DEPTH_CHECK_FRAMES = 10
 
 # Per-gap covariance model, a diagonal in the project tangent order (v, w): sigma(g) =
-# sigma_gap1 * g ** GAP_EXPONENT, times sqrt(POINTS_REF / tracked map points) clipped to
-# POINTS_SCALE. PLACEHOLDERS until calibrated on validation data with posegraph calibrate's
-# method (seeded from the gap-1 / 30-frame RPE of issue 27's table).
-SIGMA_TRANS_GAP1_M = 0.005
-SIGMA_ROT_GAP1_DEG = 0.3
-GAP_EXPONENT = 0.5
-POINTS_REF = 300
-POINTS_SCALE = (0.5, 3.0)
+# sigma_gap1 * g ** GAP_EXPONENT for translation and rotation. Fitted against ground truth on
+# redkitchen 350:450 and fr3/teddy 0:200, 2 SLAM runs each (bench/orbslam3_covariance.py, median
+# NEES per gap consistent; record bench/results/orbslam3-covariance.json). A tracked-map-points
+# factor was rejected there: it helped with teddy left out of the fit and hurt with redkitchen.
+SIGMA_TRANS_GAP1_M = 0.0022
+SIGMA_ROT_GAP1_DEG = 0.145
+GAP_EXPONENT = 0.38
 
 
 def _import_pyorbslam3():
@@ -289,9 +288,9 @@ def _match_rows(path: Path, timestamps: NDArray[np.float64]) -> NDArray[np.float
     return poses
 
 
-def edge_covariance(gap: int, points: int) -> NDArray[np.float64]:
-    """The placeholder per-gap model's 6x6 diagonal covariance (tangent order (v, w))."""
-    scale = gap ** GAP_EXPONENT * float(np.clip(np.sqrt(POINTS_REF / max(points, 1)), *POINTS_SCALE))
+def edge_covariance(gap: int) -> NDArray[np.float64]:
+    """The per-gap model's 6x6 diagonal covariance of an edge of ``gap`` frames (tangent order (v, w))."""
+    scale = gap ** GAP_EXPONENT
     sig_t, sig_r = SIGMA_TRANS_GAP1_M * scale, np.deg2rad(SIGMA_ROT_GAP1_DEG) * scale
     return np.diag([sig_t ** 2] * 3 + [sig_r ** 2] * 3)
 
@@ -321,7 +320,7 @@ def edges_from(result: OrbResult, gaps: int = 5, use: str = DEFAULT_LABELS) -> l
             e = OrbEdge(int(ids[a]), int(ids[b]), g, status, pts)
             if e.good:
                 e.T_i_j = geo.orthonormalize(geo.relative_pose(poses[a], poses[b]))
-                e.cov = edge_covariance(g, pts)
+                e.cov = edge_covariance(g)
             edges.append(e)
     return edges
 
@@ -366,7 +365,8 @@ def build_report(seq: Sequence, result: OrbResult, edges: list[OrbEdge], use: st
         "seconds": result.seconds,
         "frames_skipped": [{"frame": int(result.frame_ids[p]), "why": why} for p, why in sorted(result.skipped.items())],
         "covariance_model": {"sigma_trans_gap1_m": SIGMA_TRANS_GAP1_M, "sigma_rot_gap1_deg": SIGMA_ROT_GAP1_DEG,
-                             "gap_exponent": GAP_EXPONENT, "points_ref": POINTS_REF, "calibrated": False},
+                             "gap_exponent": GAP_EXPONENT, "calibrated": True,
+                             "fitted_on": "redkitchen 350:450, TUM fr3/teddy 0:200 (bench/orbslam3_covariance.py)"},
     }
     gt, poses = seq.groundtruth(partial=True), result.poses(use)
     have = ok & np.isfinite(poses).all(axis=(1, 2))
