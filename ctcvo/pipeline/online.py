@@ -91,7 +91,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Path | Non
     sensor = source.sensor  # the teacher's colour camera model and readout, as teacher generate picks them
     teacher = OnlineTeacher(source.intrinsics,
                             dataclasses.replace(teacher_cfg, rolling_shutter_s=rolling_shutter_for(sensor, teacher_cfg)),
-                            colour_camera_for(sensor, teacher_cfg))
+                            colour_camera_for(sensor, teacher_cfg), sensor.noise_model)
     with open(out / TRAJECTORY, "w") as fh:
         fh.write(TRAJECTORY_HEADER)
         est = Estimator(teacher, learner, graph, cfg, fh)

@@ -27,6 +27,7 @@ from ctcvo.data.open3d_import import open3d_follows_openmp
 from ctcvo.data.sequence import Frame, Intrinsics
 from ctcvo.learner.online import OnlineLearner
 from ctcvo.posegraph.online import OnlineGraph
+from ctcvo.teacher.covariance_model import gap_scale
 from ctcvo.teacher.features import extract, make_orb
 from ctcvo.teacher.maps import add_surface
 from ctcvo.teacher.window import EdgeWindow
@@ -65,10 +66,13 @@ class OnlineTeacher:
     generate`` (:class:`teacher.window.EdgeWindow`, the same code) over the frames as they
     arrive, and the frame ids and timestamps so far."""
 
-    def __init__(self, intr: Intrinsics, cfg, colour=None) -> None:
+    def __init__(self, intr: Intrinsics, cfg, colour=None, noise_model: str = "kinect-v1") -> None:
         """``colour``: the colour camera model (``data.sensor.ColourCamera``; None:
-        colour registered to depth), as :func:`teacher.generate.colour_camera_for` picks it."""
-        self.intr, self.cfg, self.colour = intr, cfg, colour
+        colour registered to depth), as :func:`teacher.generate.colour_camera_for` picks it;
+        ``noise_model``: the sensor's (``data.sensor.Sensor.noise_model``), whose per-gap
+        covariance scales the edges get (:mod:`teacher.covariance_model`), as in ``teacher generate``."""
+        self.intr, self.cfg, self.colour, self.noise_model = intr, cfg, colour, noise_model
+        self._pos: dict[int, int] = {}
         self.orb = make_orb(cfg)
         self.window = EdgeWindow(intr, cfg)
         self.ids: list[int] = []
@@ -95,6 +99,7 @@ class OnlineTeacher:
         empty for the first frame); :meth:`add_longer` follows before the next frame."""
         self.ids.append(int(frame.frame_id))
         self.times.append(float(frame.timestamp))
+        self._pos[self.ids[-1]] = len(self.ids) - 1
         return self.window.add_gap1(self.ids[-1], self.times[-1], fk, frame.depth_offset)
 
     def add_longer(self) -> list:
@@ -102,9 +107,16 @@ class OnlineTeacher:
         return self.window.add_longer()
 
 
-def teacher_edges(estimates: list) -> list[Edge]:
-    """The graph edges of the good teacher estimates (``EdgeEstimate``)."""
-    return [Edge(e.i, e.j, e.T_i_j, e.cov, {"source": "teacher"}) for e in estimates if e.ok]
+    def cov_scale(self, e) -> float:
+        """The factor of the covariance of estimate ``e`` (``EdgeEstimate``): its gap's scale,
+        the gap counted in frames taken."""
+        return gap_scale(self.noise_model, self._pos[e.j] - self._pos[e.i], self.cfg.covariance)
+
+
+def teacher_edges(estimates: list, teacher: OnlineTeacher) -> list[Edge]:
+    """The graph edges of the good teacher estimates (``EdgeEstimate``), covariances scaled
+    as ``teacher generate`` writes them."""
+    return [Edge(e.i, e.j, e.T_i_j, e.cov * teacher.cov_scale(e), {"source": "teacher"}) for e in estimates if e.ok]
 
 
 class Prefetcher:
@@ -246,7 +258,7 @@ class Estimator:
         t_take, c_take = time.perf_counter(), time.thread_time()
         teacher, after_gap1 = self.teacher, self.cfg.pose_after_gap1
         learned = self.pool.submit(self._learner, inputs) if self.pool is not None else None
-        new = teacher_edges(self._teacher(teacher.add_gap1 if after_gap1 else teacher.add, frame, feats))
+        new = teacher_edges(self._teacher(teacher.add_gap1 if after_gap1 else teacher.add, frame, feats), teacher)
         if self.learner is not None:
             estimates, c_learn = learned.result() if learned is not None else self._learner(inputs)
             c_prep += c_learn
@@ -265,7 +277,7 @@ class Estimator:
         tm.cpu_to_pose.append(c_prep + time.thread_time() - c_take)
         if after_gap1:  # the longer edges of this frame, after its pose
             posed.release()
-            self.graph.add_edges(teacher_edges(self._teacher(teacher.add_longer)))
+            self.graph.add_edges(teacher_edges(self._teacher(teacher.add_longer), teacher))
         tm.work.append(t_prep + time.perf_counter() - t_take if after_gap1 else tm.to_pose[-1])
 
     def trim(self) -> None:

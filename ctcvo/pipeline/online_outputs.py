@@ -41,7 +41,7 @@ def write_outputs(out: Path, name: str, est: Estimator, teacher_cfg, seconds: fl
     final = graph.final()[:n]  # the graph may hold a frame an interrupt cut short
     write_tum(out / FINAL_TRAJECTORY, Trajectory(times, final))
     t_edges = sorted(est.t_edges, key=lambda e: (e.i, e.j))  # the order of teacher generate's files
-    good = [Edge(e.i, e.j, e.T_i_j, e.cov) for e in t_edges if e.ok]
+    good = [Edge(e.i, e.j, e.T_i_j, e.cov * teacher.cov_scale(e)) for e in t_edges if e.ok]
     chained, _ = chain_trajectory(ids, t_edges)
     tdir = ensure_dir(out / "teacher")
     write_g2o(tdir / "edges.g2o", good, {int(f): T for f, T in zip(ids, chained)})
