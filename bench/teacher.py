@@ -47,6 +47,7 @@ from ctcvo.data.formats import Edge, Trajectory  # noqa: E402
 from ctcvo.data.scenes import open_scene  # noqa: E402
 from ctcvo.posegraph.graph import solve  # noqa: E402
 from ctcvo.teacher.config import TeacherConfig  # noqa: E402
+from ctcvo.teacher.covariance_model import gap_scale  # noqa: E402
 from ctcvo.teacher.generate import run_sequence  # noqa: E402
 
 SYNTHETIC = ["synthetic/office", "synthetic/lab", "synthetic/kitchen", "synthetic/stress-lowfreq",
@@ -107,7 +108,7 @@ def run_opencv(seq) -> tuple[np.ndarray, float, int]:
 def _teacher_rows(seq) -> list[dict]:
     """The teacher's chained gap-1 trajectory, and the pose graph of all its good edges
     (:func:`ctcvo.posegraph.graph.solve`, the default config, as ``posegraph optimize`` solves
-    its edges.g2o), its time added to the teacher's."""
+    its edges.g2o, calibrated covariances included), its time added to the teacher's."""
     # The teacher runs as `teacher generate` runs it (one OpenCV thread per process,
     # data.sequence's default: it uses the cores through its own processes and threads).
     cv2.setNumThreads(1)
@@ -118,7 +119,10 @@ def _teacher_rows(seq) -> list[dict]:
     paths = Counter(e.diag.path for e in gap1)
     fails = sum(1 for e in gap1 if not e.ok)
     t0 = time.perf_counter()
-    graph = solve(seq.ids(), [Edge(e.i, e.j, e.T_i_j, e.cov) for e in run.edges if e.ok], run.poses).poses
+    cfg = TeacherConfig()
+    edges = [Edge(e.i, e.j, e.T_i_j, e.cov * gap_scale(seq.sensor.noise_model, pos[e.j] - pos[e.i], cfg.covariance))
+             for e in run.edges if e.ok]  # the covariances of edges.g2o
+    graph = solve(seq.ids(), edges, run.poses).poses
     solve_s = time.perf_counter() - t0
     return [{"method": "this teacher (gaps 1-5)", "poses": run.poses, "seconds": run.seconds, "fails": fails,
              "cv_bridges": sum(1 for b in run.bridges if b["method"] == "constant velocity"),
