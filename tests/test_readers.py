@@ -590,10 +590,10 @@ def test_each_reader_sets_its_sensor(tmp_path: Path) -> None:
     (tmp_path / "scene" / "config.json").write_text(json.dumps({"config": {"sensor": model}}))
     rendered = SevenScenesSequence(tmp_path / "scene" / "seq-01")
     assert rendered.sensor == Sensor(ColourCamera(0.9, (1.0, -2.0), 0.02, synchronous=True), 0.01, synchronous=True,
-                                     depth_scale=1000.0)
+                                     depth_scale=1000.0, noise_model="synthetic")
     (tmp_path / "scene" / "config.json").write_text(json.dumps({"config": {"sensor": {**model, "noise_free": True}}}))
     assert SevenScenesSequence(tmp_path / "scene" / "seq-01").sensor == Sensor(None, 0.0, synchronous=True,
-                                                                                depth_scale=1000.0)
+                                                                                depth_scale=1000.0, noise_model="none")
     (tmp_path / "scene" / "config.json").write_text("{}")  # not a renderer's config: a real 7-Scenes folder
     assert SevenScenesSequence(tmp_path / "scene" / "seq-01").sensor == seven.sensor
     tum_seq = TumSequence(make_tum_seq(tmp_path / "rgbd_dataset_freiburg1_x"))
