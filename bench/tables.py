@@ -310,7 +310,10 @@ def demo_table(records: dict[str, dict], dated: bool = True) -> list[str]:
     return markdown(head, rows) + ["", f"`ctcvo demo` took {f['wall_s'] / 60:.0f} min ({f['cpu_s'] / 60:.0f} min of CPU; "
                                        f"rooms already rendered: {', '.join(r['config']['rooms_in_render_cache']) or 'none'}). "
                                        + (provenance({"demo": r}) if dated else
-                                          f"On {r['machine']['cpu_count']} cores; record `demo`.")]
+                                          f"On {r['machine']['cpu_count']} cores busy with other jobs (load "
+                                          f"{r['machine']['load_average_start'][0]:.0f}); record `demo`."
+                                          if r['machine']['load_average_start'][0] >= 1.5 else
+                                          f"On {r['machine']['cpu_count']} idle cores; record `demo`.")]
 
 
 def summary_table(records: dict[str, dict]) -> list[str]:
