@@ -67,6 +67,8 @@ from ctcvo.learner.predict import predict
 from ctcvo.learner.train import fit
 
 TRAJ_KEYS = ["ate_rmse_m", "ate_sub_mean_m", "ate_sub_std_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "se3_l2_mean"]
+#: per epoch: se(3) L2 of each head on the training and the validation frames (vs ground truth)
+CURVE_KEYS = ["steps", "train_direct_se3_l2", "train_lstm_se3_l2", "val_direct_se3_l2", "val_lstm_se3_l2"]
 CAL_KEYS = ["spearman_sigma_error", "coverage_1sigma", "coverage_2sigma", "outlier_auroc"]
 
 
@@ -172,8 +174,10 @@ def run_variant(args: argparse.Namespace, variant: str, seed: int, test_scene: s
     val = res.history[-1] if res.history else {}
     return {"variant": variant, "seed": seed, "run": str(run), **row, **{k: rep.get(k) for k in CAL_KEYS},
             "fit_s": round(t_fit, 1), "fit_cpu_s": round(c_fit, 1), "epochs": res.epochs_done,
+            "train_s": round(sum(h.get("train_seconds", 0.0) for h in res.history), 1),  # also of a kept run
             "steps": val.get("steps", 0), "final_loss": val.get("windows_loss", val.get("pairs_loss")),
-            "last_epoch": {k: v for k, v in val.items() if isinstance(v, (int, float))},
+            "last_epoch": {k: v for k, v in val.items() if isinstance(v, (int, float, str))},
+            "curve": [{k: h.get(k) for k in CURVE_KEYS} for h in res.history],
             "loadavg_1_5_15": [round(x, 2) for x in os.getloadavg()],
             "finished": time.strftime("%H:%M:%S", time.gmtime()), "_est": est}
 
