@@ -49,3 +49,24 @@ def test_online_learner_cell_puts_the_learner_beside_the_same_runs_teacher():
            "learner_latency_ms": {"p50": 101.2, "p95": 230.0}, "learner_30hz_latency_ms": {"p50": 90.0, "p95": 150.4}}
     assert tables.learner_cell(row) == "demo preset: 12.0 (0.60x), 101 / 230, 90 / 150"
     assert tables.learner_cell({"online_fps": 20.0}) == "-"
+
+
+def test_ablation_table_ratio_to_the_teacher_and_seed_means():
+    machine = {"cpu_count": 2, "load_average_start": [1.0, 1, 1], "load_average_end": [2.0, 1, 1]}
+    base = {"ate_rmse_m": 0.05, "rpe_trans_rmse_m": 0.006, "rpe_rot_rmse_deg": 0.3}
+    rows = {"teacher": {**base, "se3_l2_mean": 0.008, "se3_l2_x_teacher": 1.0, "vs_teacher": {"se3_l2_mean": 0.0}},
+            "ctc seed 0": {**base, "variant": "ctc", "seed": 0, "se3_l2_mean": 0.006, "se3_l2_x_teacher": 0.75,
+                           "vs_teacher": {"se3_l2_mean": 0.009}},
+            "ctc seed 1": {**base, "variant": "ctc", "seed": 1, "se3_l2_mean": 0.010, "se3_l2_x_teacher": 1.25,
+                           "vs_teacher": {"se3_l2_mean": 0.011}}}
+    rec = {"ablation-x": {"revision": "abc1234", "date_utc": "2026-01-01T00:00:00Z", "machine": machine,
+                          "figures": {"rows": rows, "seeds": {"ctc": {
+                              "seeds": [0, 1], "se3_l2_mean": {"mean": 0.008, "std": 0.002, "n": 2},
+                              "se3_l2_x_teacher": {"mean": 1.0, "std": 0.25, "n": 2},
+                              "rpe_trans_rmse_m": {"mean": 0.006, "std": 0.0, "n": 2},
+                              "rpe_rot_rmse_deg": {"mean": 0.3, "std": 0.0, "n": 2}}}}}}
+    lines = tables.ablation_table(rec)
+    assert "| ablation-x | ctc seed 0 | 0.00600 | 0.75 | 0.00900 | 6.00 | 0.300 | 50.0 |" in lines
+    assert "| ablation-x | ctc, mean +- std of 2 seeds | 0.00800 +- 0.00200 | 1.00 +- 0.25 | - | 6.00 +- 0.00 | " \
+           "0.300 +- 0.000 | - |" in lines
+    assert len([x for x in lines if x.startswith("| ablation-x")]) == 4
