@@ -3,7 +3,7 @@
 The covariance the estimator computes (:mod:`teacher.covariance`, the keypoint and dense
 information fused) treats every pixel's error as independent, so it is far too small: on
 real Kinect v1 recordings the median NEES/6 of the raw covariances against ground truth is
-about 35-120, so a solver that takes ``edges.g2o`` as it is trusts the edges about 50x too
+about 50-200, so a solver that takes ``edges.g2o`` as it is trusts the edges 50-200x too
 much. ``edges.g2o`` therefore carries the raw covariance times a scale per frame gap and
 sensor noise model (:attr:`data.sensor.Sensor.noise_model`), fitted against ground truth
 on validation ranges by ``python -m bench.teacher_covariance`` (record
@@ -20,9 +20,9 @@ from __future__ import annotations
 from ctcvo.data.errors import ConfigError
 
 #: Per-gap covariance scales of the default teacher, by sensor noise model. Fitted by
-#: ``python -m bench.teacher_covariance`` on the validation ranges only: ``kinect-v1`` on
-#: 7-Scenes redkitchen 0:450 and TUM fr3/teddy 0:200, ``synthetic`` on the validation rooms
-#: office and lab (the record shows the test ranges too, looked at last). A gap beyond the
+#: ``python -m bench.teacher_covariance``, never on test data: ``kinect-v1`` on 7-Scenes
+#: redkitchen 0:450 and TUM fr3/teddy 0:200, ``synthetic`` on the rooms office (training) and
+#: lab (validation); the record shows the test ranges too, looked at last. A gap beyond the
 #: table (keyframe and loop edges) takes the last gap's scale.
 GAP_SCALES: dict[str, tuple[float, ...]] = {
     "kinect-v1": (120, 94.7, 71.6, 77.4, 101),
