@@ -30,7 +30,8 @@ from ctcvo.teacher.config import DEFAULT
 from ctcvo.teacher.generate import run_sequence
 
 RK, TEDDY, XYZ = record.REDKITCHEN, record.TUM_TEDDY, record.TUM_XYZ
-#: noise model -> (fit ranges: every validation range of bench/README.md; the validation ranges
+#: noise model -> (fit ranges: the validation ranges of bench/README.md, and the training room
+#: office for synthetic; the validation ranges
 #: shown, those of issue 29's target; test ranges, looked at last), each SPEC:START:STOP
 RANGES = {
     "kinect-v1": ([f"{RK}:0:450", f"{TEDDY}:0:200"], [f"{RK}:350:450", f"{TEDDY}:0:200"],
