@@ -227,20 +227,35 @@ def _sources(edges: Sequence[Edge]) -> list[str]:
     return list(dict.fromkeys(str(e.extra.get("source", "edges")) for e in edges))
 
 
-def _residuals_over_time(fig, ax, t: NDArray[np.float64], pos: dict[int, int], edges: Sequence[Edge],
-                         residuals: NDArray[np.float64], threshold: float) -> object:
-    """Without ground truth: every edge's whitened residual at the time of its later frame."""
+def _residual_points(ax, t: NDArray[np.float64], pos: dict[int, int], edges: Sequence[Edge],
+                     residuals: NDArray[np.float64], label, alpha: float | None = None) -> tuple:
+    """Each source's edges as points: whitened residual (log axis) at the time of the edge's
+    later frame, labelled ``label(source, mask)``. Returns (times, residuals floored, sources,
+    handles, labels)."""
     te = np.array([t[max(pos[e.i], pos[e.j])] for e in edges])
+    res = np.maximum(np.asarray(residuals, dtype=np.float64), _LOG_FLOOR)
     src = np.array([str(e.extra.get("source", "edges")) for e in edges])
     handles, labels = [], []
     for s in _sources(edges):
         m = src == s
-        (h,) = ax.semilogy(te[m], np.maximum(residuals[m], _LOG_FLOOR), ".", ms=3, color=style(s)["color"])
+        (h,) = ax.semilogy(te[m], res[m], ".", ms=3, color=style(s)["color"], alpha=alpha)
         handles.append(h)
-        labels.append(f"{s} edges ({int(m.sum())})")
+        labels.append(label(s, m))
+    return te, res, src, handles, labels
+
+
+def _threshold_line(ax, threshold: float, name: str, handles: list, labels: list) -> None:
+    """The outlier threshold as a dashed line, with its legend entry (none when infinite)."""
     if np.isfinite(threshold):
         handles.append(ax.axhline(threshold, color="0.3", ls="--", lw=1))
-        labels.append(f"outlier threshold {threshold:g}")
+        labels.append(f"{name} {threshold:g}")
+
+
+def _residuals_over_time(fig, ax, t: NDArray[np.float64], pos: dict[int, int], edges: Sequence[Edge],
+                         residuals: NDArray[np.float64], threshold: float) -> object:
+    """Without ground truth: every edge's whitened residual at the time of its later frame."""
+    *_, handles, labels = _residual_points(ax, t, pos, edges, residuals, lambda s, m: f"{s} edges ({int(m.sum())})")
+    _threshold_line(ax, threshold, "outlier threshold", handles, labels)
     ax.set_xlabel("time [s]")
     ax.set_ylabel("whitened residual (log)")
     ax.grid(True, which="both", lw=0.3, color="0.85")
@@ -319,17 +334,11 @@ def _outliers(t: NDArray[np.float64], pos: dict[int, int], edges: Sequence[Edge]
     """Every edge's first-solve residual over time, the threshold, and the report's outliers."""
     fig = _figure(12, 4.8)
     ax = fig.subplots(1, 1)
-    te = np.array([t[max(pos[e.i], pos[e.j])] for e in edges])
-    res = np.maximum(np.asarray(residuals, dtype=np.float64), _LOG_FLOOR)
-    src = np.array([str(e.extra.get("source", "edges")) for e in edges])
     gaps = np.array([abs(pos[e.j] - pos[e.i]) for e in edges])
     flagged = match_outliers(edges, outliers)
-    handles, labels = [], []
-    for s in _sources(edges):
-        m = src == s
-        (h,) = ax.semilogy(te[m], res[m], ".", ms=3, color=style(s)["color"], alpha=0.6)
-        handles.append(h)
-        labels.append(f"{s} edges ({int(m.sum())}, gaps {gaps[m].min()}-{gaps[m].max()})")
+    te, res, src, handles, labels = _residual_points(
+        ax, t, pos, edges, residuals, lambda s, m: f"{s} edges ({int(m.sum())}, gaps {gaps[m].min()}-{gaps[m].max()})",
+        alpha=0.6)
     for action, marker in (("removed", "x"), ("downweighted", "D")):
         for s in _sources(edges):
             idx = [n for n, a in flagged.items() if a == action and src[n] == s]
@@ -338,9 +347,7 @@ def _outliers(t: NDArray[np.float64], pos: dict[int, int], edges: Sequence[Edge]
                                    color=style(s)["color"], zorder=5)
                 handles.append(h)
                 labels.append(f"{s}: {action} ({len(idx)})")
-    if np.isfinite(threshold):
-        handles.append(ax.axhline(threshold, color="0.3", ls="--", lw=1))
-        labels.append(f"threshold {threshold:g}")
+    _threshold_line(ax, threshold, "threshold", handles, labels)
     ax.set_xlabel("time of the edge's later frame [s]")
     ax.set_ylabel("whitened residual, first solve (log)")
     ax.grid(True, which="both", lw=0.3, color="0.85")
