@@ -35,7 +35,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from bench import record
-from ctcvo.data import geometry as geo
+from ctcvo.data.metrics import groundtruth_residuals
 from ctcvo.data.scenes import open_scene
 from ctcvo.data.uncertainty import CHI2_6_MEDIAN, nees_stats
 from ctcvo.teacher import orbslam3 as O
@@ -51,11 +51,9 @@ GAPS = 5
 
 def edge_errors(seq, result) -> dict[str, np.ndarray]:
     """Every good edge's gap, tracked points and error ``log(inv(T_label) @ T_gt)`` (E, 6), (v, w)."""
-    gt, pos = seq.groundtruth(), {int(f): p for p, f in enumerate(seq.ids())}
     good = [e for e in O.edges_from(result, GAPS, O.DEFAULT_LABELS) if e.good]
-    d = [geo.se3_log(geo.inv_T(e.T_i_j) @ geo.relative_pose(gt[pos[e.i]], gt[pos[e.j]])) for e in good]
     return {"gap": np.array([e.gap for e in good]), "points": np.array([e.points for e in good]),
-            "d": np.array(d).reshape(-1, 6)}
+            "d": groundtruth_residuals(good, seq.groundtruth(), seq.ids())}
 
 
 def points_factor(points: np.ndarray, use: bool) -> np.ndarray:

@@ -23,7 +23,7 @@ import dataclasses
 import numpy as np
 
 from bench import record
-from ctcvo.data import geometry as geo
+from ctcvo.data.metrics import groundtruth_residuals
 from ctcvo.data.scenes import open_scene
 from ctcvo.data.uncertainty import CHI2_6_MEDIAN, mahalanobis2, nees_stats
 from ctcvo.teacher.config import DEFAULT
@@ -47,15 +47,12 @@ def edge_errors(spec: str, cfg) -> tuple[str, dict[int, tuple[np.ndarray, np.nda
     scene, a, b = spec.rsplit(":", 2)
     seq = open_scene(scene, frames=f"{a}:{b}")[0]
     run = run_sequence(seq, cfg, progress=False)
-    gt, pos = seq.groundtruth(), {int(f): p for p, f in enumerate(seq.ids())}
-    by: dict[int, tuple[list, list]] = {}
-    for e in run.edges:
-        if e.ok:
-            d = geo.se3_log(geo.inv_T(e.T_i_j) @ geo.relative_pose(gt[pos[e.i]], gt[pos[e.j]]))
-            rows = by.setdefault(pos[e.j] - pos[e.i], ([], []))
-            rows[0].append(d)
-            rows[1].append(e.cov)
-    return seq.sensor.noise_model, {g: (np.array(d), np.array(c)) for g, (d, c) in sorted(by.items())}
+    pos = {int(f): p for p, f in enumerate(seq.ids())}
+    good = [e for e in run.edges if e.ok]
+    d = groundtruth_residuals(good, seq.groundtruth(), seq.ids())
+    gap = np.array([pos[e.j] - pos[e.i] for e in good])
+    cov = np.array([e.cov for e in good])
+    return seq.sensor.noise_model, {int(g): (d[gap == g], cov[gap == g]) for g in np.unique(gap)}
 
 
 def fit_scales(runs: list[dict[int, tuple[np.ndarray, np.ndarray]]], gaps: int) -> dict:

@@ -111,6 +111,15 @@ def label_errors_by_gap(edges: Iterable[tuple[int, int, NDArray[np.float64]]], g
     return out
 
 
+def groundtruth_residuals(edges: Iterable, gt: NDArray[np.float64], ids: NDArray[np.int64]) -> NDArray[np.float64]:
+    """(E, 6) error ``log(inv(T_i_j) @ T_gt_i_j)`` of each edge (anything with ``i``, ``j``
+    frame ids and ``T_i_j``) against the ground truth ``gt`` (N, 4, 4) of the frames ``ids``:
+    project order (v, w), a right perturbation at the edge, as its covariance is meant."""
+    pos = {int(f): p for p, f in enumerate(ids)}
+    d = [geo.se3_log(geo.inv_T(e.T_i_j) @ geo.relative_pose(gt[pos[e.i]], gt[pos[e.j]])) for e in edges]
+    return np.array(d, dtype=np.float64).reshape(-1, 6)
+
+
 def se3_l2_errors(gt_rel: NDArray[np.float64], est_rel: NDArray[np.float64]) -> NDArray[np.float64]:
     """The paper's local metric per pair: ``||log(T_gt_rel) - log(T_est_rel)||_2`` with
     ``log`` in the project se(3) order (v, w). Inputs are (N, 4, 4) relative poses."""

@@ -119,9 +119,8 @@ def composition_consistency(poses: NDArray[np.float64], frame_ids: NDArray[np.in
 def nees(edges: Sequence[Edge], frame_ids: NDArray[np.int64], gt_poses: NDArray[np.float64]) -> NDArray[np.float64]:
     """(E,) normalised estimation error squared of each edge against ground truth:
     ``d^T C^-1 d`` with ``d = log(inv(T_meas) @ T_gt)`` (project order, right perturbation)."""
-    pos = {int(k): p for p, k in enumerate(frame_ids)}
-    d = [geo.se3_log(geo.inv_T(e.T_i_j) @ geo.relative_pose(gt_poses[pos[e.i]], gt_poses[pos[e.j]])) for e in edges]
-    return mahalanobis2(np.array(d).reshape(-1, 6), np.array([e.cov for e in edges]).reshape(-1, 6, 6))
+    d = metrics.groundtruth_residuals(edges, gt_poses, frame_ids)
+    return mahalanobis2(d, np.array([e.cov for e in edges]).reshape(-1, 6, 6))
 
 
 def calibration(edges: Sequence[Edge], frame_ids: NDArray[np.int64],

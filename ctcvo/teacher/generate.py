@@ -35,12 +35,11 @@ from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
-from ctcvo.data import geometry as geo
 from ctcvo.data.chain import chain_edges
 from ctcvo.data.errors import ConfigError, DataError
 from ctcvo.data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
 from ctcvo.data.io import ensure_dir, git_revision, json_safe, write_json
-from ctcvo.data.metrics import label_errors_by_gap, trajectory_report
+from ctcvo.data.metrics import groundtruth_residuals, label_errors_by_gap, trajectory_report
 from ctcvo.data.open3d_import import openmp_threads
 from ctcvo.data.runs import Fingerprint, claim, frames_id, output_folder, scene_id, stage_dir, write_fingerprint
 from ctcvo.data.scenes import open_scene
@@ -385,8 +384,7 @@ def _nees(frames: Sequence, good: list[Edge]) -> dict:
             and np.isfinite(gt[pos[e.j]]).all()]
     if not fine:
         return {}
-    d = np.array([geo.se3_log(geo.inv_T(e.T_i_j) @ geo.relative_pose(gt[pos[e.i]], gt[pos[e.j]])) for e in fine])
-    d2 = mahalanobis2(d, np.array([e.cov for e in fine]))
+    d2 = mahalanobis2(groundtruth_residuals(fine, gt, frames.ids()), np.array([e.cov for e in fine]))
     st = nees_stats(d2)
     return {"nees_median_over_dof": float(np.median(d2)) / 6, "nees_over_dof": st["nees_over_dof"],
             "coverage_2sigma": st["coverage_2sigma"]}
