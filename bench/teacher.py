@@ -111,15 +111,15 @@ def _teacher_rows(seq) -> list[dict]:
     its edges.g2o, calibrated covariances included), its time added to the teacher's."""
     # The teacher runs as `teacher generate` runs it (one OpenCV thread per process,
     # data.sequence's default: it uses the cores through its own processes and threads).
+    cfg = TeacherConfig()
     cv2.setNumThreads(1)
-    run = run_sequence(seq, TeacherConfig(), progress=False)
+    run = run_sequence(seq, cfg, progress=False)
     cv2.setNumThreads(os.cpu_count() or 1)
     pos = {int(f): p for p, f in enumerate(seq.ids())}
     gap1 = [e for e in run.edges if pos[e.j] - pos[e.i] == 1]
     paths = Counter(e.diag.path for e in gap1)
     fails = sum(1 for e in gap1 if not e.ok)
     t0 = time.perf_counter()
-    cfg = TeacherConfig()
     edges = [Edge(e.i, e.j, e.T_i_j, e.cov * gap_scale(seq.sensor.noise_model, pos[e.j] - pos[e.i], cfg.covariance))
              for e in run.edges if e.ok]  # the covariances of edges.g2o
     graph = solve(seq.ids(), edges, run.poses).poses
