@@ -1,13 +1,16 @@
-"""Keyframe and loop edges on validation data: the teacher graph with and without them.
+"""Keyframe and loop edges on validation data: the teacher graph without them, with them, and
+with each of their constants moved one at a time.
 
-For each validation range (redkitchen 0:450 and 350:450, TUM fr3/teddy, synthetic/lab) the default
-teacher runs twice, without and with ``keyframes`` (:mod:`ctcvo.teacher.keyframes`); the
-pose graph (:func:`ctcvo.posegraph.graph.solve`, the default ``PoseGraphConfig``, as
-``posegraph optimize`` solves the teacher's edges.g2o) optimises each run's good edges, and
-ATE, gap-1 and 1 s RPE are measured against the ground truth. Record
-``bench/results/keyframes.json``.
+For each validation range (redkitchen 0:450 and 350:450, TUM fr3/teddy, synthetic/lab) the
+default teacher's window edges are estimated once (``keyframes`` off); then the keyframe pass
+(:func:`ctcvo.teacher.keyframes.add_keyframe_edges`) runs once per variant: ``window`` (no
+keyframe pass), ``default`` (the module's constants) and each entry of :data:`SWEEP`, one
+constant changed. The pose graph (:func:`ctcvo.posegraph.graph.solve`, the default
+``PoseGraphConfig``, the calibrated covariances ``edges.g2o`` carries, as ``posegraph
+optimize`` solves it) optimises each variant's good edges; ATE, gap-1 and 1 s RPE are measured
+against the ground truth. Record ``bench/results/keyframes.json``.
 
-    python -m bench.keyframes [--scenes SPEC:FRAMES ...]
+    python -m bench.keyframes [--scenes SPEC:START:STOP ...]
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import argparse
 import dataclasses
 import time
 from collections import Counter
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -24,22 +28,65 @@ from ctcvo.data.formats import Edge, Trajectory
 from ctcvo.data.metrics import ate_rmse, rpe_rmse
 from ctcvo.data.scenes import open_scene
 from ctcvo.posegraph.graph import solve
+from ctcvo.teacher import keyframes, loops
 from ctcvo.teacher.config import DEFAULT
-from ctcvo.teacher.generate import run_sequence
+from ctcvo.teacher.covariance_model import gap_scale
+from ctcvo.teacher.generate import features_of, run_sequence
 
-VALIDATION = [f"{record.REDKITCHEN}:0:450", f"{record.REDKITCHEN}:350:450", f"{record.TUM_TEDDY}:0:200", "synthetic/lab:0:200"]
+VALIDATION = [f"{record.REDKITCHEN}:0:450", f"{record.REDKITCHEN}:350:450", f"{record.TUM_TEDDY}:0:200",
+              "synthetic/lab:0:200"]
+#: the constants moved one at a time, each to the values listed (module keyframes or loops)
+SWEEP: dict[str, tuple[float, ...]] = {
+    "KF_TRANS_M": (0.03, 0.1, 0.2), "KF_ROT_DEG": (5.0, 20.0), "KF_MIN_OVERLAP": (0.5, 0.85),
+    "COVISIBLE_OVERLAP": (0.2, 0.6), "REACH_S": (3.0, 12.0), "MAX_COVISIBLE": (6, 10), "LOOP_SCORE": (0.6,),
+}
 
 
-def _figures(seq, run) -> dict:
+@contextmanager
+def constants(**values):
+    """The keyframe and loop modules' constants set to ``values`` for the ``with`` block."""
+    mods = {name: keyframes if hasattr(keyframes, name) else loops for name in values}
+    old = {name: getattr(mods[name], name) for name in values}
+    try:
+        for name, v in values.items():
+            setattr(mods[name], name, type(old[name])(v))
+        yield
+    finally:
+        for name, v in old.items():
+            setattr(mods[name], name, v)
+
+
+def figures(seq, edges, poses, kinds: dict) -> dict:
+    """Graph ATE and RPE of a run's good edges (calibrated covariances), and the edges by kind."""
+    pos = {int(k): p for p, k in enumerate(seq.ids())}
+    good = [Edge(e.i, e.j, e.T_i_j, e.cov * gap_scale(seq.sensor.noise_model, pos[e.j] - pos[e.i]))
+            for e in edges if e.ok]
     gt = Trajectory(seq.times(), seq.groundtruth())
-    edges = [Edge(e.i, e.j, e.T_i_j, e.cov) for e in run.edges if e.ok]
-    poses = solve(seq.ids(), edges, run.poses).poses
-    est = Trajectory(seq.times(), poses)
+    est = Trajectory(seq.times(), solve(seq.ids(), good, poses).poses)
     second = max(1, int(round(1.0 / np.median(np.diff(seq.times())))))
-    kinds = Counter(run.kinds.get((e.i, e.j), "window") + ("" if e.ok else "_failed") for e in run.edges)
-    return {"ate_m": ate_rmse(gt, est), "rpe_gap1_m": rpe_rmse(gt, est, 1)[0],
-            "rpe_1s_m": rpe_rmse(gt, est, second)[0], "chain_ate_m": ate_rmse(gt, Trajectory(seq.times(), run.poses)),
-            "teacher_seconds": run.seconds, "edges_by_kind": dict(kinds)}
+    by_kind = Counter(kinds.get((e.i, e.j), "window") + ("" if e.ok else "_failed") for e in edges)
+    return {"ate_m": ate_rmse(gt, est), "rpe_gap1_m": rpe_rmse(gt, est, 1)[0], "rpe_1s_m": rpe_rmse(gt, est, second)[0],
+            "chain_ate_m": ate_rmse(gt, Trajectory(seq.times(), poses)), "edges_by_kind": dict(by_kind)}
+
+
+def variants() -> list[tuple[str, dict]]:
+    """(label, constants) of every variant after ``window``."""
+    return [("default", {})] + [(f"{name} {v:g}", {name: v}) for name, vs in SWEEP.items() for v in vs]
+
+
+def run_range(seq, cfg) -> dict:
+    """Every variant's figures on one validation range."""
+    t0 = time.perf_counter()
+    run = run_sequence(seq, cfg, progress=False)
+    row = {"window": {**figures(seq, run.edges, run.poses, {}), "seconds": time.perf_counter() - t0}}
+    for label, values in variants():
+        edges = list(run.edges)
+        t0 = time.perf_counter()
+        with constants(**values):
+            kinds = keyframes.add_keyframe_edges(seq, cfg, edges, run.poses, features_of(seq, cfg))
+        row[label] = {**figures(seq, edges, run.poses, kinds), "keyframe_pass_s": time.perf_counter() - t0}
+        print(seq.name, label, {k: v for k, v in row[label].items() if k != "edges_by_kind"}, flush=True)
+    return row
 
 
 def main() -> None:
@@ -47,19 +94,15 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="+", default=VALIDATION, help="SPEC:START:STOP of validation ranges")
     record.add_arguments(ap, "keyframes")
     args = ap.parse_args()
-    cfg = dataclasses.replace(DEFAULT, workers=1)
-    rec = record.from_args(args, teacher=cfg)
+    cfg = dataclasses.replace(DEFAULT, workers=1, keyframes=False)
+    rec = record.from_args(args, teacher=cfg, sweep={k: list(v) for k, v in SWEEP.items()},
+                           defaults={name: getattr(keyframes if hasattr(keyframes, name) else loops, name)
+                                     for name in SWEEP})
     out = {}
     for spec in args.scenes:
         scene, a, b = spec.rsplit(":", 2)
         seq = open_scene(scene, frames=f"{a}:{b}")[0]
-        row = {}
-        for on in (False, True):
-            t0 = time.perf_counter()
-            run = run_sequence(seq, dataclasses.replace(cfg, keyframes=on), progress=False)
-            row["keyframes" if on else "window"] = {**_figures(seq, run), "wall_s": time.perf_counter() - t0}
-            print(spec, on, row["keyframes" if on else "window"], flush=True)
-        out[f"{scene.rsplit('/', 1)[-1]}:{a}:{b}"] = row
+        out[f"{scene.rsplit('/', 1)[-1]}:{a}:{b}"] = run_range(seq, cfg)
         rec.finish({"scenes": out})
 
 

@@ -98,16 +98,19 @@ def _ctcvo(*argv: object) -> None:
 def test_teacher_labels_on_real_data_are_unchanged(tmp_path: Path, name: str, scene: Path) -> None:
     require_real_data(scene)
     out = tmp_path / name
-    _ctcvo("teacher", "generate", "--scene", scene, "--frames", "0:30", "--out", out, "--covariance", "raw")
+    _ctcvo("teacher", "generate", "--scene", scene, "--frames", "0:30", "--out", out, "--covariance", "raw",
+           "--no-keyframes")
     assert_same(out / "edges.g2o", f"{name}-0-30.g2o.gz")
 
 
 def test_synthetic_teacher_learner_and_graph_are_unchanged(tmp_path: Path, one_torch_thread: None) -> None:
-    # the estimator's own covariances, as recorded (calibrated ones: tests/test_covariance_model.py)
+    # the estimator's own covariances and the window edges alone, as recorded (calibrated ones:
+    # tests/test_covariance_model.py; keyframe edges: tests/test_keyframes.py)
     _ctcvo("teacher", "generate", "--scene", "synthetic/tiny", "--preset", "tiny", "--out", tmp_path / "tiny",
-           "--covariance", "raw")
+           "--covariance", "raw", "--no-keyframes")
     assert_same(tmp_path / "tiny" / "edges.g2o", "tiny-tiny.g2o.gz")
-    _ctcvo("teacher", "generate", "--scene", "synthetic/tiny", "--out", tmp_path / "labels", "--covariance", "raw")
+    _ctcvo("teacher", "generate", "--scene", "synthetic/tiny", "--out", tmp_path / "labels", "--covariance", "raw",
+           "--no-keyframes")
     assert_same(tmp_path / "labels" / "edges.g2o", "tiny-default.g2o.gz")
 
     _ctcvo("learner", "fit", "--scene", "synthetic/tiny", "--preset", "tiny", "--teacher", tmp_path / "labels",

@@ -32,7 +32,7 @@ def batch(tmp_path_factory) -> Path:
     from ctcvo.teacher.generate import generate
 
     root = tmp_path_factory.mktemp("batch")
-    generate("synthetic/tiny", root / "teacher", config=TCFG.__class__(**{**TCFG.to_dict(), "workers": 1}),
+    generate("synthetic/tiny", root / "teacher", config=TCFG.__class__(**{**TCFG.to_dict(), "workers": 1, "keyframes": False}),
              progress=False)
     optimize(teacher=root / "teacher", out=root / "posegraph")
     return root

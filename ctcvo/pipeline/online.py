@@ -4,7 +4,8 @@ Frames come from any scene read one at a time in order, or from a folder still b
 written (:mod:`data.live`). For each new frame k:
 
 1. the teacher's window (:class:`teacher.window.EdgeWindow`, the code ``teacher generate``
-   runs) gives the edges (k-g, k), g = 1..K;
+   runs) gives the edges (k-g, k), g = 1..K (the keyframe pass of ``teacher generate``
+   does not run online: :func:`window_only`);
 2. with a checkpoint, the learner (:class:`learner.online.OnlineLearner`) adds MC-dropout
    edges (k-g, k), g = 1..max_gap;
 3. GTSAM's ISAM2 (:class:`posegraph.online.OnlineGraph`) is updated with the new pose and
@@ -79,12 +80,19 @@ def open_source(spec: str, frames: str | None = None, follow: bool = False,
     return SequenceSource(seqs[0])
 
 
+def window_only(teacher_cfg=None):
+    """The teacher config an online run uses: ``teacher_cfg`` (default: the default teacher's)
+    without the keyframe pass, which runs in batch only (``teacher generate``), so that
+    ``config.json`` says what the run did."""
+    return dataclasses.replace(teacher_cfg or TEACHER_DEFAULT, keyframes=False)
+
+
 def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Path | None = None,
         predict_cfg=None, graph_cfg=None, cfg: OnlineConfig = OnlineConfig(), device: str = "cpu",
         max_frames: int | None = None, progress: bool = True) -> OnlineResult:
     """Run the online pipeline over ``source`` (see the module docstring); KeyboardInterrupt
     ends it early with every output written for the frames so far (``interrupted``)."""
-    teacher_cfg = teacher_cfg or TEACHER_DEFAULT
+    teacher_cfg = window_only(teacher_cfg)
     out = ensure_dir(Path(out))
     learner = OnlineLearner(checkpoint, predict_cfg, device) if checkpoint is not None else None
     graph = OnlineGraph(graph_cfg)
@@ -144,7 +152,7 @@ def online(spec: str, out: Path | None = None, *, frames: str | None = None, fol
     or killed one is run again; outputs of other inputs are replaced with ``overwrite``,
     otherwise :class:`data.runs.StaleOutputError` says what differs. A run is finished when
     its ``report.json`` (written last) says it was not interrupted."""
-    teacher_cfg = teacher_cfg or TEACHER_DEFAULT
+    teacher_cfg = window_only(teacher_cfg)
     out = Path(out) if out is not None else stage_dir(spec, "online")
     with output_folder(out):
         source = open_source(spec, frames, follow, cfg)

@@ -35,8 +35,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--preset", default="default", choices=sorted(PRESETS), help="teacher preset, see above")
     g.add_argument("--workers", type=int, default=None,
                    help="worker processes (default: the preset's, 2)")
-    g.add_argument("--keyframes", action="store_true",
-                   help="also estimate keyframe edges reaching back seconds and verified loop edges")
+    g.add_argument("--keyframes", action=argparse.BooleanOptionalAction, default=None,
+                   help="also estimate keyframe edges reaching back seconds and verified loop edges "
+                        "(default: the preset's, on)")
     g.add_argument("--covariance", default="calibrated", choices=["calibrated", "raw"],
                    help="calibrated: covariances scaled per gap to the sensor's real errors (fitted on validation "
                         "data); raw: the estimator's own, far too small on real data")
@@ -86,8 +87,8 @@ def _generate(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, gaps=args.gaps)
     if args.workers is not None:
         cfg = dataclasses.replace(cfg, workers=args.workers)
-    if args.keyframes:
-        cfg = dataclasses.replace(cfg, keyframes=True)
+    if args.keyframes is not None:
+        cfg = dataclasses.replace(cfg, keyframes=args.keyframes)
     cfg = dataclasses.replace(cfg, covariance=args.covariance)
     if cfg.workers > 1:
         processes.start()  # the workers import Open3D and the teacher while this process does

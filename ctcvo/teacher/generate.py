@@ -50,7 +50,7 @@ from ctcvo.teacher import processes, skips
 from ctcvo.teacher.config import TeacherConfig, dense_method
 from ctcvo.teacher.covariance_model import describe, gap_scale
 from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb
-from ctcvo.teacher.keyframes import keyframe_edges
+from ctcvo.teacher.keyframes import add_keyframe_edges
 from ctcvo.teacher.maps import PhotoMaps
 from ctcvo.teacher.record import EdgeEstimate
 from ctcvo.teacher.window import EdgeWindow
@@ -109,17 +109,12 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True, stric
     poses, bridges = chain_trajectory(frames.ids(), edges)
     kinds: dict[tuple[int, int], str] = {}
     if cfg.keyframes and len(frames) >= 2:
-        have = {(e.i, e.j) for e in edges}
-        for e, kind in keyframe_edges(frames, cfg, poses, _features_of(frames, cfg)):
-            if (e.i, e.j) not in have:
-                have.add((e.i, e.j))
-                edges.append(e)
-                kinds[(e.i, e.j)] = kind
+        kinds = add_keyframe_edges(frames, cfg, edges, poses, features_of(frames, cfg))
         edges.sort(key=lambda e: (e.i, e.j))
     return TeacherRun(edges, poses, bridges, time.perf_counter() - t0, kinds, frames, skipped)
 
 
-def _features_of(seq: Sequence, cfg: TeacherConfig) -> Callable[[int], FrameFeatures]:
+def features_of(seq: Sequence, cfg: TeacherConfig) -> Callable[[int], FrameFeatures]:
     """A frame's features by position, extracted as :func:`_run_chunk` extracts them."""
     orb, colour = make_orb(cfg), colour_camera_for(seq.sensor, cfg)
     cfg = dataclasses.replace(cfg, rolling_shutter_s=rolling_shutter_for(seq.sensor, cfg))

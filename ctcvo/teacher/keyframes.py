@@ -15,8 +15,10 @@ refinement, dense step, covariance and the fallbacks):
 3. ``loop`` edges (:mod:`teacher.loops`): keyframes older than :data:`REACH_S` that look
    alike (place recognition), verified geometrically.
 
-The thresholds are provisional (see bench/README.md's keyframes record); the setting is off
-by default (``TeacherConfig.keyframes``).
+The constants were swept one at a time on the validation ranges (redkitchen 0:450 and
+350:450, fr3/teddy, synthetic/lab) by ``python -m bench.keyframes`` (record
+``bench/results/keyframes.json``); only :data:`KF_TRANS_M` moved (0.10 -> 0.05 m), the others
+stayed where no value was better on every range. On by default (``TeacherConfig.keyframes``).
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from ctcvo.teacher.loops import find_loops, thumbnail
 from ctcvo.teacher.odometry import estimate_edge
 from ctcvo.teacher.record import EdgeEstimate
 
-KF_TRANS_M = 0.10  # new keyframe after this much translation (m); provisional, see module doc
+KF_TRANS_M = 0.05  # new keyframe after this much translation (m); swept on validation, see the module doc
 KF_ROT_DEG = 10.0  # ... or this much rotation (deg)
 KF_MIN_OVERLAP = 0.7  # ... or when less of its depth projects into the last keyframe
 COVISIBLE_OVERLAP = 0.4  # an earlier keyframe still sees this much of a keyframe's depth
@@ -79,6 +81,20 @@ def pick_keyframes(seq: Sequence, poses: NDArray[np.float64]) -> tuple[list[int]
             kfs.append(k)
             pts[k] = pk
     return kfs, pts
+
+
+def add_keyframe_edges(seq: Sequence, cfg: TeacherConfig, edges: list[EdgeEstimate], poses: NDArray[np.float64],
+                       features_of: Callable[[int], FrameFeatures]) -> dict[tuple[int, int], str]:
+    """Append the :func:`keyframe_edges` of a frame pair ``edges`` does not hold yet to
+    ``edges``; returns their kinds by (i, j)."""
+    have = {(e.i, e.j) for e in edges}
+    kinds: dict[tuple[int, int], str] = {}
+    for e, kind in keyframe_edges(seq, cfg, poses, features_of):
+        if (e.i, e.j) not in have:
+            have.add((e.i, e.j))
+            edges.append(e)
+            kinds[(e.i, e.j)] = kind
+    return kinds
 
 
 def keyframe_edges(seq: Sequence, cfg: TeacherConfig, poses: NDArray[np.float64],
