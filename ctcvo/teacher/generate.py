@@ -109,7 +109,8 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True, stric
     poses, bridges = chain_trajectory(frames.ids(), edges)
     kinds: dict[tuple[int, int], str] = {}
     if cfg.keyframes and len(frames) >= 2:
-        kinds = add_keyframe_edges(frames, cfg, edges, poses, features_of(frames, cfg))
+        with openmp_threads(cfg.threads):  # as the window's: the labels depend on the thread count
+            kinds = add_keyframe_edges(frames, cfg, edges, poses, features_of(frames, cfg))
         edges.sort(key=lambda e: (e.i, e.j))
     return TeacherRun(edges, poses, bridges, time.perf_counter() - t0, kinds, frames, skipped)
 
