@@ -43,6 +43,14 @@ def scene_label(spec: str) -> str:
     return f"TUM fr{tum[1]}/{tum[2]}" if tum else f"{p.parent.name}/{p.name}"
 
 
+def range_label(key: str) -> str:
+    """``seq-sample:0:450`` -> ``redkitchen 0:450``; ``rgbd_dataset_freiburg3_teddy:0:200`` -> ``fr3/teddy 0:200``."""
+    name, a, b = key.rsplit(":", 2)
+    tum = re.match(r"rgbd_dataset_freiburg(\d)_(\w+)", name)
+    name = f"fr{tum[1]}/{tum[2]}" if tum else "redkitchen" if name == "seq-sample" else name
+    return f"{name} {a}:{b}"
+
+
 def frames_label(config: dict) -> str:
     return f" {config['frames']}" if isinstance(config.get("frames"), str) else ""
 
@@ -170,18 +178,24 @@ def posegraph_table(records: dict[str, dict]) -> list[str]:
 
 
 def keyframes_table(records: dict[str, dict]) -> list[str]:
+    """One row per variant of bench.keyframes' sweep: each validation range's graph ATE / 1 s RPE
+    and gap-1 RPE (mm), the keyframe edges it added and the keyframe pass's seconds."""
     recs = select(records, "keyframes")
     if not recs:
         return missing("python -m bench.keyframes")
+    r = next(iter(recs.values()))
+    scenes = r["figures"]["scenes"]
+    variants = list(next(iter(scenes.values())))
     rows = []
-    for r in recs.values():
-        for scene, row in r["figures"]["scenes"].items():
-            for variant, x in row.items():
-                kinds = ", ".join(f"{k} {v}" for k, v in sorted(x["edges_by_kind"].items()))
-                rows.append([scene, variant, mm(x["ate_m"]), mm(x["rpe_gap1_m"], 2), mm(x["rpe_1s_m"]),
-                             mm(x["chain_ate_m"]), kinds, num(x["teacher_seconds"])])
-    head = ["validation range", "edges", "graph ATE mm", "gap-1 RPE mm", "1 s RPE mm", "chain ATE mm",
-            "edges by kind", "teacher s"]
+    for v in variants:
+        cells = [v]
+        for row in scenes.values():
+            x = row[v]
+            cells.append(f"{mm(x['ate_m'])} / {mm(x['rpe_1s_m'])} / {mm(x['rpe_gap1_m'], 2)}")
+        kf = sum(row[v]["edges_by_kind"].get(k, 0) for row in scenes.values() for k in ("keyframe", "loop"))
+        secs = sum(row[v].get("keyframe_pass_s", 0.0) for row in scenes.values())
+        rows.append(cells + [str(kf), num(secs)])
+    head = ["variant"] + [range_label(k) for k in scenes] + ["keyframe + loop edges", "pass s"]
     return markdown(head, rows) + ["", provenance(recs)]
 
 
