@@ -54,10 +54,11 @@ class TeacherConfig:
     reductions), so it is part of the outputs' fingerprint."""
     chunk_frames: int = 150
     """Frames per chunk of a worker; it shapes the edges through the chunk bounds."""
-    keyframes: bool = True
+    keyframes: bool = False
     """Also estimate edges between keyframes reaching back seconds, and verified loop edges
     (:mod:`teacher.keyframes`): on every validation range they lower the pose graph's ATE and
-    1 s RPE at the same gap-1 RPE (bench/README.md, keyframes)."""
+    1 s RPE at the same gap-1 RPE (bench/README.md, keyframes). Off by default until the code
+    that reads labels by gap (bench.teacher_noise, the window-count tests) tells the kinds apart."""
 
     covariance: str = "calibrated"
     """``calibrated``: each edge's covariance times the per-gap scale fitted against ground truth
