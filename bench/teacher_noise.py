@@ -3,8 +3,9 @@ than that teacher (the paper's claim), and how does that depend on the teacher's
 
 Two commands.
 
-``noisy`` writes a control teacher: a copy of a teacher output folder whose labels carry
-a calibrated amount of extra Gaussian noise. Each good edge (i, i+g) becomes
+``noisy`` writes a control teacher: a copy of a teacher output folder whose window labels
+(gaps 1..K; keyframe and loop edges are left out) carry a calibrated amount of extra
+Gaussian noise. Each good edge (i, i+g) becomes
 ``T_i_j exp(n)``, ``n ~ N(0, diag(s^2 sigma_g^2))`` in the project tangent order (v, w),
 where ``sigma_g`` (6,) is the RMS error of the teacher's own gap-g labels per component
 against the ground truth on ``--calib-frames`` (so the added noise has the shape of the
@@ -57,7 +58,7 @@ import numpy as np
 from bench import record
 from ctcvo.data import geometry as geo
 from ctcvo.data.errors import VOError
-from ctcvo.data.formats import Edge, Trajectory, read_g2o, read_tum, write_g2o, write_tum
+from ctcvo.data.formats import Edge, Trajectory, read_edges_csv, read_g2o, read_tum, write_edges_csv, write_g2o, write_tum
 from ctcvo.data.io import ensure_dir, git_revision, write_json, write_text
 from ctcvo.data.metrics import BASELINES, baseline_reports, se3_l2_errors, trajectory_report
 from ctcvo.data.scenes import open_scene
@@ -110,11 +111,24 @@ def component_rms(edges: list[Edge], ids: np.ndarray, gt: np.ndarray, gap: int) 
 # ----------------------------------------------------------------------------------
 # noisy control teacher
 # ----------------------------------------------------------------------------------
+def window_edges(teacher: Path) -> tuple[list[Edge], list[dict] | None]:
+    """The good window edges (gaps 1..K, edges.csv kind ``window``) of ``teacher``'s g2o and
+    their edges.csv rows (``None`` without an edges.csv). Keyframe and loop edges are left
+    out of the noisy copy: their gaps have no per-gap error shape, and the learner reads
+    gaps 1..K only."""
+    edges, _ = read_g2o(teacher / "edges.g2o")
+    if not (teacher / "edges.csv").is_file():
+        return edges, None
+    rows = [r for r in read_edges_csv(teacher / "edges.csv") if r.get("kind", "window") == "window"]
+    keep = {(r["i"], r["j"]) for r in rows}
+    return [e for e in edges if (e.i, e.j) in keep], rows
+
+
 def add_label_noise(teacher: Path, scene: str, calib_frames: str | None, target: float, out: Path,
                     seed: int = 0) -> dict:
     """Write ``out``: ``teacher``'s folder with calibrated extra label noise (see the module
     docstring). Returns the ``label_noise`` block."""
-    edges, _ = read_g2o(teacher / "edges.g2o")
+    edges, rows = window_edges(teacher)
     ids, gt = groundtruth(scene, calib_frames)
     gaps = sorted({e.j - e.i for e in edges})
     shape = {g: component_rms(edges, ids, gt.poses, g) for g in gaps}
@@ -158,9 +172,10 @@ def add_label_noise(teacher: Path, scene: str, calib_frames: str | None, target:
     ensure_dir(out)
     write_g2o(out / "edges.g2o", new, vertices=dict(zip(vert_ids, traj.poses)))
     write_tum(out / "trajectory.tum", traj)
-    for name in ("edges.csv", "groundtruth.tum"):
-        if (teacher / name).is_file():
-            shutil.copyfile(teacher / name, out / name)
+    if rows is not None:
+        write_edges_csv(out / "edges.csv", rows)
+    if (teacher / "groundtruth.tum").is_file():
+        shutil.copyfile(teacher / "groundtruth.tum", out / "groundtruth.tum")
     cfg = json.loads((teacher / "config.json").read_text()) if (teacher / "config.json").is_file() else {}
     write_json(out / "config.json", {**cfg, "label_noise": info, "git_revision": git_revision()})
     rep = json.loads((teacher / "report.json").read_text())

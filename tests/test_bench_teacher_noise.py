@@ -10,7 +10,7 @@ import pytest
 import bench.teacher_noise as tn  # noqa: E402
 from ctcvo.data import geometry as geo
 from ctcvo.data.errors import VOError
-from ctcvo.data.formats import read_g2o, read_tum
+from ctcvo.data.formats import read_edges_csv, read_g2o, read_tum
 from ctcvo.teacher import cli
 
 
@@ -25,7 +25,8 @@ def tiny_teacher(tmp_path_factory):
 @pytest.mark.slow
 def test_noisy_teacher_hits_its_target_and_widens_the_covariances(tiny_teacher, tmp_path):
     ids, gt = tn.groundtruth("synthetic/tiny", "0:12")
-    src, _ = read_g2o(tiny_teacher / "edges.g2o")
+    src, _ = tn.window_edges(tiny_teacher)  # keyframe edges are left out of the noisy copy
+    assert 0 < len(src) < len(read_g2o(tiny_teacher / "edges.g2o")[0]) and all(e.j - e.i <= 3 for e in src)
     base = tn.label_errors(src, ids, gt.poses)["se3_l2_mean"]
     target = 2.5 * base
     info = tn.add_label_noise(tiny_teacher, "synthetic/tiny", "0:12", target, tmp_path / "noisy", seed=3)
@@ -34,6 +35,8 @@ def test_noisy_teacher_hits_its_target_and_widens_the_covariances(tiny_teacher, 
     assert tn.label_errors(new, ids, gt.poses)["se3_l2_mean"] == pytest.approx(target, rel=1e-6)
     assert info["achieved_se3_l2_gap1"] == pytest.approx(target, rel=1e-6) and info["scale"] > 0
     assert [(e.i, e.j) for e in new] == [(e.i, e.j) for e in src]
+    assert [(r["i"], r["j"]) for r in read_edges_csv(tmp_path / "noisy" / "edges.csv")
+            if r["status"] == "ok"] == [(e.i, e.j) for e in src]
     for a, b in zip(src, new):
         sig = np.array(info["sigma_by_gap"][str(b.j - b.i)])
         np.testing.assert_allclose(b.cov, a.cov + np.diag(sig ** 2), rtol=1e-6, atol=1e-12)

@@ -165,7 +165,7 @@ def test_worker_processes_give_the_same_edges(office_clean):
     one = run_sequence(office_clean, dataclasses.replace(cfg, workers=1), progress=False)
     two = run_sequence(office_clean, dataclasses.replace(cfg, workers=2, chunk_frames=4), progress=False)
     assert [(e.i, e.j, e.status) for e in one.edges] == [(e.i, e.j, e.status) for e in two.edges]
-    assert len(one.edges) == 11 + 10
+    assert one.kinds == two.kinds and _window_count(one) == 11 + 10
     for a, b in zip(one.edges, two.edges):
         assert relative_pose_error(a.T_i_j, b.T_i_j)[0] < 1.5e-3
 
@@ -383,7 +383,15 @@ def test_teacher_on_real_redkitchen_within_bound(redkitchen):
     assert all(e.ok for e in run.edges if e.j - e.i == 1)
     assert rep["rpe_trans_rmse_m"] < 5e-3, rep
     assert rep["rpe_rot_rmse_deg"] < 0.2, rep
-    assert len(run.edges) == 119 + 118 + 117
+    assert _window_count(run) == 119 + 118 + 117
+    assert "keyframe" in run.kinds.values()  # edges reaching back past the window's 3 frames
+
+
+def _window_count(run) -> int:
+    """Edges of the window pass (gaps 1..K) of a TeacherRun, or of a report.json dict."""
+    if isinstance(run, dict):
+        return run["edges_by_kind"].get("window", 0) + run["failed_edges_by_kind"].get("window", 0)
+    return sum(run.kinds.get((e.i, e.j), "window") == "window" for e in run.edges)
 
 
 def _edge(i, j, T, ok=True):
@@ -409,15 +417,16 @@ def test_cli_generate_writes_every_output(tmp_path):
     rep = json.loads((out / "report.json").read_text())
     for key in ("frames", "edges", "failed_edges", "fps", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "ate_rmse_m", "se3_l2_mean"):
         assert key in rep
-    assert rep["frames"] == 12 and rep["edges"] + rep["failed_edges"] == 11 + 10 + 9
+    assert rep["frames"] == 12 and _window_count(rep) == 11 + 10 + 9
     rows = read_edges_csv(out / "edges.csv")
-    assert len(rows) == 30 and {r["status"] for r in rows} <= {"ok", "few_matches", "few_inliers", "low_inlier_ratio",
+    assert len(rows) == rep["edges"] + rep["failed_edges"] and sum(r["kind"] == "window" for r in rows) == 30
+    assert {r["status"] for r in rows} <= {"ok", "few_matches", "few_inliers", "low_inlier_ratio",
                                                                   "high_rmse", "degenerate", "implausible_motion"}
     # rgbd: here edges 4-6 and 4-7, whose keypoints agreed on a motion 20-30 mm off and whose
     # depth stage moved too far from it (``dense_disagrees``; 4.6 and 5.2 mm off with it)
     paths = {"tracks", "guided", "exhaustive", "wide", "crosscheck", "depth", "rgbd", "dense"}
     assert all((r["path"] in paths) == (r["status"] == "ok") for r in rows)
-    assert sum(rep["edge_paths"].values()) == 30 and rep["constant_velocity_bridges"] == 0
+    assert sum(rep["edge_paths"].values()) == len(rows) and rep["constant_velocity_bridges"] == 0
     edges, vertices = read_g2o(out / "edges.g2o")
     assert len(edges) == rep["edges"] and sorted(vertices) == list(range(12))
     graph, initial = gtsam.readG2o(str(out / "edges.g2o"), True)
@@ -452,7 +461,7 @@ def test_cli_rerun_with_other_inputs_needs_overwrite(tmp_path, capsys):
     assert "--overwrite" in err and (out / "edges.g2o").read_bytes() == before
     assert cli.main(args + ["--frames", "0:6", "--gaps", "1", "--overwrite"]) == 0
     rep = json.loads((out / "report.json").read_text())
-    assert rep["frames"] == 6 and rep["edges"] + rep["failed_edges"] == 5
+    assert rep["frames"] == 6 and _window_count(rep) == 5
     # outputs of an older version (no fingerprint) are not taken for this run's either
     (out / "fingerprint.json").unlink()
     assert cli.main(args + ["--frames", "0:6", "--gaps", "1"]) == 1
@@ -555,7 +564,7 @@ def test_cli_tiny_preset(tmp_path):
     out = tmp_path / "tiny"
     assert cli.main(["generate", "--scene", "synthetic/tiny", "--out", str(out), "--preset", "tiny", "--frames", "0:6"]) == 0
     rep = json.loads((out / "report.json").read_text())
-    assert rep["frames"] == 6 and rep["edges"] + rep["failed_edges"] == 5 + 4  # TINY has gaps=2
+    assert rep["frames"] == 6 and _window_count(rep) == 5 + 4  # TINY has gaps=2
     assert json.loads((out / "config.json").read_text())["teacher"]["n_features"] == 800
 
 

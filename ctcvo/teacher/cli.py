@@ -37,7 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="worker processes (default: the preset's, 2)")
     g.add_argument("--keyframes", action=argparse.BooleanOptionalAction, default=None,
                    help="also estimate keyframe edges reaching back seconds and verified loop edges "
-                        "(default: the preset's, off)")
+                        "(default: the preset's, on)")
     g.add_argument("--covariance", default="calibrated", choices=["calibrated", "raw"],
                    help="calibrated: covariances scaled per gap to the sensor's real errors (fitted on validation "
                         "data); raw: the estimator's own, far too small on real data")

@@ -54,11 +54,11 @@ class TeacherConfig:
     reductions), so it is part of the outputs' fingerprint."""
     chunk_frames: int = 150
     """Frames per chunk of a worker; it shapes the edges through the chunk bounds."""
-    keyframes: bool = False
+    keyframes: bool = True
     """Also estimate edges between keyframes reaching back seconds, and verified loop edges
     (:mod:`teacher.keyframes`): on every validation range they lower the pose graph's ATE and
-    1 s RPE at the same gap-1 RPE (bench/README.md, keyframes). Off by default until the code
-    that reads labels by gap (bench.teacher_noise, the window-count tests) tells the kinds apart."""
+    1 s RPE at the same gap-1 RPE (bench/README.md, keyframes). Code that reads labels by gap
+    tells the kinds apart by edges.csv's ``kind``."""
 
     covariance: str = "calibrated"
     """``calibrated``: each edge's covariance times the per-gap scale fitted against ground truth

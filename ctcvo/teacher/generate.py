@@ -407,6 +407,7 @@ def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
         "failed_edges": int(sum(v for s, v in status.items() if s != "ok")),
         "failed_gap1_edges": len(gap1_failed),
         "failures_by_reason": {s: int(v) for s, v in status.items() if s != "ok"},
+        **_by_kind(run),
         "dense_rejected_edges": sum(1 for e in run.edges if e.diag.dense is not None and not e.diag.dense.accepted),
         "stale_stream_edges": sum(1 for e in run.edges if e.diag.dense is not None and e.diag.dense.stale_stream),
         "bridges": run.bridges,
@@ -427,6 +428,13 @@ def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
     return rep
 
 
+def _by_kind(run: TeacherRun) -> dict[str, dict[str, int]]:
+    """``edges_by_kind`` and ``failed_edges_by_kind``: counts per edges.csv ``kind``."""
+    kinds = [(run.kinds.get((e.i, e.j), "window"), e.ok) for e in run.edges]
+    return {"edges_by_kind": dict(sorted(Counter(k for k, ok in kinds if ok).items())),
+            "failed_edges_by_kind": dict(sorted(Counter(k for k, ok in kinds if not ok).items()))}
+
+
 def _evaluation(seq: Sequence, frames: Sequence, run: TeacherRun, gt: NDArray[np.float64]) -> dict:
     """The report's figures against ground truth, over the frames that have a pose and a
     finite ground-truth pose (RPE pairs consecutive ones of those; label errors by the gap
@@ -439,9 +447,21 @@ def _evaluation(seq: Sequence, frames: Sequence, run: TeacherRun, gt: NDArray[np
     ok = set(frames.ids()[has].tolist())
     full = np.full((len(seq), 4, 4), np.nan)
     full[np.searchsorted(seq.ids(), frames.ids()[has])] = gt[has]
-    out["label_error_by_gap"] = label_errors_by_gap(
-        [(e.i, e.j, e.T_i_j) for e in run.edges if e.ok and e.i in ok and e.j in ok], full, seq.ids())
+    good = [e for e in run.edges if e.ok and e.i in ok and e.j in ok]
+    by_kind: dict[str, list] = {}
+    for e in good:
+        by_kind.setdefault(run.kinds.get((e.i, e.j), "window"), []).append((e.i, e.j, e.T_i_j))
+    out["label_error_by_gap"] = label_errors_by_gap(by_kind.pop("window", []), full, seq.ids())
+    out["label_error_by_kind"] = {k: _pooled(label_errors_by_gap(v, full, seq.ids())) for k, v in sorted(by_kind.items())}
     return out
+
+
+def _pooled(by_gap: dict[str, dict[str, float]]) -> dict[str, float]:
+    """One ``{edges, trans_rmse_m, rot_rmse_deg}`` over every gap of ``by_gap``."""
+    n = np.array([v["edges"] for v in by_gap.values()])
+    t, r = (np.array([v[k] for v in by_gap.values()]) for k in ("trans_rmse_m", "rot_rmse_deg"))
+    return {"edges": int(n.sum()), "trans_rmse_m": float(np.sqrt(np.sum(n * t ** 2) / n.sum())),
+            "rot_rmse_deg": float(np.sqrt(np.sum(n * r ** 2) / n.sum()))}
 
 
 def _gap(seq: Sequence, e: EdgeEstimate) -> int:

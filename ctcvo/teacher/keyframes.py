@@ -18,7 +18,7 @@ refinement, dense step, covariance and the fallbacks):
 The constants were swept one at a time on the validation ranges (redkitchen 0:450 and
 350:450, fr3/teddy, synthetic/lab) by ``python -m bench.keyframes`` (record
 ``bench/results/keyframes.json``); only :data:`KF_TRANS_M` moved (0.10 -> 0.05 m), the others
-stayed where no value was better on every range. Off by default (``TeacherConfig.keyframes``).
+stayed where no value was better on every range. On by default (``TeacherConfig.keyframes``).
 """
 
 from __future__ import annotations
