@@ -266,25 +266,26 @@ def realism_table(records: dict[str, dict]) -> list[str]:
 
 
 def ablation_table(records: dict[str, dict]) -> list[str]:
+    """Per record: the teacher and baselines, then each variant - with several seeds their
+    mean +- std (the record keeps every seed's row)."""
     recs = select(records, "ablation")
     if not recs:
         return missing("python -m bench.ablation --scene S --frames 0:350 --val-scene S --val-frames 350:450 "
                        "--test-frames 450:600 --teacher T --teacher-eval T --name ablation-redkitchen")
-    rows = [[name, r.get("label", v), num(r["se3_l2_mean"], 5), num(r.get("se3_l2_x_teacher"), 2),
-             num(r.get("vs_teacher", {}).get("se3_l2_mean"), 5), mm(r["rpe_trans_rmse_m"], 2),
-             num(r["rpe_rot_rmse_deg"], 3), mm(r["ate_rmse_m"])]
-            for name, rec in recs.items() for v, r in rec["figures"]["rows"].items()]
+    keys = (("se3_l2_mean", lambda x: num(x, 5)), ("se3_l2_x_teacher", lambda x: num(x, 2)),
+            ("rpe_trans_rmse_m", lambda x: mm(x, 2)), ("rpe_rot_rmse_deg", lambda x: num(x, 3)),
+            ("ate_rmse_m", mm))
+    rows = []
     for name, rec in recs.items():
-        for v, s in rec["figures"].get("seeds", {}).items():
-            if len(s["seeds"]) > 1:
-                cell = {k: f"{num(x['mean'], d)} +- {num(x['std'], d)}" for k, d in
-                        (("se3_l2_mean", 5), ("se3_l2_x_teacher", 2), ("rpe_rot_rmse_deg", 3)) if (x := s.get(k))}
-                t = s["rpe_trans_rmse_m"]
-                rows.append([name, f"{v}, mean +- std of {len(s['seeds'])} seeds", cell["se3_l2_mean"],
-                             cell.get("se3_l2_x_teacher", "-"), "-",
-                             f"{mm(t['mean'], 2)} +- {mm(t['std'], 2)}", cell["rpe_rot_rmse_deg"], "-"])
-    head = ["record", "row", "se(3) L2", "x teacher", "se(3) L2 vs teacher's poses", "gap-1 RPE mm",
-            "gap-1 RPE deg", "ATE mm"]
+        seeds = {v: s for v, s in rec["figures"].get("seeds", {}).items() if len(s["seeds"]) > 1}
+        for key, r in rec["figures"]["rows"].items():
+            if r.get("variant") in seeds:
+                continue
+            rows.append([name, r.get("label", key)] + [show(r.get(k)) for k, show in keys])
+        for v, s in seeds.items():
+            rows.append([name, f"{v} ({len(s['seeds'])} seeds)"] +
+                        [f"{show(x['mean'])} +- {show(x['std'])}" if (x := s.get(k)) else "-" for k, show in keys])
+    head = ["record", "row", "se(3) L2", "x teacher", "gap-1 RPE mm", "gap-1 RPE deg", "ATE mm"]
     return markdown(head, rows) + ["", provenance(recs)]
 
 
