@@ -275,13 +275,18 @@ def ablation_table(records: dict[str, dict]) -> list[str]:
     keys = (("se3_l2_mean", lambda x: num(x, 5)), ("se3_l2_x_teacher", lambda x: num(x, 2)),
             ("rpe_trans_rmse_m", lambda x: mm(x, 2)), ("rpe_rot_rmse_deg", lambda x: num(x, 3)),
             ("ate_rmse_m", mm))
-    rows = []
+    rows: list[list[str]] = []
     for name, rec in recs.items():
         seeds = {v: s for v, s in rec["figures"].get("seeds", {}).items() if len(s["seeds"]) > 1}
         for key, r in rec["figures"]["rows"].items():
             if r.get("variant") in seeds:
                 continue
-            rows.append([name, r.get("label", key)] + [show(r.get(k)) for k, show in keys])
+            cells = [r.get("label", key)] + [show(r.get(k)) for k, show in keys]
+            same = next((x for x in rows if "variant" not in r and x[1:] == cells), None)
+            if same is not None:  # a reference row another record of the same test frames shows
+                same[0] += f", {name}"
+            else:
+                rows.append([name] + cells)
         for v, s in seeds.items():
             rows.append([name, f"{v} ({len(s['seeds'])} seeds)"] +
                         [f"{show(x['mean'])} +- {show(x['std'])}" if (x := s.get(k)) else "-" for k, show in keys])

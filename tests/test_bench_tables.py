@@ -73,3 +73,7 @@ def test_ablation_table_ratio_to_the_teacher_and_seed_means():
     one = {"ablation-y": {**rec["ablation-x"], "figures": {"rows": {"ctc": rows["ctc seed 0"]}, "seeds": {
         "ctc": {"seeds": [0], "se3_l2_mean": {"mean": 0.006, "std": 0.0, "n": 1}}}}}}
     assert "| ablation-y | ctc | 0.00600 | 0.75 | 6.00 | 0.300 | 50.0 |" in tables.ablation_table(one)
+    # a reference row two records share (the same test frames) is shown once, naming both
+    both = tables.ablation_table({**rec, "ablation-z": rec["ablation-x"]})
+    assert "| ablation-x, ablation-z | teacher | 0.00800 | 1.00 | 6.00 | 0.300 | 50.0 |" in both
+    assert sum(x.startswith("| ablation-z | ctc (2 seeds)") for x in both) == 1
