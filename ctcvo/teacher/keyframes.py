@@ -24,6 +24,7 @@ stayed where no value was better on every range. On by default (``TeacherConfig.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,7 +33,7 @@ from ctcvo.data import geometry as geo
 from ctcvo.data.sequence import Intrinsics, Sequence
 from ctcvo.teacher.config import TeacherConfig
 from ctcvo.teacher.features import FrameFeatures
-from ctcvo.teacher.loops import find_loops, thumbnail
+from ctcvo.teacher.loops import loop_candidates, thumbnail, verify
 from ctcvo.teacher.odometry import estimate_edge
 from ctcvo.teacher.record import EdgeEstimate
 
@@ -67,17 +68,113 @@ def overlap(pts_a: NDArray[np.float64], T_b_a: NDArray[np.float64], intr: Intrin
     return float(np.count_nonzero(inside)) / len(pts_a)
 
 
+def is_new_keyframe(T_last_k: NDArray[np.float64], pts_k: NDArray[np.float64], intr: Intrinsics) -> bool:
+    """Whether frame k, at ``T_last_k`` from the last keyframe, with depth points ``pts_k``
+    (:func:`depth_points`), is a new keyframe (the criteria of the module's docstring)."""
+    t, r = float(np.linalg.norm(T_last_k[:3, 3])), geo.rotation_angle_deg(T_last_k)
+    return t > KF_TRANS_M or r > KF_ROT_DEG or overlap(pts_k, T_last_k, intr) < KF_MIN_OVERLAP
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    """A keyframe as :class:`KeyframeHistory` keeps it."""
+
+    pos: int
+    """Its position among the frames (taken, online)."""
+    frame_id: int
+    time: float
+    T_world_cam: NDArray[np.float64]
+    """The pose estimate it was picked with (batch: the chained pose; online: its causal estimate)."""
+    pts: NDArray[np.float64]
+    """(M, 3) :func:`depth_points`."""
+    thumb: NDArray[np.float64]
+    """:func:`teacher.loops.thumbnail` of its colour image."""
+
+
+@dataclass(frozen=True)
+class KeyframeWork:
+    """The edges a new keyframe ``b`` asks for, to be estimated (:func:`estimate_work`)."""
+
+    b: Keyframe
+    covisible: list[Keyframe]
+    """``keyframe`` edges: earlier keyframes within :data:`REACH_S`, beyond the window's gaps,
+    that see at least :data:`COVISIBLE_OVERLAP` of b's depth; newest first, at most
+    :data:`MAX_COVISIBLE`."""
+    loops: list[Keyframe]
+    """``loop`` edges: keyframes older than :data:`REACH_S` that look like b
+    (:func:`teacher.loops.loop_candidates`), best first."""
+
+
+class KeyframeSelector:
+    """Frame by frame, which frames are keyframes: frame 0, then each frame that
+    :func:`is_new_keyframe` against the last keyframe. Holds only the last keyframe, so it
+    can decide on a frame's critical path while a :class:`KeyframeHistory` elsewhere (e.g.
+    in a helper thread) works on the keyframes it picked."""
+
+    def __init__(self, intr: Intrinsics) -> None:
+        self.intr = intr
+        self.last: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+
+    def offer(self, T_world_cam: NDArray[np.float64], pts: NDArray[np.float64]) -> bool:
+        """Whether the next frame (its pose estimate, its :func:`depth_points`) is a keyframe;
+        if so it becomes the last one."""
+        if self.last is not None and not is_new_keyframe(geo.relative_pose(self.last[0], T_world_cam), pts,
+                                                         self.intr):
+            return False
+        self.last = (T_world_cam, pts)
+        return True
+
+
+class KeyframeHistory:
+    """The keyframes so far, and for each new one the work that gives its edges
+    (:class:`KeyframeWork`): covisible keyframes by the projected overlap of the depth under
+    the keyframes' pose estimates, loop candidates by place recognition. ``gaps``: the
+    window's (keyframe edges reach beyond it)."""
+
+    def __init__(self, intr: Intrinsics, gaps: int) -> None:
+        self.intr, self.gaps = intr, gaps
+        self.keyframes: list[Keyframe] = []
+
+    def add(self, b: Keyframe) -> KeyframeWork:
+        """Record keyframe ``b`` (after every earlier one) and return its work."""
+        covisible = []
+        for a in reversed(self.keyframes):
+            if len(covisible) == MAX_COVISIBLE:
+                break
+            if (b.pos - a.pos > self.gaps and b.time - a.time <= REACH_S
+                    and overlap(b.pts, geo.relative_pose(a.T_world_cam, b.T_world_cam), self.intr) >= COVISIBLE_OVERLAP):
+                covisible.append(a)
+        old = {a.pos: a for a in self.keyframes if b.time - a.time > REACH_S}
+        thumbs = {p: a.thumb for p, a in old.items()} | {b.pos: b.thumb}
+        loops = [old[p] for p in loop_candidates(b.pos, list(old), thumbs)]
+        self.keyframes.append(b)
+        return KeyframeWork(b, covisible, loops)
+
+
+def estimate_work(work: KeyframeWork, features_of: Callable[[int], FrameFeatures], intr: Intrinsics,
+                  cfg: TeacherConfig) -> list[tuple[EdgeEstimate, str]]:
+    """The edges of a :class:`KeyframeWork` by :func:`teacher.odometry.estimate_edge`
+    (``features_of(pos)``: a keyframe's features, extracted as the window extracts them):
+    ``keyframe`` edges predicted by the pose estimates, ``loop`` edges verified against them
+    (:func:`teacher.loops.verify`). Returns (edge, kind) pairs; failed edges are kept."""
+    b, out = work.b, []
+    for a in work.covisible:
+        T_pred = geo.relative_pose(a.T_world_cam, b.T_world_cam)
+        e = estimate_edge(a.frame_id, b.frame_id, features_of(a.pos), features_of(b.pos), intr, cfg,
+                          b.time - a.time, T_pred=T_pred)
+        out.append((e, "keyframe"))
+    for a in work.loops:
+        e = estimate_edge(a.frame_id, b.frame_id, features_of(a.pos), features_of(b.pos), intr, cfg, b.time - a.time)
+        out.append((verify(e, geo.relative_pose(a.T_world_cam, b.T_world_cam)), "loop"))
+    return out
+
+
 def pick_keyframes(seq: Sequence, poses: NDArray[np.float64]) -> tuple[list[int], dict[int, NDArray]]:
     """Positions of the keyframes, and their depth points (see the module's docstring)."""
-    intr = seq.intrinsics
-    kfs, pts = [0], {0: depth_points(seq.depth(0), intr)}
-    for k in range(1, len(seq)):
-        last = kfs[-1]
-        T = geo.relative_pose(poses[last], poses[k])  # T_last_k
-        t, r = float(np.linalg.norm(T[:3, 3])), geo.rotation_angle_deg(T)
-        moved = t > KF_TRANS_M or r > KF_ROT_DEG
-        pk = depth_points(seq.depth(k), intr)
-        if moved or overlap(pk, T, intr) < KF_MIN_OVERLAP:
+    sel, kfs, pts = KeyframeSelector(seq.intrinsics), [], {}
+    for k in range(len(seq)):
+        pk = depth_points(seq.depth(k), seq.intrinsics)
+        if sel.offer(poses[k], pk):
             kfs.append(k)
             pts[k] = pk
     return kfs, pts
@@ -101,9 +198,11 @@ def keyframe_edges(seq: Sequence, cfg: TeacherConfig, poses: NDArray[np.float64]
                    features_of: Callable[[int], FrameFeatures]) -> list[tuple[EdgeEstimate, str]]:
     """The ``keyframe`` and ``loop`` edges of a sequence whose window edges chained to
     ``poses`` (T_world_cam by position); ``features_of(k)``: a frame's features (extracted
-    as the window extracts them). Returns (edge, kind) pairs; failed edges are kept."""
+    as the window extracts them). The frames are fed one by one to the incremental API
+    (:class:`KeyframeSelector`, :class:`KeyframeHistory`, :func:`estimate_work`), as
+    ``ctcvo online`` feeds them. Returns (edge, kind) pairs; failed edges are kept."""
     intr, ids, times = seq.intrinsics, seq.ids(), seq.times()
-    kfs, pts = pick_keyframes(seq, poses)
+    sel, history = KeyframeSelector(intr), KeyframeHistory(intr, cfg.gaps)
     feats: dict[int, FrameFeatures] = {}
 
     def f(k: int) -> FrameFeatures:
@@ -112,18 +211,9 @@ def keyframe_edges(seq: Sequence, cfg: TeacherConfig, poses: NDArray[np.float64]
         return feats[k]
 
     out: list[tuple[EdgeEstimate, str]] = []
-    thumbs: dict[int, NDArray] = {}
-    for n, b in enumerate(kfs):
-        thumbs[b] = thumbnail(seq.rgb(b))
-        near = [a for a in reversed(kfs[:n]) if b - a > cfg.gaps and times[b] - times[a] <= REACH_S]
-        covisible = [a for a in near
-                     if overlap(pts[b], geo.relative_pose(poses[a], poses[b]), intr) >= COVISIBLE_OVERLAP]
-        for a in covisible[:MAX_COVISIBLE]:
-            T_pred = geo.relative_pose(poses[a], poses[b])
-            e = estimate_edge(int(ids[a]), int(ids[b]), f(a), f(b), intr, cfg,
-                              float(times[b] - times[a]), T_pred=T_pred)
-            out.append((e, "keyframe"))
-        old = [a for a in kfs[:n] if times[b] - times[a] > REACH_S]
-        for e in find_loops(b, old, thumbs, poses, seq, cfg, f):
-            out.append((e, "loop"))
+    for k in range(len(seq)):
+        pts = depth_points(seq.depth(k), intr)
+        if sel.offer(poses[k], pts):
+            kf = Keyframe(k, int(ids[k]), float(times[k]), poses[k], pts, thumbnail(seq.rgb(k)))
+            out += estimate_work(history.add(kf), f, intr, cfg)
     return out

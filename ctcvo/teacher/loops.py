@@ -3,7 +3,8 @@
 Place recognition is a cheap global descriptor: the keyframe's grey image shrunk to
 :data:`_THUMB` pixels, blurred, zero-mean and unit-norm (as PTAM's small blurry image); two
 keyframes look alike when the descriptors' correlation is at least :data:`LOOP_SCORE`. The
-best :data:`LOOP_CANDIDATES` are verified: the edge estimator
+best :data:`LOOP_CANDIDATES` (:func:`loop_candidates`) are verified (:func:`verify`, by
+:func:`teacher.keyframes.estimate_work`): the edge estimator
 (:func:`teacher.odometry.estimate_edge`, exhaustive matching, PnP, refinement, dense step)
 must pass with at least :data:`LOOP_MIN_INLIERS` PnP inliers, and the result must agree with
 the chained poses within :data:`LOOP_GATE_M` / :data:`LOOP_GATE_DEG` (the drift a few
@@ -14,17 +15,12 @@ but would bend the trajectory by more is rejected (status ``loop_rejected``).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from ctcvo.data import geometry as geo
-from ctcvo.data.sequence import Sequence
-from ctcvo.teacher.config import TeacherConfig
-from ctcvo.teacher.features import FrameFeatures
-from ctcvo.teacher.odometry import estimate_edge
 from ctcvo.teacher.record import EdgeEstimate
 
 _THUMB = (40, 30)  # width, height of the descriptor image
@@ -56,21 +52,16 @@ def verify(e: EdgeEstimate, T_chain: NDArray[np.float64]) -> EdgeEstimate:
     return dataclasses.replace(e, status="loop_rejected")
 
 
-def find_loops(b: int, old: list[int], thumbs: dict[int, NDArray], poses: NDArray[np.float64],
-               seq: Sequence, cfg: TeacherConfig,
-               features_of: Callable[[int], FrameFeatures]) -> list[EdgeEstimate]:
-    """Verified (and rejected) loop edges from keyframes ``old`` (positions) to keyframe ``b``."""
+def loop_candidates(b: int, old: list[int], thumbs: dict[int, NDArray]) -> list[int]:
+    """Place recognition: of the keyframes ``old`` (positions), the best
+    :data:`LOOP_CANDIDATES` whose descriptor (``thumbs``) correlates with keyframe ``b``'s by
+    at least :data:`LOOP_SCORE`, best first."""
     if not old:
         return []
     scores = np.array([float(thumbs[a] @ thumbs[b]) for a in old])
-    order = np.argsort(-scores)[:LOOP_CANDIDATES]
-    ids, times = seq.ids(), seq.times()
     out = []
-    for o in order:
+    for o in np.argsort(-scores)[:LOOP_CANDIDATES]:
         if scores[o] < LOOP_SCORE:
             break
-        a = old[o]
-        e = estimate_edge(int(ids[a]), int(ids[b]), features_of(a), features_of(b), seq.intrinsics, cfg,
-                          float(times[b] - times[a]))
-        out.append(verify(e, geo.relative_pose(poses[a], poses[b])))
+        out.append(old[o])
     return out
