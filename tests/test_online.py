@@ -9,20 +9,24 @@ import os
 import shutil
 import threading
 import time
+from collections import Counter
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from ctcvo.data.formats import read_g2o, read_tum
+from ctcvo.data.formats import read_edges_csv, read_g2o, read_tum
 from ctcvo.data.live import FollowSevenScenes, FollowTum, FrameSource
+from ctcvo.data.open3d_import import openmp_threads
 from ctcvo.data.scenes import open_scene
-from ctcvo.pipeline import online, online_cli, online_loop, online_outputs
+from ctcvo.pipeline import online, online_cli, online_keyframes, online_loop, online_outputs
 from ctcvo.teacher.config import TINY
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-TCFG = TINY  # gaps 2, 800 features: the tiny scene in seconds
+TCFG = TINY  # gaps 2, 800 features: the tiny scene in seconds; keyframe and loop edges on (the default)
+TCFG_WINDOW = replace(TCFG, keyframes=False)  # the window's edges only
 
 
 @pytest.fixture(scope="module")
@@ -32,8 +36,21 @@ def batch(tmp_path_factory) -> Path:
     from ctcvo.teacher.generate import generate
 
     root = tmp_path_factory.mktemp("batch")
-    generate("synthetic/tiny", root / "teacher", config=TCFG.__class__(**{**TCFG.to_dict(), "workers": 1, "keyframes": False}),
-             progress=False)
+    generate("synthetic/tiny", root / "teacher", config=replace(TCFG_WINDOW, workers=1), progress=False)
+    optimize(teacher=root / "teacher", out=root / "posegraph")
+    return root
+
+
+@pytest.fixture(scope="module")
+def batch_kf(tmp_path_factory) -> Path:
+    """The same with the keyframe pass (``teacher generate``'s default), its Open3D kernels on
+    the teacher's thread count (as online; without ``OMP_NUM_THREADS`` they take every core)."""
+    from ctcvo.posegraph.optimize import optimize
+    from ctcvo.teacher.generate import generate
+
+    root = tmp_path_factory.mktemp("batch_kf")
+    with openmp_threads(TCFG.threads):
+        generate("synthetic/tiny", root / "teacher", config=replace(TCFG, workers=1), progress=False)
     optimize(teacher=root / "teacher", out=root / "posegraph")
     return root
 
@@ -41,7 +58,76 @@ def batch(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def online_run(tmp_path_factory) -> online.OnlineResult:
     out = tmp_path_factory.mktemp("online")
+    return online.run(online.open_source("synthetic/tiny"), out, TCFG_WINDOW, progress=False)
+
+
+@pytest.fixture(scope="module")
+def online_kf(tmp_path_factory) -> online.OnlineResult:
+    out = tmp_path_factory.mktemp("online_kf")
     return online.run(online.open_source("synthetic/tiny"), out, TCFG, progress=False)
+
+
+def _teacher_file(root: Path, name: str) -> str:
+    return next((root / "teacher").rglob(name)).read_text()
+
+
+def test_online_keyframe_edges_equal_batch(batch, batch_kf, online_kf):
+    """With keyframes on, online estimates teacher generate's keyframe edges (in a helper
+    thread, on the chained window poses): its edges.g2o and edges.csv are the batch
+    teacher's, byte for byte; its window edges are those of a run without keyframes;
+    report.json counts the edges by kind; no keyframe's work was dropped."""
+    assert online_kf.frames == 20 and not online_kf.interrupted
+    assert _teacher_file(online_kf.out, "edges.g2o") == _teacher_file(batch_kf, "edges.g2o")
+    assert _teacher_file(online_kf.out, "edges.csv") == _teacher_file(batch_kf, "edges.csv")
+    rows = read_edges_csv(online_kf.out / "teacher" / "edges.csv")
+    kinds = Counter(r["kind"] for r in rows if r["status"] == "ok")
+    assert kinds["keyframe"] > 0 and all(r["j"] - r["i"] > TCFG.gaps for r in rows if r["kind"] != "window")
+    window = [line for line in _teacher_file(online_kf.out, "edges.csv").splitlines() if ",window," in line]
+    assert window == _teacher_file(batch, "edges.csv").splitlines()[1:]  # the text: NaN cells are equal
+    rep = online_kf.report
+    assert rep["teacher_edges_by_kind"] == {k: kinds.get(k, 0) for k in ("window", "keyframe", "loop")}
+    assert rep["teacher_edges"] == sum(kinds.values()) and rep["teacher"]["keyframes"] is True
+    assert rep["keyframes"]["dropped"] == 0 and rep["keyframes"]["keyframes"] >= 2
+
+
+def test_online_keyframes_trajectory_matches_batch_pose_graph(batch_kf, online_kf):
+    """The final trajectory with the keyframe edges has the ATE of the batch pose graph on
+    the batch teacher's edges (keyframe ones included) to 10 %, and the teacher's chain of
+    the window's edges is the batch one."""
+    pg = json.loads((batch_kf / "posegraph" / "report.json").read_text())
+    batch_ate = pg["rows"]["fused"]["ate_rmse_m"]
+    rep = online_kf.report
+    assert abs(rep["final"]["ate_rmse_m"] - batch_ate) <= 0.1 * batch_ate, (rep["final"]["ate_rmse_m"], batch_ate)
+    assert rep["final"]["ate_rmse_m"] < rep["teacher_chain"]["ate_rmse_m"]
+    assert _teacher_file(online_kf.out, "trajectory.tum") == _teacher_file(batch_kf, "trajectory.tum")
+
+
+def test_keyframe_work_waits_at_the_end_and_a_ctrl_c_drops_the_rest(monkeypatch):
+    """KeyframeWorker.close waits for every keyframe in hand; a Ctrl-C during the wait (the
+    event set) drops those not started, and says how many."""
+    seq = open_scene("synthetic/tiny", frames="0:12:3")[0]
+
+    def slow(work, *a):
+        time.sleep(0.2)
+        return []
+
+    monkeypatch.setattr(online_keyframes, "estimate_work", slow)
+    for asked_after, want_dropped in ((None, 0), (0.1, 3)):
+        kf = online_keyframes.KeyframeWorker(seq.intrinsics, TCFG)
+        for k in range(len(seq)):  # 0.1 m apart: each one a keyframe
+            assert kf.offer(k, seq.frame(k), np.eye(4) @ _moved(0.1 * k))
+        asked = threading.Event()
+        if asked_after is not None:
+            threading.Timer(asked_after, asked.set).start()
+        assert kf.close(asked) == want_dropped
+        assert kf.picked == 4 and kf.finished == 4 - want_dropped and not kf.thread.is_alive()
+        assert len(kf.take(4)) == 0 and len(kf.lag_frames) == 4 - want_dropped
+
+
+def _moved(x: float) -> np.ndarray:
+    T = np.eye(4)
+    T[0, 3] = x
+    return T
 
 
 @pytest.mark.slow
@@ -84,7 +170,7 @@ def test_pose_after_gap1_solves_the_same_edges(batch, online_run, tmp_path):
     edges follow in a second update; the edges are still the batch teacher's bit for bit,
     the final trajectory solves the same graph (the batch pose graph's ATE to 10 %), and
     the causal estimates still beat chaining the gap-1 edges."""
-    res = online.run(online.open_source("synthetic/tiny"), tmp_path / "o", TCFG,
+    res = online.run(online.open_source("synthetic/tiny"), tmp_path / "o", TCFG_WINDOW,
                      cfg=online_loop.OnlineConfig(pose_after_gap1=True), progress=False)
     assert res.frames == 20
     assert (res.out / "teacher" / "edges.g2o").read_text() == (batch / "teacher" / "edges.g2o").read_text()
@@ -137,7 +223,7 @@ def _copy_frames_slowly(src: Path, dst: Path, period_s: float, done: threading.E
 
 
 @pytest.mark.slow
-def test_follow_a_folder_being_written(tmp_path, online_run):
+def test_follow_a_folder_being_written(tmp_path, online_kf):
     """Frames written by another thread one by one are taken as they arrive; the run ends
     after --timeout without a new frame, with the edges of the complete folder."""
     seq = open_scene("synthetic/tiny")[0]
@@ -156,8 +242,8 @@ def test_follow_a_folder_being_written(tmp_path, online_run):
                          tmp_path / "out", TCFG, progress=False, cfg=online_loop.OnlineConfig(poll_s=0.01, timeout_s=3.0))
     finally:
         writer.join()
-    assert done.is_set() and res.frames == 20
-    assert (res.out / "teacher" / "edges.g2o").read_text() == (online_run.out / "teacher" / "edges.g2o").read_text()
+    assert done.is_set() and res.frames == 20  # keyframe edges too: they do not depend on the timing
+    assert (res.out / "teacher" / "edges.g2o").read_text() == (online_kf.out / "teacher" / "edges.g2o").read_text()
 
 
 @pytest.mark.slow
@@ -252,6 +338,7 @@ def test_ctrl_c_keeps_the_trajectory_so_far(tmp_path, monkeypatch, capsys):
     assert 7 <= n <= 9
     rep = json.loads((tmp_path / "o" / "report.json").read_text())
     assert rep["interrupted"] and rep["frames"] == n
+    assert rep["keyframes"]["dropped"] == 0  # the keyframe work in hand was finished
     assert len(read_tum(tmp_path / "o" / online_outputs.FINAL_TRAJECTORY)) == n
 
 

@@ -4,13 +4,16 @@ Frames come from any scene read one at a time in order, or from a folder still b
 written (:mod:`data.live`). For each new frame k:
 
 1. the teacher's window (:class:`teacher.window.EdgeWindow`, the code ``teacher generate``
-   runs) gives the edges (k-g, k), g = 1..K (the keyframe pass of ``teacher generate``
-   does not run online: :func:`window_only`);
+   runs) gives the edges (k-g, k), g = 1..K;
 2. with a checkpoint, the learner (:class:`learner.online.OnlineLearner`) adds MC-dropout
    edges (k-g, k), g = 1..max_gap;
 3. GTSAM's ISAM2 (:class:`posegraph.online.OnlineGraph`) is updated with the new pose and
    its edges;
-4. the new pose's current estimate is appended to ``trajectory.tum`` and flushed.
+4. the new pose's current estimate is appended to ``trajectory.tum`` and flushed;
+5. with ``TeacherConfig.keyframes`` (the default, as in ``teacher generate``), the frame is
+   offered to the keyframe worker (:mod:`pipeline.online_keyframes`), which estimates the
+   keyframe and loop edges of each new keyframe in a helper thread; the edges it finished
+   enter the graph after a later frame's pose, and the run waits for the rest at its end.
 
 The frame loop is :mod:`pipeline.online_loop`, the outputs :mod:`pipeline.online_outputs`
 (docs/formats.md, "Online mode"), the command line :mod:`pipeline.online_cli`. :func:`online`
@@ -43,6 +46,7 @@ from ctcvo.data.runs import (
 from ctcvo.data.scenes import open_scene
 from ctcvo.learner.config import PredictConfig, to_dict
 from ctcvo.learner.online import OnlineLearner
+from ctcvo.pipeline.online_keyframes import KeyframeWorker
 from ctcvo.pipeline.online_loop import Estimator, OnlineConfig, OnlineTeacher, drive
 from ctcvo.pipeline.online_outputs import OUTPUT_FILES, REPORT, TRAJECTORY, TRAJECTORY_HEADER, percentiles_ms, write_outputs
 from ctcvo.posegraph.config import ONLINE
@@ -80,19 +84,12 @@ def open_source(spec: str, frames: str | None = None, follow: bool = False,
     return SequenceSource(seqs[0])
 
 
-def window_only(teacher_cfg=None):
-    """The teacher config an online run uses: ``teacher_cfg`` (default: the default teacher's)
-    without the keyframe pass, which runs in batch only (``teacher generate``), so that
-    ``config.json`` says what the run did."""
-    return dataclasses.replace(teacher_cfg or TEACHER_DEFAULT, keyframes=False)
-
-
 def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Path | None = None,
         predict_cfg=None, graph_cfg=None, cfg: OnlineConfig = OnlineConfig(), device: str = "cpu",
         max_frames: int | None = None, progress: bool = True) -> OnlineResult:
     """Run the online pipeline over ``source`` (see the module docstring); KeyboardInterrupt
     ends it early with every output written for the frames so far (``interrupted``)."""
-    teacher_cfg = window_only(teacher_cfg)
+    teacher_cfg = teacher_cfg or TEACHER_DEFAULT
     out = ensure_dir(Path(out))
     learner = OnlineLearner(checkpoint, predict_cfg, device) if checkpoint is not None else None
     graph = OnlineGraph(graph_cfg)
@@ -102,7 +99,8 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Path | Non
                             colour_camera_for(sensor, teacher_cfg), sensor.noise_model)
     with open(out / TRAJECTORY, "w") as fh:
         fh.write(TRAJECTORY_HEADER)
-        est = Estimator(teacher, learner, graph, cfg, fh)
+        kf = KeyframeWorker(teacher.intr, teacher.cfg, teacher.colour) if teacher_cfg.keyframes else None
+        est = Estimator(teacher, learner, graph, cfg, fh, kf)
         interrupted, seconds, skipped = drive(source, est, cfg, max_frames, progress)
     if est.n == 0:
         (out / TRAJECTORY).unlink(missing_ok=True)  # nothing to keep
@@ -152,7 +150,7 @@ def online(spec: str, out: Path | None = None, *, frames: str | None = None, fol
     or killed one is run again; outputs of other inputs are replaced with ``overwrite``,
     otherwise :class:`data.runs.StaleOutputError` says what differs. A run is finished when
     its ``report.json`` (written last) says it was not interrupted."""
-    teacher_cfg = window_only(teacher_cfg)
+    teacher_cfg = teacher_cfg or TEACHER_DEFAULT
     out = Path(out) if out is not None else stage_dir(spec, "online")
     with output_folder(out):
         source = open_source(spec, frames, follow, cfg)

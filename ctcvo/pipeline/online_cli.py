@@ -22,7 +22,9 @@ from ctcvo.teacher.config import PRESETS as TEACHER_PRESETS
 DESCRIPTION = """\
 Odometry frame by frame, as the frames arrive: the teacher's edges of each new
 frame (and, with --checkpoint, the learner's), an ISAM2 pose graph, and each
-frame's pose appended to OUT/trajectory.tum as soon as it is known.
+frame's pose appended to OUT/trajectory.tum as soon as it is known. Keyframe
+and loop edges (as teacher generate adds them) are estimated in a helper thread
+and enter the graph a few frames later.
 
 Frames come from any --scene read in order, or with --follow from a
 7-Scenes-layout or TUM RGB-D folder still being written. At the end (or on
@@ -47,6 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--poll", type=float, default=OnlineConfig.poll_s, help="--follow: seconds between polls")
     p.add_argument("--gaps", type=int, help="teacher edges to the last K frames (default: the preset's)")
     p.add_argument("--preset", default="default", choices=sorted(TEACHER_PRESETS), help="teacher preset")
+    p.add_argument("--keyframes", action=argparse.BooleanOptionalAction, default=None,
+                   help="also estimate keyframe and loop edges (as teacher generate), in a helper thread off the "
+                   "frames' critical path (default: the preset's, on)")
     p.add_argument("--pose-after-gap1", action="store_true",
                    help="write each frame's pose once its gap-1 edge is in the graph; its longer edges follow")
     p.add_argument("--drop-late", action="store_true",
@@ -66,6 +71,8 @@ def _configs(args: argparse.Namespace) -> tuple:
     tcfg = TEACHER_PRESETS[args.preset]
     if args.gaps is not None:
         tcfg = dataclasses.replace(tcfg, gaps=args.gaps)
+    if args.keyframes is not None:
+        tcfg = dataclasses.replace(tcfg, keyframes=args.keyframes)
     pcfg = PredictConfig(**{k: v for k, v in (("samples", args.samples), ("max_gap", args.max_gap)) if v is not None})
     if args.timeout <= 0 or args.poll <= 0:
         raise ConfigError("--timeout and --poll must be positive")

@@ -26,6 +26,7 @@ from ctcvo.data.live import FollowFolder, FrameSource
 from ctcvo.data.open3d_import import open3d_follows_openmp
 from ctcvo.data.sequence import Frame, Intrinsics
 from ctcvo.learner.online import OnlineLearner
+from ctcvo.pipeline.online_keyframes import KeyframeWorker
 from ctcvo.posegraph.online import OnlineGraph
 from ctcvo.teacher.covariance_model import gap_scale
 from ctcvo.teacher.features import extract, make_orb
@@ -77,6 +78,8 @@ class OnlineTeacher:
         self.window = EdgeWindow(intr, cfg)
         self.ids: list[int] = []
         self.times: list[float] = []
+        self.chained: list[np.ndarray] = []
+        """Per frame: its pose in the chained window edges (:meth:`chain`)."""
 
     def features(self, frame: Frame):
         """Per-frame work (safe to run in one helper thread ahead of :meth:`add`), without
@@ -106,6 +109,25 @@ class OnlineTeacher:
         """The second half of :meth:`add`: the longer edges ending at the newest frame."""
         return self.window.add_longer()
 
+
+    def chain(self, estimates: list) -> np.ndarray:
+        """The newest frame's pose (``T_world_cam``) in the window's edges chained as
+        :func:`teacher.generate.chain_trajectory` chains them, from the frame's estimates
+        (``estimates``: every one ending at it): through its shortest good edge, else by
+        constant velocity. The batch chain's pose bit for bit, unless the frame's edges all
+        failed and the batch chain reached it through a later frame."""
+        k, pos = len(self.ids) - 1, self._pos
+        good = [e for e in estimates if e.ok and e.j == self.ids[-1]]
+        if k == 0:
+            T = np.eye(4)
+        elif good:
+            e = max(good, key=lambda e: pos[e.i])
+            T = self.chained[pos[e.i]] @ e.T_i_j
+        else:
+            step = geo.relative_pose(self.chained[k - 2], self.chained[k - 1]) if k >= 2 else np.eye(4)
+            T = self.chained[k - 1] @ step
+        self.chained.append(T)
+        return T
 
     def cov_scale(self, e) -> float:
         """The factor of the covariance of estimate ``e`` (``EdgeEstimate``): its gap's scale,
@@ -224,8 +246,12 @@ class Estimator:
     edges are those of a serial run); :meth:`close` ends that thread."""
 
     def __init__(self, teacher: OnlineTeacher, learner: OnlineLearner | None, graph: OnlineGraph,
-                 cfg: OnlineConfig, fh: TextIO) -> None:
+                 cfg: OnlineConfig, fh: TextIO, keyframes: KeyframeWorker | None = None) -> None:
         self.teacher, self.learner, self.graph, self.cfg, self.fh = teacher, learner, graph, cfg, fh
+        self.keyframes = keyframes
+        self.kinds: dict[tuple[int, int], str] = {}
+        """``keyframe`` or ``loop`` for the keyframe worker's edges in ``t_edges``; others are ``window``."""
+        self.dropped_keyframes = 0
         self.omp = ThreadpoolController()
         self.pool = (ThreadPoolExecutor(1, thread_name_prefix="vo-online-learner") if learner is not None else None)
         self.t_edges: list = []
@@ -278,7 +304,31 @@ class Estimator:
         if after_gap1:  # the longer edges of this frame, after its pose
             posed.release()
             self.graph.add_edges(teacher_edges(self._teacher(teacher.add_longer), teacher))
+        if self.keyframes is not None:  # after its pose and longer edges: decide on the chain, take finished work
+            mine = [e for e in self.t_edges[-teacher.cfg.gaps:] if e.j == teacher.ids[-1]]
+            self.keyframes.offer(self.n - 1, frame, teacher.chain(mine))
+            self._take_keyframe_edges()
         tm.work.append(t_prep + time.perf_counter() - t_take if after_gap1 else tm.to_pose[-1])
+
+    def _take_keyframe_edges(self) -> None:
+        """The keyframe worker's finished edges into ``t_edges`` and the graph (one ISAM2
+        update); a frame pair the window has is skipped, as ``teacher generate`` skips it."""
+        have = {(e.i, e.j) for e in self.t_edges}
+        new = []
+        for e, kind in self.keyframes.take(self.n):
+            if (e.i, e.j) not in have:
+                have.add((e.i, e.j))
+                new.append(e)
+                self.kinds[(e.i, e.j)] = kind
+        self.t_edges += new
+        self.graph.add_edges(teacher_edges(new, self.teacher))
+
+    def finish_keyframes(self, asked: threading.Event | None = None) -> None:
+        """At the end of the run: wait for the keyframe work in hand (Ctrl-C: see
+        :meth:`KeyframeWorker.close`) and take its edges."""
+        if self.keyframes is not None:
+            self.dropped_keyframes = self.keyframes.close(asked)
+            self._take_keyframe_edges()
 
     def trim(self) -> None:
         """Interrupted inside a frame: keep the frames whose rows were written."""
@@ -329,6 +379,10 @@ def drive(source: FrameSource, est: Estimator, cfg: OnlineConfig, max_frames: in
                              len(est.t_edges) + len(est.l_edges), source.skipped + pre.replaced)
         except KeyboardInterrupt:
             interrupted = True
+        except BaseException:
+            if est.keyframes is not None:  # an error: do not wait for the keyframe work
+                est.keyframes.abandon()
+            raise
         finally:
             pre.stop.set()
             if isinstance(source, FollowFolder):
@@ -338,7 +392,10 @@ def drive(source: FrameSource, est: Estimator, cfg: OnlineConfig, max_frames: in
             pre.thread.join(timeout=5.0)
             pre.drain()
             est.close()
-    return interrupted, time.perf_counter() - t_start, source.skipped + pre.replaced
+            seconds = time.perf_counter() - t_start
+        # inside the blocks: Open3D's thread count holds for the worker, a Ctrl-C during the wait is heard
+        est.finish_keyframes(asked)
+    return interrupted, seconds, source.skipped + pre.replaced
 
 
 class _Progress:

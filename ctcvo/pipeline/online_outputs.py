@@ -4,23 +4,25 @@ trajectory, the edges in the layout of ``teacher generate`` / ``learner predict`
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
-from ctcvo.data.formats import Edge, Trajectory, read_tum, write_g2o, write_tum
+from ctcvo.data.formats import Edge, Trajectory, read_tum, write_edges_csv, write_g2o, write_tum
 from ctcvo.data.io import ensure_dir, git_revision, json_safe, write_json
 from ctcvo.data.metrics import trajectory_report
 from ctcvo.data.runs import frames_id
 from ctcvo.pipeline.online_loop import Estimator
+from ctcvo.teacher.generate import _edge_rows as edge_rows  # edges.csv's rows, as teacher generate writes them
 from ctcvo.teacher.generate import chain_trajectory
 
 TRAJECTORY = "trajectory.tum"
 FINAL_TRAJECTORY = "trajectory_final.tum"
 REPORT = "report.json"
 #: every file a run writes (report.json first: removed first, written last, it marks a finished run)
-OUTPUT_FILES = (REPORT, TRAJECTORY, FINAL_TRAJECTORY, "teacher/edges.g2o", "teacher/trajectory.tum",
-                "teacher/groundtruth.tum", "learner/edges.g2o")
+OUTPUT_FILES = (REPORT, TRAJECTORY, FINAL_TRAJECTORY, "teacher/edges.g2o", "teacher/edges.csv",
+                "teacher/trajectory.tum", "teacher/groundtruth.tum", "learner/edges.g2o")
 #: the first line of trajectory.tum
 TRAJECTORY_HEADER = "# timestamp tx ty tz qx qy qz qw  (T_world_cam, metres; each frame's estimate when it arrived)\n"
 
@@ -28,6 +30,12 @@ TRAJECTORY_HEADER = "# timestamp tx ty tz qx qy qz qw  (T_world_cam, metres; eac
 def percentiles_ms(seconds: list[float]) -> dict[str, float]:
     """p50, p95, p99 and max of durations in seconds, in milliseconds (report.json's form)."""
     return {f"p{q}": 1000 * float(np.percentile(seconds, q)) for q in (50, 95, 99)} | {"max": 1000 * max(seconds)}
+
+
+def _by_kind(edges: list, kinds: dict[tuple[int, int], str], ok: bool) -> dict[str, int]:
+    """The number of good (``ok``) or failed edges of each kind (``window``, ``keyframe``, ``loop``)."""
+    n = Counter(kinds.get((e.i, e.j), "window") for e in edges if e.ok == ok)
+    return {k: n.get(k, 0) for k in ("window", "keyframe", "loop")}
 
 
 def write_outputs(out: Path, name: str, est: Estimator, teacher_cfg, seconds: float, timing: dict,
@@ -41,10 +49,13 @@ def write_outputs(out: Path, name: str, est: Estimator, teacher_cfg, seconds: fl
     final = graph.final()[:n]  # the graph may hold a frame an interrupt cut short
     write_tum(out / FINAL_TRAJECTORY, Trajectory(times, final))
     t_edges = sorted(est.t_edges, key=lambda e: (e.i, e.j))  # the order of teacher generate's files
-    good = [Edge(e.i, e.j, e.T_i_j, e.cov * teacher.cov_scale(e)) for e in t_edges if e.ok]
-    chained, _ = chain_trajectory(ids, t_edges)
+    scale = {(e.i, e.j): teacher.cov_scale(e) for e in t_edges}
+    good = [Edge(e.i, e.j, e.T_i_j, e.cov * scale[e.i, e.j]) for e in t_edges if e.ok]
+    # the window's edges chained, as teacher generate chains them before its keyframe pass
+    chained, _ = chain_trajectory(ids, [e for e in t_edges if (e.i, e.j) not in est.kinds])
     tdir = ensure_dir(out / "teacher")
     write_g2o(tdir / "edges.g2o", good, {int(f): T for f, T in zip(ids, chained)})
+    write_edges_csv(tdir / "edges.csv", edge_rows(t_edges, dict(zip(ids.tolist(), times.tolist())), est.kinds, scale))
     write_tum(tdir / "trajectory.tum", Trajectory(times, chained))
     has_gt = n >= 2 and all(g is not None for g in gts)
     if has_gt:
@@ -59,6 +70,9 @@ def write_outputs(out: Path, name: str, est: Estimator, teacher_cfg, seconds: fl
         "sequence": name, "frames": n, "seconds": seconds, "fps": n / seconds if seconds > 0 else None,
         **timing, "interrupted": interrupted,
         "teacher_edges": len(good), "teacher_failed_edges": len(t_edges) - len(good),
+        "teacher_edges_by_kind": _by_kind(t_edges, est.kinds, True),
+        "teacher_failed_edges_by_kind": _by_kind(t_edges, est.kinds, False),
+        "keyframes": est.keyframes.report(est.dropped_keyframes) if est.keyframes is not None else None,
         "learner_edges": len(l_edges), "checkpoint": str(checkpoint) if checkpoint else None,
         "covariance_scales": graph.scale, "graph_reviews": graph.reviews, "final_polish": graph.polish,
         "outlier_edges": {"removed": int((graph.status == 2).sum()), "downweighted": int((graph.status == 1).sum())},
