@@ -23,6 +23,10 @@ For each scene, on the same frames:
 
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.online [--checkpoint CKPT] [--frames 0:300]
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.online --frames 0:150 --gaps 3 --pose-after-gap1 --name online-low-latency
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.online --frames 0:150 --keyframes both --name online-keyframes
+
+``--keyframes`` sets the online teacher's keyframe pass (``TeacherConfig.keyframes``, a helper
+thread in ``ctcvo online``); ``both`` gives a row with it and one without, one after the other.
 
 The record is ``bench/results/<name>.json`` (bench/record.py), with the machine's 1-min load
 average at the start and end of each scene and the cores the online run got (its CPU time
@@ -98,7 +102,7 @@ def bench_scene(spec: str, frames: str, checkpoint: Path | None, tmp: Path, tcfg
     seq = open_scene(spec, frames=frames)[0]
     shutil.rmtree(tmp / seq.name, ignore_errors=True)  # every run measured afresh
     row: dict = {"scene": seq.name, "frames": len(seq), "load_avg_1min": [os.getloadavg()[0]],
-                 "online_gaps": tcfg.gaps,
+                 "online_gaps": tcfg.gaps, "keyframes": tcfg.keyframes,
                  "pose_after_gap1": ocfg.pose_after_gap1}
     run = run_sequence(seq, DEFAULT, progress=False)  # batch, 2 processes
     row["batch_fps"] = len(seq) / run.seconds
@@ -126,6 +130,8 @@ def bench_scene(spec: str, frames: str, checkpoint: Path | None, tmp: Path, tcfg
             row["drop_ate_final_m"] = res.report["final"]["ate_rmse_m"]
         if name == "online":
             rep = res.report
+            row["online_edges_by_kind"] = rep["teacher_edges_by_kind"]
+            row["online_keyframes"] = rep["keyframes"]  # picked, dropped, wait at the end, lag in frames
             outs = optimize(teacher=tmp / seq.name / name / "teacher", out=tmp / seq.name / "batch_pg")
             pg = json.loads((outs[0] / "report.json").read_text())
             batch_ate = pg["rows"]["fused"]["ate_rmse_m"]
@@ -178,7 +184,8 @@ def table(rows: list[dict]) -> str:
             + f" | {1000 * a['final']:.1f} / {1000 * a['isam2']:.1f} / "
             f"{1000 * a['causal']:.1f} mm vs {1000 * b:.1f} mm ({a['final'] / b:.2f}x / {a['isam2'] / b:.2f}x / "
             f"{a['causal'] / b:.2f}x) | {lrn} |"
-            + (f" gaps {r['online_gaps']}{', pose after gap 1' if r.get('pose_after_gap1') else ''}; "
+            + (f" gaps {r['online_gaps']}{', pose after gap 1' if r.get('pose_after_gap1') else ''}"
+               f"{', keyframes' if r.get('keyframes') else ', no keyframes' if 'keyframes' in r else ''}; "
                f"{1000 * a['final']:.1f} vs {1000 * r['batch_teacher_posegraph_ate_m']:.1f} mm "
                f"({a['final'] / r['batch_teacher_posegraph_ate_m']:.2f}x) |" if "batch_teacher_posegraph_ate_m" in r
                else ""))
@@ -192,6 +199,8 @@ def main() -> int:
     ap.add_argument("--checkpoint", type=Path, help="learner checkpoint for the runs with the learner")
     ap.add_argument("--gaps", type=int, default=DEFAULT.gaps, help="the online teacher's K (batch: the default's)")
     ap.add_argument("--pose-after-gap1", action="store_true", help="ctcvo online --pose-after-gap1 in the online runs")
+    ap.add_argument("--keyframes", choices=("on", "off", "both"), default="on",
+                    help="the online teacher's keyframe and loop edges (both: a row each, in this order: on, off)")
     ap.add_argument("--out", type=Path, help="the runs' outputs (default runs/bench/NAME)")
     record.add_arguments(ap, "online")
     args = ap.parse_args()
@@ -201,8 +210,10 @@ def main() -> int:
     rec = record.from_args(args, out=out, teacher=tcfg, online=ocfg)
     rows = []
     for spec in args.scenes:
-        rows.append(bench_scene(spec, args.frames, args.checkpoint, out, tcfg, ocfg))
-        rec.finish({"rows": rows})
+        for kf in {"on": (True,), "off": (False,), "both": (True, False)}[args.keyframes]:
+            rows.append(bench_scene(spec, args.frames, args.checkpoint, out / ("keyframes" if kf else "window"),
+                                    replace(tcfg, keyframes=kf), ocfg))
+            rec.finish({"rows": rows})
     print(table(rows))
     return 0
 

@@ -16,8 +16,9 @@ hand, so the final solve has every edge (another Ctrl-C drops the rest: ``report
 Keyframes are picked on the window's edges chained (:meth:`pipeline.online_loop.OnlineTeacher.chain`),
 as the batch pass picks them, and their features are extracted as it extracts them: the
 keyframe and loop edges are ``teacher generate``'s bit for bit (unless a frame's window edges
-all failed), whenever they are estimated; only the causal trajectory, into which they enter
-a few frames late, depends on the timing.
+all failed), whenever they are estimated. What depends on the timing is the causal
+trajectory, into which they enter a few frames late, and through the ISAM2 estimate the
+final solve starts from, the final trajectory at the solver's tolerance.
 """
 
 from __future__ import annotations

@@ -255,6 +255,7 @@ class Estimator:
         self.omp = ThreadpoolController()
         self.pool = (ThreadPoolExecutor(1, thread_name_prefix="vo-online-learner") if learner is not None else None)
         self.t_edges: list = []
+        self.pairs: set[tuple[int, int]] = set()  # of t_edges
         self.l_edges: list[Edge] = []
         self.gts: list = []
         self.n = 0
@@ -266,6 +267,7 @@ class Estimator:
         with self.omp.limit(limits=self.teacher.cfg.threads, user_api="openmp"):
             edges = add(*args)
         self.t_edges += edges
+        self.pairs.update((e.i, e.j) for e in edges)
         return edges
 
     def _learner(self, inputs: tuple) -> tuple[list, float]:
@@ -313,11 +315,10 @@ class Estimator:
     def _take_keyframe_edges(self) -> None:
         """The keyframe worker's finished edges into ``t_edges`` and the graph (one ISAM2
         update); a frame pair the window has is skipped, as ``teacher generate`` skips it."""
-        have = {(e.i, e.j) for e in self.t_edges}
         new = []
         for e, kind in self.keyframes.take(self.n):
-            if (e.i, e.j) not in have:
-                have.add((e.i, e.j))
+            if (e.i, e.j) not in self.pairs:
+                self.pairs.add((e.i, e.j))
                 new.append(e)
                 self.kinds[(e.i, e.j)] = kind
         self.t_edges += new
