@@ -83,3 +83,45 @@ def test_a_false_loop_is_rejected(loop_run):
     assert verify(e, e.T_i_j).ok
     far = e.T_i_j @ geo.se3_exp(np.array([0.5, 0.0, 0.0, 0.0, 0.0, 0.0]))  # another place, 0.5 m away
     assert verify(e, far).status == "loop_rejected"
+
+
+def test_keyframe_pass_in_worker_processes_gives_the_same_edges(monkeypatch):
+    """The keyframe pass cut between this process and a worker (two keyframe edges per worker
+    suffice here) gives the keyframe edges of one process bit for bit."""
+    from ctcvo.teacher import generate
+
+    seq = open_scene("synthetic/tiny")[0]
+    one = run_sequence(seq, CFG, progress=False)
+    here: list[int] = []
+    estimate = generate.estimate_works
+
+    def counted(works, *args):  # this process's share (the worker's runs unpatched)
+        here.append(len(works))
+        return estimate(works, *args)
+
+    monkeypatch.setattr(generate, "KF_EDGES_PER_WORKER", 2)
+    monkeypatch.setattr(generate, "estimate_works", counted)
+    two = run_sequence(seq, dataclasses.replace(CFG, workers=2), progress=False)
+    n_works = len(generate.keyframe_works(seq, CFG, one.poses))
+    assert len(here) == 1 and 0 < here[0] < n_works  # this process estimated only its share
+    assert one.kinds == two.kinds and len(one.kinds) >= 4
+    a = {(e.i, e.j): e for e in one.edges if (e.i, e.j) in one.kinds}
+    b = {(e.i, e.j): e for e in two.edges if (e.i, e.j) in two.kinds}
+    for k, e in a.items():
+        assert e.status == b[k].status and np.array_equal(e.T_i_j, b[k].T_i_j) and np.array_equal(e.cov, b[k].cov)
+
+
+def test_keyframes_picked_on_the_window_pass_looks_are_those_of_the_images():
+    """The depth points and thumbnails the window pass keeps of each frame pick the keyframes,
+    covisible keyframes and loop candidates that reading the images again picks."""
+    from ctcvo.teacher import generate
+
+    seq = _there_and_back(open_scene("synthetic/tiny")[0])
+    edges, _, looks = generate._run_chunk(seq, CFG, 0, len(seq))
+    assert sorted(looks) == [int(f) for f in seq.ids()]
+    poses, _ = generate.chain_trajectory(seq.ids(), edges)
+    shape = [(w.b.pos, [a.pos for a in w.covisible], [a.pos for a in w.loops])
+             for w in generate.keyframe_works(seq, CFG, poses)]
+    assert shape == [(w.b.pos, [a.pos for a in w.covisible], [a.pos for a in w.loops])
+                     for w in generate.keyframe_works(seq, CFG, poses, looks)]
+    assert any(w[2] for w in shape)  # a loop candidate, found on the thumbnails

@@ -50,7 +50,8 @@ from ctcvo.teacher import processes, skips
 from ctcvo.teacher.config import TeacherConfig, dense_method
 from ctcvo.teacher.covariance_model import describe, gap_scale
 from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb
-from ctcvo.teacher.keyframes import add_keyframe_edges
+from ctcvo.teacher.keyframes import depth_points, estimate_works, keyframe_works, merge_keyframe_edges
+from ctcvo.teacher.loops import thumbnail
 from ctcvo.teacher.maps import PhotoMaps
 from ctcvo.teacher.record import EdgeEstimate
 from ctcvo.teacher.window import EdgeWindow
@@ -95,11 +96,13 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True, stric
     n = len(seq)
     t0 = time.perf_counter()
     bounds = _chunks(n, cfg)
+    if cfg.keyframes and cfg.workers > 1:
+        processes.start()  # the keyframe pass's workers, ready when the window is done
     bar = tqdm(total=n, desc=f"teacher {seq.name}", unit="frame", disable=not (progress and sys.stderr.isatty()))
     if len(bounds) == 1:
-        edges, bad = _run_chunk(seq, cfg, 0, n, bar.update, strict)
+        edges, bad, looks = _run_chunk(seq, cfg, 0, n, bar.update, strict)
     else:
-        edges, bad = _run_chunks(seq, cfg, bounds, bar.update, strict)
+        edges, bad, looks = _run_chunks(seq, cfg, bounds, bar.update, strict)
     bar.close()
     edges.sort(key=lambda e: (e.i, e.j))
     skips.check(seq.ids(), bad, cfg.gaps)
@@ -109,8 +112,7 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True, stric
     poses, bridges = chain_trajectory(frames.ids(), edges)
     kinds: dict[tuple[int, int], str] = {}
     if cfg.keyframes and len(frames) >= 2:
-        with openmp_threads(cfg.threads):  # as the window's: the labels depend on the thread count
-            kinds = add_keyframe_edges(frames, cfg, edges, poses, features_of(frames, cfg))
+        kinds = merge_keyframe_edges(edges, _keyframe_pass(frames, cfg, poses, looks))
         edges.sort(key=lambda e: (e.i, e.j))
     return TeacherRun(edges, poses, bridges, time.perf_counter() - t0, kinds, frames, skipped)
 
@@ -120,6 +122,38 @@ def features_of(seq: Sequence, cfg: TeacherConfig) -> Callable[[int], FrameFeatu
     orb, colour = make_orb(cfg), colour_camera_for(seq.sensor, cfg)
     cfg = dataclasses.replace(cfg, rolling_shutter_s=rolling_shutter_for(seq.sensor, cfg))
     return lambda k: extract(seq.rgb(k), seq.depth(k), cfg, orb, seq.intrinsics.K, colour)
+
+
+def _keyframe_pass(frames: Sequence, cfg: TeacherConfig, poses: NDArray[np.float64],
+                   looks: dict[int, tuple[NDArray, NDArray]]) -> list[tuple[EdgeEstimate, str]]:
+    """The keyframe and loop edges (:mod:`teacher.keyframes`) of ``frames``, whose window
+    edges chained to ``poses``. The keyframes are picked here; their works are cut into up
+    to ``cfg.workers`` runs of consecutive keyframes with about as many edges each, estimated
+    by this process and worker processes (the edges do not depend on who estimates which)."""
+    works = keyframe_works(frames, cfg, poses, looks)
+    sizes = np.array([len(w.covisible) + len(w.loops) for w in works])
+    parts = min(cfg.workers, int(sizes.sum()) // KF_EDGES_PER_WORKER)
+    if parts < 2:
+        return _estimate_works(frames, cfg, works)
+    cuts = np.searchsorted(np.cumsum(sizes), sizes.sum() * np.arange(1, parts) / parts, side="right")
+    groups = [works[a:b] for a, b in zip([0, *cuts], [*cuts, len(works)])]
+    with ProcessPoolExecutor(parts - 1, mp_context=processes.context()) as children:
+        futs = [children.submit(_estimate_works, frames, cfg, g) for g in groups[1:]]
+        found = _estimate_works(frames, cfg, groups[0])
+        for f in futs:
+            found += f.result()
+    return found
+
+
+#: keyframe edges a worker process of the keyframe pass must have to be worth its start
+KF_EDGES_PER_WORKER = 8
+
+
+def _estimate_works(frames: Sequence, cfg: TeacherConfig, works: list) -> list[tuple[EdgeEstimate, str]]:
+    """:func:`teacher.keyframes.estimate_works` with Open3D and BLAS on ``cfg.threads``, as
+    the window runs them (the labels depend on the thread count)."""
+    with openmp_threads(cfg.threads):
+        return estimate_works(works, features_of(frames, cfg), frames.intrinsics, cfg)
 
 
 def _run_chunks(seq: Sequence, cfg: TeacherConfig, bounds: list[tuple[int, int]],
@@ -133,7 +167,7 @@ def _run_chunks(seq: Sequence, cfg: TeacherConfig, bounds: list[tuple[int, int]]
     taken back, so handing all out up front left this process idle at the end
     (synthetic/office, 300 frames: 1.8 s of 7.4). The chunk bounds depend only on the
     sequence length, so the edges do not depend on who computes which chunk. Returns the
-    edges and the unreadable frames, as :func:`_run_chunk`.
+    edges, the unreadable frames and the looks, as :func:`_run_chunk`.
     """
     processes.start()
     todo = deque(bounds)
@@ -144,6 +178,7 @@ def _run_chunks(seq: Sequence, cfg: TeacherConfig, bounds: list[tuple[int, int]]
             return None if not todo else todo.popleft() if front else todo.pop()
 
     bad: dict[int, str] = {}  # a frame read by two chunks (one reads past its end) gives one entry
+    looks: dict[int, tuple] = {}
 
     def feed(children: ProcessPoolExecutor) -> list[EdgeEstimate]:
         """Keeps one child busy, one chunk at a time (runs in a thread of this process)."""
@@ -151,9 +186,10 @@ def _run_chunks(seq: Sequence, cfg: TeacherConfig, bounds: list[tuple[int, int]]
         try:
             children.submit(_started).result()
             while (ab := take(front=True)) is not None:
-                got, b = children.submit(_run_chunk, seq, cfg, *ab, None, strict).result()
+                got, b, lk = children.submit(_run_chunk, seq, cfg, *ab, None, strict).result()
                 out += got
                 bad.update(b)
+                looks.update(lk)
                 on_frame(ab[1] - ab[0])
         except BaseException:
             todo.clear()  # the others stop after their current chunk
@@ -166,15 +202,16 @@ def _run_chunks(seq: Sequence, cfg: TeacherConfig, bounds: list[tuple[int, int]]
         fed = [feeders.submit(feed, children) for _ in range(cfg.workers - 1)]
         try:
             while (ab := take(front=False)) is not None:
-                got, b = _run_chunk(seq, cfg, *ab, on_frame, strict)
+                got, b, lk = _run_chunk(seq, cfg, *ab, on_frame, strict)
                 edges += got
                 bad.update(b)
+                looks.update(lk)
         except BaseException:
             todo.clear()
             raise
         for f in fed:
             edges += f.result()
-    return edges, dict(sorted(bad.items()))
+    return edges, dict(sorted(bad.items())), looks
 
 
 def _started() -> None:
@@ -201,9 +238,10 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     then the longer edges ending at that frame from the tracks, predicted by the chained
     motion). Both threads run Open3D's kernels and BLAS with ``cfg.threads`` threads.
 
-    Returns the edges and the frames that could not be read ({position: why}; skipped, see
+    Returns the edges, the frames that could not be read ({position: why}; skipped, see
     :mod:`teacher.skips`; with ``strict`` the first one's error stops the chunk, as does a
-    run of ``gaps`` in a row).
+    run of ``gaps`` in a row) and, with ``cfg.keyframes``, what the keyframe pass needs of
+    each frame of [k0, k1) (``looks``: {frame id: (depth points, thumbnail)}).
     """
     n = len(seq)
     ids, times, offsets = seq.ids(), seq.times(), seq.depth_offsets()
@@ -215,8 +253,13 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     colour = colour_camera_for(seq.sensor, cfg)  # it also picks the dense step's method (dense_method_for)
     cfg = dataclasses.replace(cfg, rolling_shutter_s=rolling_shutter_for(seq.sensor, cfg))
 
+    looks: dict[int, tuple[NDArray, NDArray]] = {}
+
     def _extract(k: int) -> FrameFeatures:
-        return extract(seq.rgb(k), seq.depth(k), cfg, orb, intr.K, colour)  # one thread uses this ORB
+        rgb, depth = seq.rgb(k), seq.depth(k)
+        if cfg.keyframes and k < k1:  # what the keyframe pass needs of every frame, while the images are here
+            looks[int(ids[k])] = (depth_points(depth, intr), thumbnail(rgb))
+        return extract(rgb, depth, cfg, orb, intr.K, colour)  # one thread uses this ORB
 
     # fingerprints of the frame before the chunk, to tell whether frame k0 repeats it; the
     # walks back over earlier frames (rare) share them
@@ -247,7 +290,7 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
                 edges += window.add(int(ids[k]), float(times[k]), fk, float(offsets[k]))
             if on_frame is not None and k < k1:
                 on_frame(1)
-    return edges, bad
+    return edges, bad, looks
 
 
 class _KeysOf:

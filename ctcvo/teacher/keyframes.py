@@ -169,40 +169,28 @@ def estimate_work(work: KeyframeWork, features_of: Callable[[int], FrameFeatures
     return out
 
 
-def pick_keyframes(seq: Sequence, poses: NDArray[np.float64]) -> tuple[list[int], dict[int, NDArray]]:
-    """Positions of the keyframes, and their depth points (see the module's docstring)."""
-    sel, kfs, pts = KeyframeSelector(seq.intrinsics), [], {}
-    for k in range(len(seq)):
-        pk = depth_points(seq.depth(k), seq.intrinsics)
-        if sel.offer(poses[k], pk):
-            kfs.append(k)
-            pts[k] = pk
-    return kfs, pts
-
-
-def add_keyframe_edges(seq: Sequence, cfg: TeacherConfig, edges: list[EdgeEstimate], poses: NDArray[np.float64],
-                       features_of: Callable[[int], FrameFeatures]) -> dict[tuple[int, int], str]:
-    """Append the :func:`keyframe_edges` of a frame pair ``edges`` does not hold yet to
-    ``edges``; returns their kinds by (i, j)."""
-    have = {(e.i, e.j) for e in edges}
-    kinds: dict[tuple[int, int], str] = {}
-    for e, kind in keyframe_edges(seq, cfg, poses, features_of):
-        if (e.i, e.j) not in have:
-            have.add((e.i, e.j))
-            edges.append(e)
-            kinds[(e.i, e.j)] = kind
-    return kinds
-
-
-def keyframe_edges(seq: Sequence, cfg: TeacherConfig, poses: NDArray[np.float64],
-                   features_of: Callable[[int], FrameFeatures]) -> list[tuple[EdgeEstimate, str]]:
-    """The ``keyframe`` and ``loop`` edges of a sequence whose window edges chained to
-    ``poses`` (T_world_cam by position); ``features_of(k)``: a frame's features (extracted
-    as the window extracts them). The frames are fed one by one to the incremental API
-    (:class:`KeyframeSelector`, :class:`KeyframeHistory`, :func:`estimate_work`), as
-    ``ctcvo online`` feeds them. Returns (edge, kind) pairs; failed edges are kept."""
+def keyframe_works(seq: Sequence, cfg: TeacherConfig, poses: NDArray[np.float64],
+                   looks: dict[int, tuple[NDArray, NDArray]] | None = None) -> list[KeyframeWork]:
+    """The keyframes of a sequence whose window edges chained to ``poses`` (T_world_cam by
+    position) and the work of each, in order, none estimated yet: the frames are fed one by
+    one to :class:`KeyframeSelector` and :class:`KeyframeHistory`, as ``ctcvo online`` feeds
+    them. ``looks``: by frame id, the :func:`depth_points` and :func:`teacher.loops.thumbnail`
+    the window pass computed while it had the images (a frame without one is read again)."""
     intr, ids, times = seq.intrinsics, seq.ids(), seq.times()
-    sel, history = KeyframeSelector(intr), KeyframeHistory(intr, cfg.gaps)
+    sel, history, works = KeyframeSelector(intr), KeyframeHistory(intr, cfg.gaps), []
+    for k in range(len(seq)):
+        look = (looks or {}).get(int(ids[k]))
+        pts = look[0] if look is not None else depth_points(seq.depth(k), intr)
+        if sel.offer(poses[k], pts):
+            thumb = look[1] if look is not None else thumbnail(seq.rgb(k))
+            works.append(history.add(Keyframe(k, int(ids[k]), float(times[k]), poses[k], pts, thumb)))
+    return works
+
+
+def estimate_works(works: list[KeyframeWork], features_of: Callable[[int], FrameFeatures], intr: Intrinsics,
+                   cfg: TeacherConfig) -> list[tuple[EdgeEstimate, str]]:
+    """:func:`estimate_work` of each of ``works`` in order, each keyframe's features
+    extracted once (``features_of(pos)``, as the window extracts them)."""
     feats: dict[int, FrameFeatures] = {}
 
     def f(k: int) -> FrameFeatures:
@@ -210,10 +198,32 @@ def keyframe_edges(seq: Sequence, cfg: TeacherConfig, poses: NDArray[np.float64]
             feats[k] = features_of(k)
         return feats[k]
 
-    out: list[tuple[EdgeEstimate, str]] = []
-    for k in range(len(seq)):
-        pts = depth_points(seq.depth(k), intr)
-        if sel.offer(poses[k], pts):
-            kf = Keyframe(k, int(ids[k]), float(times[k]), poses[k], pts, thumbnail(seq.rgb(k)))
-            out += estimate_work(history.add(kf), f, intr, cfg)
-    return out
+    return [x for w in works for x in estimate_work(w, f, intr, cfg)]
+
+
+def merge_keyframe_edges(edges: list[EdgeEstimate], found: list[tuple[EdgeEstimate, str]]) -> dict[tuple[int, int], str]:
+    """Append the edges of ``found`` ((edge, kind) pairs) whose frame pair ``edges`` does not
+    hold yet to ``edges``; returns their kinds by (i, j)."""
+    have = {(e.i, e.j) for e in edges}
+    kinds: dict[tuple[int, int], str] = {}
+    for e, kind in found:
+        if (e.i, e.j) not in have:
+            have.add((e.i, e.j))
+            edges.append(e)
+            kinds[(e.i, e.j)] = kind
+    return kinds
+
+
+def add_keyframe_edges(seq: Sequence, cfg: TeacherConfig, edges: list[EdgeEstimate], poses: NDArray[np.float64],
+                       features_of: Callable[[int], FrameFeatures]) -> dict[tuple[int, int], str]:
+    """Append the :func:`keyframe_edges` of a frame pair ``edges`` does not hold yet to
+    ``edges``; returns their kinds by (i, j)."""
+    return merge_keyframe_edges(edges, keyframe_edges(seq, cfg, poses, features_of))
+
+
+def keyframe_edges(seq: Sequence, cfg: TeacherConfig, poses: NDArray[np.float64],
+                   features_of: Callable[[int], FrameFeatures]) -> list[tuple[EdgeEstimate, str]]:
+    """The ``keyframe`` and ``loop`` edges of a sequence whose window edges chained to
+    ``poses`` (:func:`keyframe_works`, then :func:`estimate_works`); ``features_of(k)``: a
+    frame's features. Returns (edge, kind) pairs; failed edges are kept."""
+    return estimate_works(keyframe_works(seq, cfg, poses), features_of, seq.intrinsics, cfg)
