@@ -18,7 +18,6 @@ import pytest
 
 from ctcvo.data.formats import read_edges_csv, read_g2o, read_tum
 from ctcvo.data.live import FollowSevenScenes, FollowTum, FrameSource
-from ctcvo.data.open3d_import import openmp_threads
 from ctcvo.data.scenes import open_scene
 from ctcvo.pipeline import online, online_cli, online_keyframes, online_loop, online_outputs
 from ctcvo.teacher.config import TINY
@@ -43,14 +42,12 @@ def batch(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def batch_kf(tmp_path_factory) -> Path:
-    """The same with the keyframe pass (``teacher generate``'s default), its Open3D kernels on
-    the teacher's thread count (as online; without ``OMP_NUM_THREADS`` they take every core)."""
+    """The same with the keyframe pass (``teacher generate``'s default)."""
     from ctcvo.posegraph.optimize import optimize
     from ctcvo.teacher.generate import generate
 
     root = tmp_path_factory.mktemp("batch_kf")
-    with openmp_threads(TCFG.threads):
-        generate("synthetic/tiny", root / "teacher", config=replace(TCFG, workers=1), progress=False)
+    generate("synthetic/tiny", root / "teacher", config=replace(TCFG, workers=1), progress=False)
     optimize(teacher=root / "teacher", out=root / "posegraph")
     return root
 
