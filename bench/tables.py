@@ -150,7 +150,8 @@ def online_table(records: dict[str, dict]) -> list[str]:
             a, b = x["ate_m"], x["batch_teacher_posegraph_ate_m"]
             lat, work, paced = x["online_latency_ms"], x["online_work_to_pose_ms"], x["online_30hz_latency_ms"]
             rows.append([f"{x['scene']}{frames_label(r['config'])}",
-                         f"gaps {x['online_gaps']}" + (", pose after gap 1" if x["pose_after_gap1"] else ""),
+                         f"gaps {x['online_gaps']}" + (", pose after gap 1" if x["pose_after_gap1"] else "")
+                         + {True: ", keyframes", False: ", window only"}.get(x.get("keyframes"), ""),
                          num(x["batch_fps"]), f"{num(x['online_fps'])} ({x['online_fps'] / x['batch_fps']:.2f}x)",
                          f"{lat['p50']:.0f} / {lat['p95']:.0f}", f"{work['p50']:.0f} / {work['p95']:.0f}",
                          f"{paced['p50']:.0f} / {paced['p95']:.0f}",
@@ -355,7 +356,8 @@ def summary_table(records: dict[str, dict]) -> list[str]:
     if t:
         by = {x["method"].split()[0]: x for x in t["figures"]["rows"]}
         me, o3d = by["this"], by["Open3D"]
-        rows.append(["`ctcvo teacher generate`", "RGB-D frames -> relative-pose labels of gaps 1-5 with 6x6 covariances",
+        rows.append(["`ctcvo teacher generate`",
+                     "RGB-D frames -> relative-pose labels of gaps 1-5 and keyframe pairs, with 6x6 covariances",
                      f"redkitchen 450:600: gap-1 error {mm(me['rpe_trans_rmse_m'], 2)} mm / "
                      f"{num(me['rpe_rot_rmse_deg'], 3)} deg (Open3D {mm(o3d['rpe_trans_rmse_m'], 2)} / "
                      f"{num(o3d['rpe_rot_rmse_deg'], 3)}), {num(me['fps'])} fps ({num(me['fps_vs_open3d'])}x Open3D)"])
