@@ -4,12 +4,15 @@ its own, timed, with the test room's pose-graph rows recorded.
     .venv/bin/python -m bench.demo              # runs/bench/demo/runs/synthetic-*/..., from scratch
     .venv/bin/python -m bench.demo --cache runs/bench/demo/cache   # as on a fresh machine: renders too
     .venv/bin/python -m bench.demo --keep       # keep that folder's finished stages (a rerun: seconds)
+    .venv/bin/python -m bench.demo --orbslam3-vocabulary VOC.txt   # ORB-SLAM3 and Open3D beside it
 
 The demo renders the synthetic rooms into the render cache (``--cache``, default
 ``$VO_CACHE_DIR`` or ``~/.cache/ctcvo``) when they are missing there; the record says which
 were there. The record is ``bench/results/<name>.json``
 (bench/record.py): wall and CPU time of the whole command and every row of the test room's
-``posegraph/report.json``.
+``posegraph/report.json``; with ``--orbslam3-vocabulary`` (a vocabulary of training frames,
+``ctcvo teacher vocabulary``) also ORB-SLAM3's (median of ``--orbslam3-runs`` SLAM runs) and
+Open3D's gap-1 odometry on the same frames, run after the demo.
 """
 
 from __future__ import annotations
@@ -26,6 +29,10 @@ import time
 from pathlib import Path
 
 from bench import record
+from bench.orbslam3_peer import metrics, one_second, orbslam3_row
+from bench.teacher import run_open3d
+from ctcvo.data.formats import Trajectory
+from ctcvo.data.scenes import open_scene
 
 ROOMS = ("office", "lab", "kitchen")
 ROW_KEYS = ("ate_rmse_m", "rpe_g1_trans_m", "rpe_g1_rot_deg", "rpe_1s_trans_m", "rpe_1s_rot_deg", "se3_l2_mean")
@@ -37,12 +44,26 @@ def cached_rooms(cache: Path) -> list[str]:
     return [r for r in ROOMS if any(re.fullmatch(rf"{r}-[0-9a-f]{{8}}", n) for n in names)]
 
 
+def peer_rows(scene: str, vocabulary: Path, runs: int) -> dict[str, dict]:
+    """ORB-SLAM3's (median of ``runs``) and Open3D's rows on the demo's test room ``scene``."""
+    seq = open_scene(scene)[0]
+    gt, second = Trajectory(seq.times(), seq.groundtruth()), one_second(seq.times())
+    o3d = metrics(gt, Trajectory(seq.times(), run_open3d(seq)[0]), second)
+    orb = orbslam3_row(seq, vocabulary, runs)
+    keys = dict(zip(ROW_KEYS, ("ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "rpe_1s_trans_m", "rpe_1s_rot_deg",
+                               "se3_l2_mean")))
+    return {"orbslam3": {"label": f"ORB-SLAM3 (median of {runs} runs)", **{k: orb[v] for k, v in keys.items()}},
+            "open3d": {"label": "Open3D hybrid (gap 1)", **{k: o3d[v] for k, v in keys.items()}}}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, help="working folder of the demo (default runs/bench/NAME)")
     ap.add_argument("--keep", action="store_true", help="keep the stages already finished there")
     ap.add_argument("--cache", type=Path, default=Path(os.environ.get("VO_CACHE_DIR", Path.home() / ".cache" / "ctcvo")),
                     help="render cache of the run (default $VO_CACHE_DIR or ~/.cache/ctcvo)")
+    ap.add_argument("--orbslam3-vocabulary", type=Path, help="adds ORB-SLAM3's and Open3D's rows on the test room")
+    ap.add_argument("--orbslam3-runs", type=int, default=3, help="ORB-SLAM3 SLAM runs (median reported)")
     record.add_arguments(ap, "demo")
     args = ap.parse_args()
     work = args.out or record.RUNS / args.name
@@ -60,6 +81,9 @@ def main() -> int:
         return done.returncode
     rep = json.loads((work / "runs" / "synthetic-kitchen" / "posegraph" / "report.json").read_text())
     rows = {k: {"label": r["label"], **{c: r.get(c) for c in ROW_KEYS}} for k, r in rep["rows"].items()}
+    if args.orbslam3_vocabulary is not None:
+        os.environ["VO_CACHE_DIR"] = env["VO_CACHE_DIR"]  # the rooms the demo rendered
+        rows.update(peer_rows(rep["scene"], args.orbslam3_vocabulary, args.orbslam3_runs))
     print("| row | ATE mm | gap-1 RPE mm / deg | se(3) L2 |\n|---|---|---|---|")
     for r in rows.values():
         print(f"| {r['label']} | {1000 * r['ate_rmse_m']:.1f} | {1000 * r['rpe_g1_trans_m']:.2f} / "

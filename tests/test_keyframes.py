@@ -125,3 +125,37 @@ def test_keyframes_picked_on_the_window_pass_looks_are_those_of_the_images():
     assert shape == [(w.b.pos, [a.pos for a in w.covisible], [a.pos for a in w.loops])
                      for w in generate.keyframe_works(seq, CFG, poses, looks)]
     assert any(w[2] for w in shape)  # a loop candidate, found on the thumbnails
+
+
+def test_the_incremental_api_frame_by_frame():
+    """KeyframeSelector and KeyframeHistory fed one frame at a time (as ``ctcvo online`` feeds
+    them, no sequence at hand): a keyframe every KF_TRANS_M; keyframe edges to the newest
+    covisible keyframes beyond the window's gaps and within REACH_S, at most MAX_COVISIBLE;
+    loop candidates only older than REACH_S, by their look."""
+    from ctcvo.data.sequence import Intrinsics
+    from ctcvo.teacher import keyframes as kf
+
+    intr = Intrinsics(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
+    depth = np.full((480, 640), 3.0, np.float32)  # a wall 3 m ahead
+    rng = np.random.default_rng(0)
+    looks = rng.standard_normal((60, 1200))
+    looks /= np.linalg.norm(looks, axis=1, keepdims=True)  # unrelated places: correlations near 0
+    looks[58] = looks[0]  # the last keyframe looks like the first
+    sel, hist, gaps = kf.KeyframeSelector(intr), kf.KeyframeHistory(intr, gaps=2), 2
+    step = 0.6 * kf.KF_TRANS_M  # a keyframe every second frame
+    works = []
+    for k in range(60):
+        T = np.eye(4)
+        T[0, 3] = step * k
+        pts = kf.depth_points(depth, intr)
+        if sel.offer(T, pts):
+            works.append(hist.add(kf.Keyframe(k, k, 0.25 * k, T, pts, looks[k])))
+    assert [w.b.pos for w in works] == list(range(0, 60, 2))
+    for w in works:
+        assert len(w.covisible) <= kf.MAX_COVISIBLE
+        assert all(w.b.pos - a.pos > gaps and w.b.time - a.time <= kf.REACH_S for a in w.covisible)
+        assert [a.pos for a in w.covisible] == sorted((a.pos for a in w.covisible), reverse=True)
+        assert all(w.b.time - a.time > kf.REACH_S for a in w.loops)
+    assert [a.pos for a in works[2].covisible] == [0]  # 4 - 2 is within the gaps
+    assert len(works[-1].covisible) == kf.MAX_COVISIBLE
+    assert [(w.b.pos, [a.pos for a in w.loops]) for w in works if w.loops] == [(58, [0])]
