@@ -198,7 +198,9 @@ def main() -> int:
     ap.add_argument("--frames", default="0:300")
     ap.add_argument("--checkpoint", type=Path, help="learner checkpoint for the runs with the learner")
     ap.add_argument("--gaps", type=int, default=DEFAULT.gaps, help="the online teacher's K (batch: the default's)")
-    ap.add_argument("--pose-after-gap1", action="store_true", help="ctcvo online --pose-after-gap1 in the online runs")
+    ap.add_argument("--pose-after-gap1", action=argparse.BooleanOptionalAction,
+                    default=online.OnlineConfig.pose_after_gap1,
+                    help="ctcvo online --pose-after-gap1 in the online runs (default: on, as ctcvo online)")
     ap.add_argument("--keyframes", choices=("on", "off", "both"), default="on",
                     help="the online teacher's keyframe and loop edges (both: a row each, in this order: on, off)")
     ap.add_argument("--out", type=Path, help="the runs' outputs (default runs/bench/NAME)")

@@ -164,6 +164,29 @@ def online_table(records: dict[str, dict]) -> list[str]:
     return markdown(head, rows) + ["", provenance(recs)]
 
 
+def online_validation_table(records: dict[str, dict]) -> list[str]:
+    """The online settings on the validation ranges (records ``val-*``, one setting each): per
+    range, final and causal ATE and p95 latency as fast as frames come and paced at 30 Hz."""
+    recs = select(records, "val")
+    if not recs:
+        return missing("python -m bench.online --scenes S --frames A:B [--no-pose-after-gap1] [--gaps 3] --name val-X")
+    order = [(5, False), (5, True), (3, True)]  # (gaps, pose after gap 1) of the columns' cells
+    cells: dict[str, dict] = {}
+    for r in recs.values():
+        for x in r["figures"]["rows"]:
+            cells.setdefault(f"{x['scene']}{frames_label(r['config'])}", {})[(x["online_gaps"], x["pose_after_gap1"])] = x
+
+    def cell(by: dict, f) -> str:
+        return " / ".join(f(by[k]) if k in by else "-" for k in order)
+
+    rows = [[rng, cell(by, lambda x: mm(x["ate_m"]["final"])), cell(by, lambda x: mm(x["ate_m"]["causal"])),
+             cell(by, lambda x: f"{x['online_latency_ms']['p95']:.0f}"),
+             cell(by, lambda x: f"{x['online_30hz_latency_ms']['p95']:.0f}")] for rng, by in sorted(cells.items())]
+    head = ["validation range (gaps 5 / + pose after gap 1 / + gaps 3)", "final ATE mm", "causal ATE mm",
+            "latency p95 ms", "paced 30 Hz p95 ms"]
+    return markdown(head, rows) + ["", provenance(recs)]
+
+
 def posegraph_table(records: dict[str, dict]) -> list[str]:
     recs = {n: r for n, r in select(records, "posegraph").items() if "sizes" in r["figures"]}
     if not recs:
@@ -402,7 +425,8 @@ def results_table(records: dict[str, dict]) -> list[str]:
 
 
 TABLES: dict[str, Callable[[dict[str, dict]], list[str]]] = {
-    "teacher": teacher_table, "online": online_table, "posegraph": posegraph_table, "keyframes": keyframes_table,
+    "teacher": teacher_table, "online": online_table, "online-validation": online_validation_table,
+    "posegraph": posegraph_table, "keyframes": keyframes_table,
     "learner": learner_table, "teacher-covariance": covariance_table,
     "render": render_table, "synthetic-realism": realism_table, "ablation": ablation_table,
     "teacher-noise": noise_table, "orbslam3-covariance": orbslam3_covariance_table, "demo": demo_table,

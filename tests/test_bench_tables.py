@@ -77,3 +77,18 @@ def test_ablation_table_ratio_to_the_teacher_and_seed_means():
     both = tables.ablation_table({**rec, "ablation-z": rec["ablation-x"]})
     assert "| ablation-x, ablation-z | teacher | 0.00800 | 1.00 | 6.00 | 0.300 | 50.0 |" in both
     assert sum(x.startswith("| ablation-z | ctc (2 seeds)") for x in both) == 1
+
+
+def test_online_validation_table_puts_each_setting_in_its_column():
+    machine = {"cpu_count": 2, "load_average_start": [1.0, 1, 1], "load_average_end": [1.0, 1, 1]}
+
+    def rec(gaps, after, ate, p95):
+        row = {"scene": "lab", "online_gaps": gaps, "pose_after_gap1": after, "ate_m": {"final": ate, "causal": ate},
+               "online_latency_ms": {"p95": p95}, "online_30hz_latency_ms": {"p95": p95 / 2}}
+        return {"revision": "abc", "date_utc": "2026-01-01T00:00:00Z", "machine": machine,
+                "config": {"frames": "0:200"}, "figures": {"rows": [row]}}
+
+    lines = tables.online_validation_table({"val-a": rec(5, True, 0.010, 30.0), "val-b": rec(5, False, 0.011, 140.0)})
+    row = next(x for x in lines if x.startswith("| lab"))
+    assert row.split(" | ")[1:] == ["11.0 / 10.0 / -", "11.0 / 10.0 / -", "140 / 30 / -", "70 / 15 / - |"]
+    assert "`val-a`" in lines[-1] and "`val-b`" in lines[-1]

@@ -55,7 +55,8 @@ def batch_kf(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def online_run(tmp_path_factory) -> online.OnlineResult:
     out = tmp_path_factory.mktemp("online")
-    return online.run(online.open_source("synthetic/tiny"), out, TCFG_WINDOW, progress=False)
+    return online.run(online.open_source("synthetic/tiny"), out, TCFG_WINDOW, progress=False,
+                      cfg=online_loop.OnlineConfig(pose_after_gap1=False))
 
 
 @pytest.fixture(scope="module")

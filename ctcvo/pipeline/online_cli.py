@@ -52,8 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keyframes", action=argparse.BooleanOptionalAction, default=None,
                    help="also estimate keyframe and loop edges (as teacher generate), in a helper thread off the "
                    "frames' critical path (default: the preset's, on)")
-    p.add_argument("--pose-after-gap1", action="store_true",
-                   help="write each frame's pose once its gap-1 edge is in the graph; its longer edges follow")
+    p.add_argument("--pose-after-gap1", action=argparse.BooleanOptionalAction, default=OnlineConfig.pose_after_gap1,
+                   help="write each frame's pose once its gap-1 edge is in the graph; its longer edges follow "
+                   "(default: on)")
     p.add_argument("--drop-late", action="store_true",
                    help="--follow: when frames come faster than they are processed, take the newest and skip "
                    "the ones in between (bounded latency, fewer frames)")
