@@ -4,7 +4,6 @@ trajectory, the edges in the layout of ``teacher generate`` / ``learner predict`
 
 from __future__ import annotations
 
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +15,7 @@ from ctcvo.data.runs import frames_id
 from ctcvo.pipeline.online_loop import Estimator
 from ctcvo.teacher.generate import _edge_rows as edge_rows  # edges.csv's rows, as teacher generate writes them
 from ctcvo.teacher.generate import chain_trajectory
+from ctcvo.teacher.record import count_by_kind
 
 TRAJECTORY = "trajectory.tum"
 FINAL_TRAJECTORY = "trajectory_final.tum"
@@ -30,12 +30,6 @@ TRAJECTORY_HEADER = "# timestamp tx ty tz qx qy qz qw  (T_world_cam, metres; eac
 def percentiles_ms(seconds: list[float]) -> dict[str, float]:
     """p50, p95, p99 and max of durations in seconds, in milliseconds (report.json's form)."""
     return {f"p{q}": 1000 * float(np.percentile(seconds, q)) for q in (50, 95, 99)} | {"max": 1000 * max(seconds)}
-
-
-def _by_kind(edges: list, kinds: dict[tuple[int, int], str], ok: bool) -> dict[str, int]:
-    """The number of good (``ok``) or failed edges of each kind (``window``, ``keyframe``, ``loop``)."""
-    n = Counter(kinds.get((e.i, e.j), "window") for e in edges if e.ok == ok)
-    return {k: n.get(k, 0) for k in ("window", "keyframe", "loop")}
 
 
 def write_outputs(out: Path, name: str, est: Estimator, teacher_cfg, seconds: float, timing: dict,
@@ -70,8 +64,8 @@ def write_outputs(out: Path, name: str, est: Estimator, teacher_cfg, seconds: fl
         "sequence": name, "frames": n, "seconds": seconds, "fps": n / seconds if seconds > 0 else None,
         **timing, "interrupted": interrupted,
         "teacher_edges": len(good), "teacher_failed_edges": len(t_edges) - len(good),
-        "teacher_edges_by_kind": _by_kind(t_edges, est.kinds, True),
-        "teacher_failed_edges_by_kind": _by_kind(t_edges, est.kinds, False),
+        "teacher_edges_by_kind": count_by_kind(t_edges, est.kinds, True),
+        "teacher_failed_edges_by_kind": count_by_kind(t_edges, est.kinds, False),
         "keyframes": est.keyframes.report(est.dropped_keyframes) if est.keyframes is not None else None,
         "learner_edges": len(l_edges), "checkpoint": str(checkpoint) if checkpoint else None,
         "covariance_scales": graph.scale, "graph_reviews": graph.reviews, "final_polish": graph.polish,

@@ -53,7 +53,7 @@ from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb
 from ctcvo.teacher.keyframes import depth_points, estimate_works, keyframe_works, merge_keyframe_edges
 from ctcvo.teacher.loops import thumbnail
 from ctcvo.teacher.maps import PhotoMaps
-from ctcvo.teacher.record import EdgeEstimate
+from ctcvo.teacher.record import EdgeEstimate, count_by_kind
 from ctcvo.teacher.window import EdgeWindow
 
 log = logging.getLogger(__name__)
@@ -473,9 +473,8 @@ def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
 
 def _by_kind(run: TeacherRun) -> dict[str, dict[str, int]]:
     """``edges_by_kind`` and ``failed_edges_by_kind``: counts per edges.csv ``kind``."""
-    kinds = [(run.kinds.get((e.i, e.j), "window"), e.ok) for e in run.edges]
-    return {"edges_by_kind": dict(sorted(Counter(k for k, ok in kinds if ok).items())),
-            "failed_edges_by_kind": dict(sorted(Counter(k for k, ok in kinds if not ok).items()))}
+    return {"edges_by_kind": count_by_kind(run.edges, run.kinds, True),
+            "failed_edges_by_kind": count_by_kind(run.edges, run.kinds, False)}
 
 
 def _evaluation(seq: Sequence, frames: Sequence, run: TeacherRun, gt: NDArray[np.float64]) -> dict:

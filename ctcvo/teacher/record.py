@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,3 +72,9 @@ class EdgeEstimate:
     @property
     def ok(self) -> bool:
         return self.status == "ok"
+
+
+def count_by_kind(edges: list[EdgeEstimate], kinds: dict[tuple[int, int], str], ok: bool) -> dict[str, int]:
+    """The number of good (``ok``) or failed edges of each edges.csv ``kind`` present, by kind
+    (a pair ``kinds`` lacks is a ``window`` edge): report.json's counts, batch's and online's."""
+    return dict(sorted(Counter(kinds.get((e.i, e.j), "window") for e in edges if e.ok == ok).items()))
