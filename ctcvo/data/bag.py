@@ -53,6 +53,7 @@ from ctcvo.data import tum
 from ctcvo.data.errors import ConfigError, DataError
 from ctcvo.data.sensor import KINECT_V1_READOUT_S, Sensor
 from ctcvo.data.sequence import Intrinsics, Sequence, _depth_table
+from ctcvo.data.undistort import COEFF_COUNTS, Undistortion, undistortion
 
 log = logging.getLogger(__name__)
 
@@ -244,6 +245,7 @@ class BagSequence(Sequence):
         if not path.exists():
             raise DataError(f"ROS bag {path} not found")
         self.path = self.root = path  # ``root``: what the learner's frame cache is keyed by, as for folders
+        self.undistortion: Undistortion | None = None  # set from the camera info's distortion
         max_dt = tum.MAX_ASSOC_DT if max_dt is None else max_dt
         reader = _open_reader(path)
         try:
@@ -353,11 +355,19 @@ class BagSequence(Sequence):
         if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or w <= 0 or h <= 0:
             raise DataError(f"{self.path}: camera info on {self.topics.camera_info} has no valid K/width/height "
                             f"(K diagonal {K[0, 0]:g}, {K[1, 1]:g}, {w}x{h})")
+        intr = Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), w, h)
         D = np.asarray(_field(msg, "d"), dtype=np.float64)
+        model = str(getattr(msg, "distortion_model", "") or "plumb_bob")
         if D.size and np.any(np.abs(D) > 1e-9):
-            log.warning("%s: camera info %s has distortion %s; the images are used as they are (rectify "
-                        "them for best results)", self.path.name, self.topics.camera_info, np.round(D, 4).tolist())
-        return Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), w, h)
+            if model == "plumb_bob" and D.size in COEFF_COUNTS and np.all(np.isfinite(D)):
+                self.undistortion = undistortion(intr, tuple(D))
+                log.info("%s: frames undistorted with camera info %s's %s %s", self.path.name,
+                         self.topics.camera_info, model, np.round(D, 4).tolist())
+            else:
+                log.warning("%s: camera info %s has %s distortion %s; the images are used as they are (rectify "
+                            "them for best results)", self.path.name, self.topics.camera_info, model,
+                            np.round(D, 4).tolist())
+        return intr
 
     def _scan(self, reader, topic: str) -> _Stream:
         """Log times and header stamps of every message of ``topic`` (one pass, headers only kept)."""
@@ -440,13 +450,13 @@ class BagSequence(Sequence):
         msg, ty = self._message(0, pos)
         img = decode_colour(msg, ty, f"{self.path} {self.topics.rgb} frame {pos}")
         self._check_size(img.shape[:2], "colour", pos)
-        return img
+        return img if self.undistortion is None else self.undistortion.rgb(img)
 
     def _read_depth(self, pos: int) -> NDArray[np.float32]:
         msg, ty = self._message(1, pos)
         d = decode_depth(msg, ty, f"{self.path} {self.topics.depth} frame {pos}")
         self._check_size(d.shape, "depth", pos)
-        return d
+        return d if self.undistortion is None else self.undistortion.depth(d)
 
     def _check_size(self, shape: tuple[int, ...], what: str, pos: int) -> None:
         intr = self.intrinsics

@@ -15,13 +15,15 @@ from ctcvo.data.sequence import Intrinsics, Sequence
 
 def write_bag(seq: Sequence, path: Path, *, ros2: bool = False, storage: str = "sqlite3",
               compressed: bool = False, depth_encoding: str = "16UC1", colour_encoding: str = "rgb8",
-              gt: bool = True, camera_ns: str = "/camera") -> Path:
+              gt: bool = True, camera_ns: str = "/camera", distortion: tuple[float, ...] = ()) -> Path:
     """Write ``seq`` as a ROS1 bag (``path`` ending in ``.bag``) or a ROS2 bag folder
     (``ros2``, ``storage`` sqlite3 or mcap): ``{ns}/rgb/image_raw`` (or ``.../compressed``,
     JPEG quality 95), ``{ns}/depth/image_raw`` (``16UC1`` mm or ``32FC1`` m, stamped with the
     frame's depth timestamp, ``seq.depth_times()``: the colour image's where the sequence has
     none), ``{ns}/rgb/camera_info`` and, with ``gt`` and ground truth, a
-    ``/groundtruth`` PoseStamped per frame. Frames are streamed one at a time."""
+    ``/groundtruth`` PoseStamped per frame. Frames are streamed one at a time. The camera
+    info's ``plumb_bob`` coefficients are ``distortion`` (none: zeros, the frames being the
+    reader's pinhole ones)."""
     from rosbags.typesys import Stores, get_typestore
 
     path = Path(path)
@@ -75,7 +77,7 @@ def write_bag(seq: Sequence, path: Path, *, ros2: bool = False, storage: str = "
                             step=w * raw.itemsize, data=raw.view(np.uint8).reshape(-1))
             writer.write(c_depth, ns, ser(dmsg, IMAGE))
             if k == 0:
-                writer.write(c_info, ns, ser(_camera_info(T, hdr, intr, ros2), CAMERA_INFO))
+                writer.write(c_info, ns, ser(_camera_info(T, hdr, intr, ros2, distortion), CAMERA_INFO))
             if c_gt is not None:
                 P = gt_poses[k]
                 q = geo.R_to_quat_xyzw(P[:3, :3])
@@ -95,11 +97,12 @@ def _nanoseconds(t: float) -> int:
     return sec * 10**9 + int(round((t - sec) * 1e9))
 
 
-def _camera_info(T, hdr, intr: Intrinsics, ros2: bool):
+def _camera_info(T, hdr, intr: Intrinsics, ros2: bool, distortion: tuple[float, ...] = ()):
     K = np.array([intr.fx, 0, intr.cx, 0, intr.fy, intr.cy, 0, 0, 1], dtype=np.float64)
     P = np.array([intr.fx, 0, intr.cx, 0, 0, intr.fy, intr.cy, 0, 0, 0, 1, 0], dtype=np.float64)
     R = np.eye(3).reshape(-1)
     D = np.zeros(5)
+    D[:len(distortion)] = distortion
     names = ("d", "k", "r", "p") if ros2 else ("D", "K", "R", "P")
     roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
     return T[CAMERA_INFO](header=hdr, height=intr.height, width=intr.width, distortion_model="plumb_bob",

@@ -175,7 +175,7 @@ class FollowTum(FollowFolder):
 
     def __init__(self, folder: Path, poll_s: float, timeout_s: float, drop_late: bool = False) -> None:
         super().__init__(folder, poll_s, timeout_s, drop_late)
-        self.intrinsics = tum.intrinsics_for(self.folder)
+        self.intrinsics, self.undistortion = tum.camera_for(self.folder)
         self.sensor = tum.SENSOR
         self.last_t = -np.inf
         self._pairs_key: tuple | None = None
@@ -218,8 +218,8 @@ class FollowTum(FollowFolder):
 
     def _read(self, taken: int, item: object) -> Frame:
         t, rgb_file, depth_file, t_depth = item
-        rgb = read_rgb(self.folder / rgb_file, self.intrinsics)
-        depth = tum.read_depth_file(self.folder / depth_file, self.intrinsics)
+        rgb = tum.read_rgb_file(self.folder / rgb_file, self.intrinsics, self.undistortion)
+        depth = tum.read_depth_file(self.folder / depth_file, self.intrinsics, self.undistortion)
         self._stamp(self.folder / rgb_file, self.folder / depth_file)
         pose = self._groundtruth(t)
         self.last_t = t

@@ -5,7 +5,8 @@ Layout of a sequence folder (e.g. ``rgbd_dataset_freiburg1_xyz``)::
     rgb.txt          "timestamp rgb/<timestamp>.png" per line, '#' comments
     depth.txt        "timestamp depth/<timestamp>.png" per line, '#' comments
     groundtruth.txt  "timestamp tx ty tz qx qy qz qw" (T_world_cam), optional
-    camera.txt       "fx fy cx cy [width height]", optional, overrides the built-in table
+    camera.txt       "fx fy cx cy [width height [k1 k2 p1 p2 [k3]]]", optional, overrides
+                     the built-in tables
 
 How the frames are built (docs/formats.md, "TUM RGB-D input"):
 
@@ -28,6 +29,11 @@ How the frames are built (docs/formats.md, "TUM RGB-D input"):
   ``freiburgN`` / ``frN`` part of the folder name (table :data:`TUM_INTRINSICS`, the
   values published with the dataset, images 640x480); anything else is a
   :class:`~data.errors.DataError` asking for ``camera.txt``.
+* **Distortion.** fr1 and fr2 images are recorded raw, with the lens distortion TUM
+  publishes (:data:`TUM_DISTORTION`; fr3's images are already undistorted), and their
+  depth is registered to those raw colour pixels. The reader undistorts both
+  (:mod:`data.undistort`), so frames are pinhole images of the camera matrix above.
+  ``camera.txt``'s optional ``k1 k2 p1 p2 [k3]`` do the same for another camera.
 
 Malformed files raise :class:`~data.errors.DataError` naming the file and line.
 """
@@ -48,6 +54,7 @@ from ctcvo.data.formats import read_tum, read_tum_rows
 from ctcvo.data.sensor import KINECT_V1_READOUT_S, Sensor
 from ctcvo.data.sequence import Intrinsics, Sequence, read_depth, read_rgb
 from ctcvo.data.sevenscenes import read_intrinsics_file
+from ctcvo.data.undistort import COEFF_COUNTS, Undistortion, undistortion
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +73,13 @@ TUM_INTRINSICS: dict[str, Intrinsics] = {
     "fr1": Intrinsics(517.3, 516.5, 318.6, 255.3, 640, 480),
     "fr2": Intrinsics(520.9, 521.0, 325.1, 249.7, 640, 480),
     "fr3": Intrinsics(535.4, 539.2, 320.1, 247.6, 640, 480),
+}
+#: Published lens distortion of the Freiburg Kinects' colour cameras (OpenCV k1 k2 p1 p2 k3):
+#: fr1 and fr2 images are raw, fr3's were undistorted before publication.
+TUM_DISTORTION: dict[str, tuple[float, ...]] = {
+    "fr1": (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
+    "fr2": (0.2312, -0.7849, -0.0033, -0.0001, 0.9172),
+    "fr3": (),
 }
 _CAMERA_RE = re.compile(r"(?:freiburg|(?<![a-z])fr)([123])(?![0-9])")
 
@@ -208,17 +222,39 @@ def interpolate_poses(t_gt: NDArray[np.float64], T_gt: NDArray[np.float64],
 
 def intrinsics_for(folder: Path) -> Intrinsics:
     """``camera.txt`` in ``folder`` if present, else the Freiburg camera named by the folder."""
+    return camera_for(folder)[0]
+
+
+def camera_for(folder: Path) -> tuple[Intrinsics, Undistortion | None]:
+    """The camera matrix of ``folder``'s frames and the undistortion its raw images need
+    (None: none): ``camera.txt`` if present, else the Freiburg camera named by the folder."""
     folder = Path(folder)
     cam = folder / "camera.txt"
     if cam.is_file():
-        return read_intrinsics_file(cam, 640, 480)
+        return _read_camera_file(cam)
     m = _CAMERA_RE.search(folder.resolve().name.lower())
     if m:
-        return TUM_INTRINSICS[f"fr{m.group(1)}"]
+        key = f"fr{m.group(1)}"
+        return TUM_INTRINSICS[key], undistortion(TUM_INTRINSICS[key], TUM_DISTORTION[key])
     raise DataError(
         f"cannot tell the camera of TUM sequence {folder}: its name contains no freiburg1/2/3 "
         f"(or fr1/2/3); put a camera.txt with 'fx fy cx cy' in the folder"
     )
+
+
+def _read_camera_file(path: Path) -> tuple[Intrinsics, Undistortion | None]:
+    """``camera.txt``: ``fx fy cx cy [width height [k1 k2 p1 p2 [k3]]]``."""
+    words = path.read_text().split()
+    if len(words) - 6 not in COEFF_COUNTS:
+        return read_intrinsics_file(path, 640, 480), None
+    try:
+        vals = [float(w) for w in words]
+    except ValueError:
+        raise DataError(f"{path}: camera values must be numbers") from None
+    if not np.all(np.isfinite(vals)):
+        raise DataError(f"{path}: non-finite camera values")
+    intr = Intrinsics(*vals[:4], int(vals[4]), int(vals[5]))
+    return intr, undistortion(intr, tuple(vals[6:]))
 
 
 # ----------------------------------------------------------------------------------
@@ -233,7 +269,7 @@ class TumSequence(Sequence):
         if not folder.is_dir():
             raise DataError(f"TUM sequence folder {folder} does not exist")
         self.root = folder
-        intr = intrinsics_for(folder)
+        intr, self.undistortion = camera_for(folder)
         t_rgb, rgb_names = read_image_list(folder / "rgb.txt")
         t_depth, depth_names = read_image_list(folder / "depth.txt")
         ia, ib = associate(t_rgb, t_depth, max_dt)
@@ -284,12 +320,20 @@ class TumSequence(Sequence):
         self.gt_problems = problems
 
     def _read_rgb(self, pos: int) -> NDArray[np.uint8]:
-        return read_rgb(self.root / self._rgb_files[pos], self.intrinsics)
+        return read_rgb_file(self.root / self._rgb_files[pos], self.intrinsics, self.undistortion)
 
     def _read_depth(self, pos: int) -> NDArray[np.float32]:
-        return read_depth_file(self.root / self._depth_files[pos], self.intrinsics)
+        return read_depth_file(self.root / self._depth_files[pos], self.intrinsics, self.undistortion)
 
 
-def read_depth_file(path: Path, intr: Intrinsics) -> NDArray[np.float32]:
-    """A TUM RGB-D depth PNG in metres (5000 units per metre on file; 0 invalid)."""
-    return read_depth(path, DEPTH_SCALE, intr, invalid=(0,))
+def read_rgb_file(path: Path, intr: Intrinsics, undistort: Undistortion | None = None) -> NDArray[np.uint8]:
+    """A TUM RGB-D colour image, RGB, undistorted by ``undistort`` (None: as recorded)."""
+    rgb = read_rgb(path, intr)
+    return rgb if undistort is None else undistort.rgb(rgb)
+
+
+def read_depth_file(path: Path, intr: Intrinsics, undistort: Undistortion | None = None) -> NDArray[np.float32]:
+    """A TUM RGB-D depth PNG in metres (5000 units per metre on file; 0 invalid), undistorted
+    by ``undistort`` (None: as recorded)."""
+    depth = read_depth(path, DEPTH_SCALE, intr, invalid=(0,))
+    return depth if undistort is None else undistort.depth(depth)

@@ -4,7 +4,8 @@ Frames go to ORB-SLAM3 as :class:`~ctcvo.data.sequence.Sequence` reads them, wha
 dataset: colour in RGB order (``Camera.RGB: 1``) and depth as float32 metres, so
 ``DepthMapFactor`` is 1 (ORB-SLAM3 then converts nothing) and every reader's own depth
 scale (TUM 5000, 7-Scenes and the synthetic scenes 1000, bags mm or m) is already applied.
-The intrinsics are the depth-registered camera's, without distortion (the readers give none).
+The intrinsics are the depth-registered camera's, without distortion: a reader that knows a
+lens distortion undistorts the frames first (data/undistort.py).
 """
 
 from __future__ import annotations
