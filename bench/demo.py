@@ -33,6 +33,7 @@ from bench.orbslam3_peer import metrics, one_second, orbslam3_row
 from bench.teacher import run_open3d
 from ctcvo.data.formats import Trajectory
 from ctcvo.data.scenes import open_scene
+from ctcvo.data.undistort import with_camera
 
 ROOMS = ("office", "lab", "kitchen")
 ROW_KEYS = ("ate_rmse_m", "rpe_g1_trans_m", "rpe_g1_rot_deg", "rpe_1s_trans_m", "rpe_1s_rot_deg", "se3_l2_mean")
@@ -44,9 +45,11 @@ def cached_rooms(cache: Path) -> list[str]:
     return [r for r in ROOMS if any(re.fullmatch(rf"{r}-[0-9a-f]{{8}}", n) for n in names)]
 
 
-def peer_rows(scene: str, vocabulary: Path, runs: int) -> dict[str, dict]:
-    """ORB-SLAM3's (median of ``runs``) and Open3D's rows on the demo's test room ``scene``."""
+def peer_rows(scene: str, vocabulary: Path, runs: int, camera: Path | None) -> dict[str, dict]:
+    """ORB-SLAM3's (median of ``runs``) and Open3D's rows on the demo's test room ``scene``,
+    on the frames the demo's teacher saw (undistorted with the demo's ``camera`` file)."""
     seq = open_scene(scene)[0]
+    seq = seq if camera is None else with_camera(seq, camera)
     gt, second = Trajectory(seq.times(), seq.groundtruth()), one_second(seq.times())
     o3d = metrics(gt, Trajectory(seq.times(), run_open3d(seq)[0]), second)
     orb = orbslam3_row(seq, vocabulary, runs)
@@ -83,7 +86,8 @@ def main() -> int:
     rows = {k: {"label": r["label"], **{c: r.get(c) for c in ROW_KEYS}} for k, r in rep["rows"].items()}
     if args.orbslam3_vocabulary is not None:
         os.environ["VO_CACHE_DIR"] = env["VO_CACHE_DIR"]  # the rooms the demo rendered
-        rows.update(peer_rows(rep["scene"], args.orbslam3_vocabulary, args.orbslam3_runs))
+        cameras = sorted((work / "runs").glob("*/camera/camera.json"))
+        rows.update(peer_rows(rep["scene"], args.orbslam3_vocabulary, args.orbslam3_runs, (cameras or [None])[0]))
     print("| row | ATE mm | gap-1 RPE mm / deg | se(3) L2 |\n|---|---|---|---|")
     for r in rows.values():
         print(f"| {r['label']} | {1000 * r['ate_rmse_m']:.1f} | {1000 * r['rpe_g1_trans_m']:.2f} / "

@@ -45,6 +45,7 @@ from ctcvo.data import geometry as geo  # noqa: E402
 from ctcvo.data.chain import chain_steps  # noqa: E402
 from ctcvo.data.formats import Edge, Trajectory  # noqa: E402
 from ctcvo.data.scenes import open_scene  # noqa: E402
+from ctcvo.data.undistort import read_camera, with_camera  # noqa: E402
 from ctcvo.posegraph.graph import solve  # noqa: E402
 from ctcvo.teacher.config import TeacherConfig  # noqa: E402
 from ctcvo.teacher.covariance_model import gap_scale  # noqa: E402
@@ -131,7 +132,9 @@ def _teacher_rows(seq) -> list[dict]:
              "fails": fails, "solve_s": solve_s}]
 
 
-def _open_sequence(spec: str, frames: str | None, synthetic_frames: int | None):
+def _open_sequence(spec: str, frames: str | None, synthetic_frames: int | None, camera: Path | None = None):
+    if camera is not None:  # every row gets the same undistorted frames
+        return with_camera(_open_sequence(spec, frames, synthetic_frames), camera)
     if synthetic_frames and spec.startswith("synthetic/"):  # a shorter walk of the preset (rendered anew)
         from dataclasses import replace
 
@@ -145,8 +148,8 @@ def _open_sequence(spec: str, frames: str | None, synthetic_frames: int | None):
 
 
 def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frames: int | None = None,
-                orbslam3_vocabulary: Path | None = None, orbslam3_runs: int = 3) -> list[dict]:
-    seq = _open_sequence(spec, frames, synthetic_frames)
+                orbslam3_vocabulary: Path | None = None, orbslam3_runs: int = 3, camera: Path | None = None) -> list[dict]:
+    seq = _open_sequence(spec, frames, synthetic_frames, camera)
     gt = Trajectory(seq.times(), seq.groundtruth())
     rows = _teacher_rows(seq)
     # The single-process peers run with OpenCV and OpenMP on every core, whatever
@@ -189,20 +192,24 @@ def main() -> None:
                     help="a DBoW2 vocabulary (ctcvo teacher vocabulary, from training frames): adds ORB-SLAM3's row")
     ap.add_argument("--orbslam3-runs", type=int, default=3,
                     help="ORB-SLAM3 SLAM runs per scene (median and min-max reported)")
+    ap.add_argument("--camera", type=Path, default=None,
+                    help="camera file (ctcvo teacher calibrate, from training or validation frames): every row runs "
+                         "on the frames undistorted with it")
     record.add_arguments(ap, "teacher")
     args = ap.parse_args()
     if args.orbslam3_runs < 1:
         ap.error(f"--orbslam3-runs must be >= 1, got {args.orbslam3_runs}")
     if args.orbslam3_vocabulary is not None and not args.orbslam3_vocabulary.is_file():
         ap.error(f"--orbslam3-vocabulary {args.orbslam3_vocabulary}: no such file")
-    rec = record.from_args(args, teacher=TeacherConfig())
+    camera = None if args.camera is None else {"file": str(args.camera), "distortion": read_camera(args.camera)[1]}
+    rec = record.from_args(args, teacher=TeacherConfig(), camera=camera)
     results = []
     for spec in args.scenes:
         if not spec.startswith("synthetic/") and not Path(spec).exists():
             print(f"skipping {spec}: not found", file=sys.stderr)
             continue
         results += bench_scene(spec, args.frames, args.peers, args.synthetic_frames, args.orbslam3_vocabulary,
-                               args.orbslam3_runs)
+                               args.orbslam3_runs, args.camera)
         rec.finish({"rows": results})  # after every scene, so a long run that is cut short keeps what it measured
     print("\n".join(tables.markdown(tables.TEACHER_HEAD, [tables.teacher_cells(r, "") for r in results])))
 

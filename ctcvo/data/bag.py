@@ -450,13 +450,13 @@ class BagSequence(Sequence):
         msg, ty = self._message(0, pos)
         img = decode_colour(msg, ty, f"{self.path} {self.topics.rgb} frame {pos}")
         self._check_size(img.shape[:2], "colour", pos)
-        return img if self.undistortion is None else self.undistortion.rgb(img)
+        return img  # undistorted by Sequence.rgb
 
     def _read_depth(self, pos: int) -> NDArray[np.float32]:
         msg, ty = self._message(1, pos)
         d = decode_depth(msg, ty, f"{self.path} {self.topics.depth} frame {pos}")
         self._check_size(d.shape, "depth", pos)
-        return d if self.undistortion is None else self.undistortion.depth(d)
+        return d
 
     def _check_size(self, shape: tuple[int, ...], what: str, pos: int) -> None:
         intr = self.intrinsics

@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 #: the root of the default output folders (relative to the working directory)
 RUNS_DIR = Path("runs")
 #: the stages, in pipeline order; each one's default folder is ``runs/<scene-slug>/<stage>``
-STAGES = ("teacher", "learner", "predict", "posegraph", "online")
+STAGES = ("camera", "teacher", "learner", "predict", "posegraph", "online")
 FINGERPRINT_FILE = "fingerprint.json"
 #: The code version of each fingerprinted stage (the fingerprint's ``stage`` name). A
 #: change that alters what a stage writes for the same inputs bumps its number here, in

@@ -123,6 +123,9 @@ class Sequence(abc.ABC):
     intrinsics: Intrinsics
     #: the camera that recorded it, as the reader knows it
     sensor: Sensor
+    #: the lens undistortion applied to every frame read (:class:`data.undistort.Undistortion`),
+    #: None for frames used as recorded
+    undistortion = None
 
     def __init__(self, name: str, intrinsics: Intrinsics, timestamps: NDArray[np.float64],
                  frame_ids: NDArray[np.int64], gt: NDArray[np.float64] | None,
@@ -162,12 +165,15 @@ class Sequence(abc.ABC):
         return self._gt is not None
 
     def rgb(self, k: int) -> NDArray[np.uint8]:
-        """(H, W, 3) uint8 RGB of frame position ``k``."""
-        return self._read_rgb(int(self._positions[k]))
+        """(H, W, 3) uint8 RGB of frame position ``k`` (undistorted by :attr:`undistortion`)."""
+        img = self._read_rgb(int(self._positions[k]))
+        return img if self.undistortion is None else self.undistortion.rgb(img)
 
     def depth(self, k: int) -> NDArray[np.float32]:
-        """(H, W) float32 depth in metres of frame position ``k`` (0 = invalid)."""
-        return self._read_depth(int(self._positions[k]))
+        """(H, W) float32 depth in metres of frame position ``k`` (0 = invalid; undistorted by
+        :attr:`undistortion`)."""
+        depth = self._read_depth(int(self._positions[k]))
+        return depth if self.undistortion is None else self.undistortion.depth(depth)
 
     def ids(self) -> NDArray[np.int64]:
         """Frame ids (indices in the full recording) of this view, (N,)."""

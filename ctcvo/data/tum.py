@@ -320,10 +320,10 @@ class TumSequence(Sequence):
         self.gt_problems = problems
 
     def _read_rgb(self, pos: int) -> NDArray[np.uint8]:
-        return read_rgb_file(self.root / self._rgb_files[pos], self.intrinsics, self.undistortion)
+        return read_rgb(self.root / self._rgb_files[pos], self.intrinsics)  # undistorted by Sequence.rgb
 
     def _read_depth(self, pos: int) -> NDArray[np.float32]:
-        return read_depth_file(self.root / self._depth_files[pos], self.intrinsics, self.undistortion)
+        return read_depth_file(self.root / self._depth_files[pos], self.intrinsics)
 
 
 def read_rgb_file(path: Path, intr: Intrinsics, undistort: Undistortion | None = None) -> NDArray[np.uint8]:

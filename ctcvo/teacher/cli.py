@@ -41,6 +41,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--covariance", default="calibrated", choices=["calibrated", "raw"],
                    help="calibrated: covariances scaled per gap to the sensor's real errors (fitted on validation "
                         "data); raw: the estimator's own, far too small on real data")
+    g.add_argument("--camera", type=Path, default=None,
+                   help="camera file from `ctcvo teacher calibrate`: undistort the frames with its lens distortion "
+                        "(default: the frames as the reader gives them)")
     g.add_argument("--overwrite", action="store_true",
                    help="replace outputs of other inputs instead of stopping with an error")
     g.add_argument("--strict", action="store_true",
@@ -59,6 +62,17 @@ def build_parser() -> argparse.ArgumentParser:
     orb.add_argument("--orb-settings", type=Path, help="your own ORB-SLAM3 YAML (default: from the sequence)")
     orb.add_argument("--orb-features", type=int, default=1000, help="ORB features per frame")
     add_topic_options(g)
+    c = add_command(sub, "calibrate", "self-calibrate the camera's radial lens distortion from its frames",
+                    "Estimate one radial distortion coefficient k1 (OpenCV model) of the camera that recorded the "
+                    "given frames, from ORB matches between frames 0.3-1 s apart and their depth, and write a camera "
+                    "file for `teacher generate --camera` and `online --camera`. Calibrate on training or validation "
+                    "frames of the camera, never on test frames.")
+    c.add_argument("--scene", action="append", required=True, help="a scene of the camera (repeat for several)")
+    c.add_argument("--frames", action="append", default=None,
+                   help="frame range START:STOP[:STEP], once for every scene or once per --scene (default: all)")
+    c.add_argument("--out", type=Path, default=None,
+                   help="camera file to write (JSON; default: runs/<first scene>/camera/camera.json)")
+    c.add_argument("--overwrite", action="store_true", help="replace a camera file of other inputs")
     v = add_command(sub, "vocabulary", "build an ORB vocabulary (DBoW2 text format) from training frames",
                     "Build a DBoW2 text vocabulary (ORB-SLAM's ORBvoc.txt format) by hierarchical k-medians on the ORB "
                     "descriptors of the given frames. Never build it from test frames: it is a trained model.")
@@ -95,7 +109,7 @@ def _generate(args: argparse.Namespace) -> int:
     from ctcvo.teacher.generate import generate
 
     args.scene = scene_with_topics(args.scene, args)
-    generate(args.scene, args.out, args.split, args.frames, cfg, args.overwrite, strict=args.strict)
+    generate(args.scene, args.out, args.split, args.frames, cfg, args.overwrite, strict=args.strict, camera=args.camera)
     return 0
 
 
@@ -112,6 +126,13 @@ def _generate_orbslam3(args: argparse.Namespace) -> int:
     return 0
 
 
+def _calibrate(args: argparse.Namespace) -> int:
+    from ctcvo.teacher.calibrate import calibrate
+
+    calibrate(args.scene, args.frames or [None], args.out, args.overwrite)
+    return 0
+
+
 def _vocabulary(args: argparse.Namespace) -> int:
     from ctcvo.teacher.orbslam3_generate import build_vocabulary_file
 
@@ -122,7 +143,7 @@ def _vocabulary(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    body = {"generate": _generate, "vocabulary": _vocabulary}[args.command]
+    body = {"generate": _generate, "calibrate": _calibrate, "vocabulary": _vocabulary}[args.command]
     return run(args, body, "interrupted (finished sequences are kept; rerun to resume)", fmt="%(message)s")
 
 

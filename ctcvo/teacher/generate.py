@@ -46,6 +46,7 @@ from ctcvo.data.scenes import open_scene
 from ctcvo.data.sensor import KINECT_V1_COLOUR, ColourCamera, Sensor
 from ctcvo.data.sequence import Sequence
 from ctcvo.data.uncertainty import mahalanobis2, nees_stats
+from ctcvo.data.undistort import with_camera
 from ctcvo.teacher import processes, skips
 from ctcvo.teacher.config import TeacherConfig, dense_method
 from ctcvo.teacher.covariance_model import describe, gap_scale
@@ -542,14 +543,18 @@ def fingerprint(spec: str, seq: Sequence, cfg: TeacherConfig) -> Fingerprint:
     edges)."""
     conf = cfg.to_dict()
     conf.pop("workers")
-    return Fingerprint("teacher", {"scene": scene_id(spec), "sequence": seq.name, "frames": frames_id(seq.ids()),
-                                   "teacher": conf, "chunks": [list(b) for b in _chunks(len(seq), cfg)]})
+    inputs = {"scene": scene_id(spec), "sequence": seq.name, "frames": frames_id(seq.ids()), "teacher": conf,
+              "chunks": [list(b) for b in _chunks(len(seq), cfg)]}
+    if seq.undistortion is not None:  # the frames are the undistorted ones
+        inputs["undistortion"] = list(seq.undistortion.coeffs)
+    return Fingerprint("teacher", inputs)
 
 
 def generate(spec: str, out: Path | None = None, split: str = "all", frames: str | None = None,
              config: TeacherConfig = TeacherConfig(), overwrite: bool = False, progress: bool = True,
-             strict: bool = False) -> list[Path]:
+             strict: bool = False, camera: Path | None = None) -> list[Path]:
     """Run the teacher on every sequence of ``spec``; returns one output folder per sequence.
+    ``camera``: a camera file (``ctcvo teacher calibrate``) whose distortion undistorts the frames.
 
     A sequence whose folder holds the outputs of the same inputs (``fingerprint.json``,
     :mod:`data.runs`) is skipped; outputs of other inputs are replaced with ``overwrite``,
@@ -560,6 +565,8 @@ def generate(spec: str, out: Path | None = None, split: str = "all", frames: str
     base = Path(out) if out is not None else stage_dir(spec, "teacher")
     with output_folder(base):
         seqs = open_scene(spec, split=split, frames=frames)
+        if camera is not None:
+            seqs = [with_camera(seq, camera) for seq in seqs]
         dirs = []
         for seq in seqs:
             d = base if len(seqs) == 1 else base / seq.name
@@ -573,7 +580,10 @@ def generate(spec: str, out: Path | None = None, split: str = "all", frames: str
                 raise ConfigError(f"{seq.name}: need at least 2 frames, got {len(seq)}")
             skips.check_groundtruth(seq, strict)
             run = run_sequence(seq, config, progress, strict)
-            rep = write_outputs(seq, run, config, d, {"scene": spec, "split": split, "frames": frames}, fp)
+            extra = {"scene": spec, "split": split, "frames": frames}
+            if seq.undistortion is not None:
+                extra["undistortion"] = list(seq.undistortion.coeffs)
+            rep = write_outputs(seq, run, config, d, extra, fp)
             log.info("%s", summary_line(seq.name, rep))
     return dirs
 
