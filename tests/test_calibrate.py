@@ -123,3 +123,22 @@ def test_calibrate_then_generate_with_the_camera(tmp_path: Path) -> None:
     bad = tmp_path / "bad.json"
     bad.write_text("{")
     assert teacher_cli.main([*gen, "--camera", str(bad), "--out", str(tmp_path / "bad")]) != 0
+
+
+@pytest.mark.slow
+def test_online_with_a_camera_makes_the_batch_edges(tmp_path: Path) -> None:
+    """`ctcvo online --camera` undistorts as `teacher generate --camera` does: the same
+    edges.csv, and the camera's distortion in both fingerprints."""
+    from ctcvo.pipeline import online
+    from ctcvo.teacher.config import PRESETS as TEACHER_PRESETS
+    from ctcvo.teacher.generate import generate
+
+    cfg = dataclasses.replace(TEACHER_PRESETS["tiny"], workers=1)
+    seq = synthetic_sequence("tiny", None)
+    cam = tmp_path / "camera.json"
+    write_camera(cam, seq.intrinsics, (0.02, 0.0, 0.0, 0.0, 0.0), {})
+    generate("synthetic/tiny", tmp_path / "batch", config=cfg, progress=False, camera=cam)
+    res = online.online("synthetic/tiny", tmp_path / "online", teacher_cfg=cfg, progress=False, camera=cam)
+    assert (res.out / "teacher" / "edges.csv").read_text() == (tmp_path / "batch" / "edges.csv").read_text()
+    for fp in (tmp_path / "batch" / "fingerprint.json", res.out / "fingerprint.json"):
+        assert json.loads(fp.read_text())["inputs"]["undistortion"][0] == 0.02

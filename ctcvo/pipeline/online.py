@@ -44,6 +44,7 @@ from ctcvo.data.runs import (
     write_fingerprint,
 )
 from ctcvo.data.scenes import open_scene
+from ctcvo.data.undistort import with_camera
 from ctcvo.learner.config import PredictConfig, to_dict
 from ctcvo.learner.online import OnlineLearner
 from ctcvo.pipeline.online_keyframes import KeyframeWorker
@@ -72,16 +73,19 @@ class OnlineResult:
 
 
 def open_source(spec: str, frames: str | None = None, follow: bool = False,
-                cfg: OnlineConfig = OnlineConfig()) -> FrameSource:
-    """The frame source of ``spec`` (``follow``: a folder still being written)."""
+                cfg: OnlineConfig = OnlineConfig(), camera: Path | None = None) -> FrameSource:
+    """The frame source of ``spec`` (``follow``: a folder still being written; ``camera``: a
+    camera file whose distortion undistorts the frames, as for ``teacher generate``)."""
     if follow:
         if frames:
             raise ConfigError("--frames does not apply with --follow (frames are taken as they arrive)")
+        if camera is not None:
+            raise ConfigError("--camera does not apply with --follow (a live folder is read as recorded)")
         return follow_folder(Path(spec), cfg.poll_s, cfg.timeout_s, cfg.drop_late)
     seqs = open_scene(spec, frames=frames)
     if len(seqs) != 1:
         raise ConfigError(f"{spec} holds {len(seqs)} sequences; give one sequence folder")
-    return SequenceSource(seqs[0])
+    return SequenceSource(seqs[0] if camera is None else with_camera(seqs[0], camera))
 
 
 def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Path | None = None,
@@ -125,6 +129,7 @@ def fingerprint(spec: str, source: FrameSource, teacher_cfg, checkpoint: Path | 
         tconf.pop(k, None)
     follow = isinstance(source, FollowFolder)
     cal = Path(checkpoint).parent / "calibration.json" if checkpoint is not None else None
+    und = source.seq.undistortion if isinstance(source, SequenceSource) else None  # the frames' lens undistortion
     if checkpoint is not None:
         pconf = to_dict(predict_cfg or PredictConfig())
     return Fingerprint("online", {
@@ -135,13 +140,14 @@ def fingerprint(spec: str, source: FrameSource, teacher_cfg, checkpoint: Path | 
         "calibration": file_digest(cal) if cal is not None and cal.is_file() else None,
         "predict": pconf if checkpoint is not None else None, "graph": (graph_cfg or ONLINE).to_dict(),
         "pose_after_gap1": cfg.pose_after_gap1,
-        **({"drop_late": True} if cfg.drop_late else {})})  # absent when off: earlier runs stay valid
+        **({"drop_late": True} if cfg.drop_late else {}),  # absent when off: earlier runs stay valid
+        **({"undistortion": list(und.coeffs)} if und is not None else {})})
 
 
 def online(spec: str, out: Path | None = None, *, frames: str | None = None, follow: bool = False,
            teacher_cfg=None, checkpoint: Path | None = None, predict_cfg=None, graph_cfg=None,
            cfg: OnlineConfig = OnlineConfig(), device: str = "cpu", overwrite: bool = False,
-           progress: bool = True) -> OnlineResult:
+           progress: bool = True, camera: Path | None = None) -> OnlineResult:
     """``ctcvo online``: :func:`run` over the scene ``spec`` into ``out`` (default
     ``runs/<scene-slug>/online``), under the rerun rule of :mod:`data.runs`.
 
@@ -153,7 +159,7 @@ def online(spec: str, out: Path | None = None, *, frames: str | None = None, fol
     teacher_cfg = teacher_cfg or TEACHER_DEFAULT
     out = Path(out) if out is not None else stage_dir(spec, "online")
     with output_folder(out):
-        source = open_source(spec, frames, follow, cfg)
+        source = open_source(spec, frames, follow, cfg, camera)
         fp = fingerprint(spec, source, teacher_cfg, checkpoint, predict_cfg, graph_cfg, cfg)
         report = None
         if (out / REPORT).is_file():

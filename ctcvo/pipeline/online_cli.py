@@ -43,6 +43,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true",
                    help="replace the outputs of other inputs in --out instead of stopping with an error")
     p.add_argument("--frames", help="frame range START:STOP[:STEP] (default: every frame)")
+    p.add_argument("--camera", type=Path, default=None,
+                   help="camera file from `ctcvo teacher calibrate`: undistort the frames with its lens distortion "
+                        "(default: the frames as the reader gives them)")
     p.add_argument("--follow", action="store_true", help="the folder is still being written: wait for new frames")
     p.add_argument("--timeout", type=float, default=OnlineConfig.timeout_s,
                    help="--follow: end after this many seconds without a new frame")
@@ -94,7 +97,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         tcfg, pcfg, ocfg = _configs(args)
         res = online(scene, args.out, frames=args.frames, follow=args.follow, teacher_cfg=tcfg,
                      checkpoint=args.checkpoint, predict_cfg=pcfg if args.checkpoint else None, cfg=ocfg,
-                     device=args.device, overwrite=args.overwrite)
+                     device=args.device, overwrite=args.overwrite, camera=args.camera)
     except VOError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
