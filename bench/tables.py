@@ -223,6 +223,20 @@ def keyframes_table(records: dict[str, dict]) -> list[str]:
     return markdown(head, rows) + ["", provenance(recs)]
 
 
+def dense_gap1_table(records: dict[str, dict]) -> list[str]:
+    """bench.dense_gap1: per validation range, each variant's teacher graph ATE / gap-1 / 1 s
+    RPE (mm) and the yaw's (camera y) scale error of its gap-1 edges."""
+    recs = select(records, "dense-gap1")
+    if not recs:
+        return missing("python -m bench.dense_gap1")
+    scenes = next(iter(recs.values()))["figures"]["scenes"]
+    variants = list(next(iter(scenes.values())))
+    rows = [[range_label(key)] + [f"{mm(x['ate_m'])} / {mm(x['rpe_gap1_m'], 2)} / {mm(x['rpe_1s_m'])}, "
+                                  f"{x['rotation_scale_error']['1'][1]:+.2f}" for x in row.values()]
+            for key, row in scenes.items()]
+    return markdown(["range"] + variants, rows) + ["", provenance(recs)]
+
+
 def covariance_table(records: dict[str, dict]) -> list[str]:
     recs = select(records, "teacher-covariance")
     if not recs:
@@ -426,7 +440,7 @@ def results_table(records: dict[str, dict]) -> list[str]:
 
 TABLES: dict[str, Callable[[dict[str, dict]], list[str]]] = {
     "teacher": teacher_table, "online": online_table, "online-validation": online_validation_table,
-    "posegraph": posegraph_table, "keyframes": keyframes_table,
+    "posegraph": posegraph_table, "keyframes": keyframes_table, "dense-gap1": dense_gap1_table,
     "learner": learner_table, "teacher-covariance": covariance_table,
     "render": render_table, "synthetic-realism": realism_table, "ablation": ablation_table,
     "teacher-noise": noise_table, "orbslam3-covariance": orbslam3_covariance_table, "demo": demo_table,

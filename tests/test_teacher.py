@@ -1269,9 +1269,9 @@ def test_plausibility_bound_and_second_start_follow_the_depth_moments(office_cle
     got = {}
     est = wmod.estimate_edge
 
-    def spy(i, j, fi, fj, intr, c, dt, T_pred=None, tracks=None, T_alt=None, span=None):
+    def spy(i, j, fi, fj, intr, c, dt, T_pred=None, tracks=None, T_alt=None, span=None, **kw):
         got[(i, j)] = (span, T_alt, dt)
-        return est(i, j, fi, fj, intr, c, dt, T_pred, tracks, T_alt, span)
+        return est(i, j, fi, fj, intr, c, dt, T_pred, tracks, T_alt, span, **kw)
 
     monkeypatch.setattr(wmod, "estimate_edge", spy)
     feats = {2: _features(seq, 2, cfg), 3: _features(seq, 3, cfg),
@@ -1427,3 +1427,39 @@ def test_rolling_shutter_correction_lowers_the_longer_edges_error():
     # measured: 0.90 of it (1.83e-4 against 2.02e-4 m^2; on 20 frames with repeated images,
     # 35 of the 66 longer edges have both velocities); off, it would be 1
     assert np.mean(sq[None]) < 0.95 * np.mean(sq[0.0]), (np.mean(sq[None]), np.mean(sq[0.0]))
+
+
+def test_gap1_edge_skips_a_depth_only_dense_step(office_clean):
+    """Where the dense step would be the depth alone (``point-to-plane``) and the colour is
+    registered (TUM RGB-D), a gap-1 edge keeps its keypoint estimate (the point-to-plane
+    alignment over one frame is pulled towards the identity); a longer edge still takes the
+    step, and so does a gap-1 edge with photometric maps (``hybrid``) or behind a colour camera
+    model (7-Scenes). The window marks its gap-1 edges."""
+    from ctcvo.teacher.window import EdgeWindow
+
+    seq = office_clean
+    p2p = dataclasses.replace(TeacherConfig(), dense_method="point-to-plane")
+    off = dataclasses.replace(p2p, dense=False)
+    fa, fb = _features(seq, 2, p2p), _features(seq, 3, p2p)
+    skipped = estimate_edge(2, 3, fa, fb, seq.intrinsics, p2p, 1 / 30, gap1=True)
+    taken = estimate_edge(2, 3, fa, fb, seq.intrinsics, p2p, 1 / 30)
+    sparse = estimate_edge(2, 3, _features(seq, 2, off), _features(seq, 3, off), seq.intrinsics, off, 1 / 30)
+    assert skipped.ok and skipped.diag.dense is None
+    np.testing.assert_allclose(skipped.T_i_j, sparse.T_i_j, atol=1e-12)
+    assert taken.diag.dense is not None and taken.diag.dense.accepted
+    hybrid = dataclasses.replace(TeacherConfig(), dense_method="hybrid")
+    e = estimate_edge(2, 3, _features(seq, 2, hybrid), _features(seq, 3, hybrid), seq.intrinsics, hybrid, 1 / 30,
+                      gap1=True)
+    assert e.diag.dense is not None and e.diag.dense.hybrid is not None
+    from ctcvo.data.sensor import KINECT_V1_COLOUR
+
+    fa, fb = (extract(seq.rgb(k), seq.depth(k), p2p, K=seq.intrinsics.K, colour=KINECT_V1_COLOUR) for k in (2, 3))
+    assert not fa.registered
+    assert estimate_edge(2, 3, fa, fb, seq.intrinsics, p2p, 1 / 30, gap1=True).diag.dense is not None
+    win, edges = EdgeWindow(seq.intrinsics, dataclasses.replace(p2p, gaps=2)), []
+    for k in range(4):
+        edges += win.add(int(seq.ids()[k]), float(seq.times()[k]), _features(seq, k, p2p))
+    pos = {int(f): p for p, f in enumerate(seq.ids())}
+    by_gap = {g: [x for x in edges if pos[x.j] - pos[x.i] == g] for g in (1, 2)}
+    assert by_gap[1] and all(x.ok and x.diag.dense is None for x in by_gap[1])
+    assert by_gap[2] and all(x.diag.dense is not None for x in by_gap[2])

@@ -26,7 +26,8 @@ class TeacherConfig:
     """Refine the PnP-RANSAC pose with the robust two-way Newton solve (reprojection both ways
     and a 3-D depth term); False keeps OpenCV's least-squares pose on the RANSAC inliers."""
     dense: bool = True
-    """Refine each good edge with a dense depth alignment, and run the dense fallbacks when no
+    """Refine each good edge with a dense depth alignment (a gap-1 edge only where the hybrid
+    stage follows: :mod:`teacher.odometry`, step 4), and run the dense fallbacks when no
     sparse estimate passes."""
     dense_method: str = "auto"
     """Dense step: ``point-to-plane`` (depth alone), ``hybrid`` (then a photometric + depth stage

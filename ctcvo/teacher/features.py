@@ -40,7 +40,8 @@ class FrameFeatures:
     moment. ``velocity_in`` / ``velocity_out`` (6,) ``(v, w)`` per second, set by the window:
     the camera's velocity from the frame's gap-1 edge in and out of it, for the rolling
     shutter correction (``cfg.rolling_shutter_s``, :func:`rolling_shutter_views`); None when
-    unknown.
+    unknown. ``registered``: the colour camera is the depth camera's (no colour camera model
+    moved the keypoints).
     """
 
     uv: NDArray[np.float32]
@@ -55,6 +56,7 @@ class FrameFeatures:
     depth_offset: float = 0.0
     velocity_in: NDArray[np.float64] | None = None
     velocity_out: NDArray[np.float64] | None = None
+    registered: bool = True
     _tree: cKDTree | None = None
     _rolling: dict = field(default_factory=dict, repr=False)
 
@@ -152,11 +154,11 @@ def extract(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConf
     keys = image_keys(rgb, depth)
     if not kps or desc is None:
         return FrameFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8),
-                             np.zeros(0, np.float32), gray, depth, dense, keys)
+                             np.zeros(0, np.float32), gray, depth, dense, keys, registered=colour is None)
     uv = np.array([k.pt for k in kps], dtype=np.float32)
     if colour is not None and K is not None:
         uv = colour.to_depth_pixels(uv, depth, K)
-    return FrameFeatures(uv, desc, depth_at(depth, uv), gray, depth, dense, keys)
+    return FrameFeatures(uv, desc, depth_at(depth, uv), gray, depth, dense, keys, registered=colour is None)
 
 
 def backproject(uv: NDArray, z: NDArray, K: NDArray) -> NDArray[np.float64]:

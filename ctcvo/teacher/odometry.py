@@ -7,7 +7,16 @@
    depth alone (:func:`teacher.fallbacks.rgbd_edge`, ``depth_only``);
 3. no keypoint estimate: the dense fallbacks (:mod:`teacher.fallbacks`);
 4. a good one: the dense step (:func:`teacher.dense.dense_refine`), and where its depth stage
-   disagrees with the keypoints, the rgbd fallback in their place.
+   disagrees with the keypoints, the rgbd fallback in their place. Not on a gap-1 edge whose
+   dense step would be the depth alone (no photometric maps) and whose colour is registered
+   to the depth (TUM RGB-D): between consecutive frames the point-to-plane alignment is
+   pulled towards the identity, while the keypoints measure the same moments. On TUM
+   fr3/teddy (motion capture, validation) the step took about 14 % of the yaw off every gap-1
+   edge (the keypoint estimate 3 %, the ground truth's own noise); without it the teacher pose
+   graph's ATE falls from 8.0 to 6.8 mm. Where a separate colour camera is exposed at other
+   moments than the depth (7-Scenes, whose ground truth follows the depth) the step measures
+   the depth's moments and stays: without it redkitchen 0:450's gap-1 RPE rose 3.68 -> 3.85
+   mm (``python -m bench.dense_gap1``, record dense-gap1).
 
 Conventions (docs/conventions.md): ``T_i_j`` maps frame-j camera coordinates into frame i;
 the covariance is in the project tangent order (v, w), right perturbation at ``T_i_j``.
@@ -36,9 +45,9 @@ log = logging.getLogger(__name__)
 def estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
                   cfg: TeacherConfig, dt: float, T_pred: NDArray | None = None,
                   tracks: NDArray[np.int64] | None = None,
-                  T_alt: NDArray | None = None, span: float | None = None) -> EdgeEstimate:
+                  T_alt: NDArray | None = None, span: float | None = None, gap1: bool = False) -> EdgeEstimate:
     """:func:`_estimate_edge`, with a debug line per edge (``-v``): how it was made."""
-    res = _estimate_edge(i, j, fi, fj, intr, cfg, dt, T_pred, tracks, T_alt, span)
+    res = _estimate_edge(i, j, fi, fj, intr, cfg, dt, T_pred, tracks, T_alt, span, gap1)
     if log.isEnabledFor(logging.DEBUG):
         log.debug("edge %d->%d: %s", i, j, describe(res))
     return res
@@ -61,7 +70,7 @@ def describe(res: EdgeEstimate) -> str:
 def _estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics,
                    cfg: TeacherConfig, dt: float, T_pred: NDArray | None = None,
                    tracks: NDArray[np.int64] | None = None,
-                   T_alt: NDArray | None = None, span: float | None = None) -> EdgeEstimate:
+                   T_alt: NDArray | None = None, span: float | None = None, gap1: bool = False) -> EdgeEstimate:
     """Estimate ``T_i_j`` between two frames (ids ``i``, ``j``, ``dt`` seconds apart).
 
     ``dt`` bounds the keypoint estimates' plausibility tests (``cfg.max_speed`` /
@@ -69,7 +78,9 @@ def _estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: I
     seconds the motion can span, from the earliest moment frame i's images show to frame j's
     timestamp. ``tracks``: (M, 2) keypoint index pairs chained along the gap-1 matches (a
     longer edge); ``T_pred``: the motion prediction; ``T_alt``: a second start of a gap-1
-    edge's rgbd fallback (:func:`teacher.fallbacks.rgbd_starts`).
+    edge's rgbd fallback (:func:`teacher.fallbacks.rgbd_starts`). ``gap1``: the frames are
+    consecutive; a good keypoint estimate of a registered colour camera then skips a dense
+    step that would be the depth alone (step 4 of the module's docstring).
 
     ``T_pred``, ``T_alt`` and the result are motions between the frames' colour moments; the
     dense steps align depth maps, so they start from the motion between the depth moments
@@ -89,6 +100,8 @@ def _estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: I
     if not best.ok:
         return _dense_fallbacks(i, j, fi, fj, intr, cfg, dt, span, T0, alt, best,
                                 chained=tracks is not None and T_pred is not None)
+    if gap1 and fi.registered and fj.registered and not _has_photo(fi, fj):
+        return best  # no point-to-plane step over one frame (the module's docstring, step 4)
     _dense_step(best, fi, fj, cfg, dt, rolling, hybrid=tracks is None)
     if T_pred is not None and dense_disagrees(best.diag.dense) and _has_photo(fi, fj):
         # the depth, started at the keypoints' estimate, moved too far from it: the

@@ -167,7 +167,7 @@ class EdgeWindow:
             e = estimate_edge(prev.frame_id, frame_id, prev.feats, fk, intr, cfg, dt,
                               T_pred=self._prediction(prev.feats, fk, prev_depth_repeat, cv),
                               T_alt=self.motion_between(span),
-                              span=timestamp - prev.since)
+                              span=timestamp - prev.since, gap1=True)
             if self._starts_inside(prev.pos):
                 edges.append(e)
             step = e.T_i_j if e.ok else (cv if cv is not None else np.eye(4))
