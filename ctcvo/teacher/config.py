@@ -26,9 +26,9 @@ class TeacherConfig:
     """Refine the PnP-RANSAC pose with the robust two-way Newton solve (reprojection both ways
     and a 3-D depth term); False keeps OpenCV's least-squares pose on the RANSAC inliers."""
     dense: bool = True
-    """Refine each good edge with a dense depth alignment (a gap-1 edge only where the hybrid
-    stage follows: :mod:`teacher.odometry`, step 4), and run the dense fallbacks when no
-    sparse estimate passes."""
+    """Refine each good edge with a dense depth alignment (not a gap-1 edge of a registered
+    colour camera without photometric maps, TUM RGB-D: :mod:`teacher.odometry`, step 4), and
+    run the dense fallbacks when no sparse estimate passes."""
     dense_method: str = "auto"
     """Dense step: ``point-to-plane`` (depth alone), ``hybrid`` (then a photometric + depth stage
     on gap-1 edges) or ``auto`` (hybrid for a sensor that exposes colour and depth together)."""

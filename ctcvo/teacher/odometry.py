@@ -15,7 +15,7 @@
    edge (the keypoint estimate 3 %, the ground truth's own noise); without it the teacher pose
    graph's ATE falls from 8.0 to 6.8 mm. Where a separate colour camera is exposed at other
    moments than the depth (7-Scenes, whose ground truth follows the depth) the step measures
-   the depth's moments and stays: without it redkitchen 0:450's gap-1 RPE rose 3.68 -> 3.85
+   the depth's moments and stays: without it redkitchen 0:450's gap-1 RPE rose 3.68 -> 3.88
    mm (``python -m bench.dense_gap1``, record dense-gap1).
 
 Conventions (docs/conventions.md): ``T_i_j`` maps frame-j camera coordinates into frame i;
