@@ -23,11 +23,9 @@ from contextlib import contextmanager
 import numpy as np
 
 from bench import record
+from bench.keyframes import figures as graph_figures
 from ctcvo.data import geometry as geo
-from ctcvo.data.formats import Edge, Trajectory
-from ctcvo.data.metrics import ate_rmse, rpe_rmse
 from ctcvo.data.scenes import open_scene
-from ctcvo.posegraph.graph import solve
 from ctcvo.teacher import covariance_model, keyframes, window
 from ctcvo.teacher.config import DEFAULT
 from ctcvo.teacher.generate import features_of, run_sequence
@@ -75,19 +73,12 @@ def rotation_scale_errors(seq, edges, gaps=range(1, 6)) -> dict[int, list[float]
 
 
 def figures(seq, cfg) -> dict:
-    """The teacher's run on ``seq`` with keyframe edges, through the default pose graph."""
+    """The teacher's run on ``seq`` with keyframe edges, through the default pose graph
+    (:func:`bench.keyframes.figures`), and its window edges' rotation scale errors."""
     run = run_sequence(seq, cfg, progress=False)
     edges = list(run.edges)
-    keyframes.add_keyframe_edges(seq, cfg, edges, run.poses, features_of(seq, cfg))
-    pos, nm = {int(k): p for p, k in enumerate(seq.ids())}, seq.sensor.noise_model
-    good = [Edge(e.i, e.j, e.T_i_j, e.cov * covariance_model.gap_scale(nm, pos[e.j] - pos[e.i]))
-            for e in edges if e.ok]
-    gt = Trajectory(seq.times(), seq.groundtruth())
-    est = Trajectory(seq.times(), solve(seq.ids(), good, run.poses).poses)
-    second = max(1, int(round(1.0 / np.median(np.diff(seq.times())))))
-    return {"ate_m": ate_rmse(gt, est), "rpe_gap1_m": rpe_rmse(gt, est, 1)[0], "rpe_1s_m": rpe_rmse(gt, est, second)[0],
-            "chain_ate_m": ate_rmse(gt, Trajectory(seq.times(), run.poses)),
-            "rotation_scale_error": rotation_scale_errors(seq, run.edges)}
+    kinds = keyframes.add_keyframe_edges(seq, cfg, edges, run.poses, features_of(seq, cfg))
+    return {**graph_figures(seq, edges, run.poses, kinds), "rotation_scale_error": rotation_scale_errors(seq, run.edges)}
 
 
 def main() -> None:
