@@ -4,8 +4,8 @@ with each of their constants moved one at a time.
 For each validation range (redkitchen 0:450 and 350:450, TUM fr3/teddy, synthetic/lab) the
 default teacher's window edges are estimated once (``keyframes`` off); then the keyframe pass
 (:func:`ctcvo.teacher.keyframes.add_keyframe_edges`) runs once per variant: ``window`` (no
-keyframe pass), ``default`` (the module's constants) and each entry of :data:`SWEEP`, one
-constant changed. The pose graph (:func:`ctcvo.posegraph.graph.solve`, the default
+keyframe pass), ``default`` (the module's constants), each entry of :data:`SWEEP`, one
+constant changed, and each of :data:`GROUPED`. The pose graph (:func:`ctcvo.posegraph.graph.solve`, the default
 ``PoseGraphConfig``, the calibrated covariances ``edges.g2o`` carries, as ``posegraph
 optimize`` solves it) optimises each variant's good edges; ATE, gap-1 and 1 s RPE are measured
 against the ground truth. Record ``bench/results/keyframes.json``.
@@ -39,6 +39,11 @@ VALIDATION = [f"{record.REDKITCHEN}:0:450", f"{record.REDKITCHEN}:350:450", f"{r
 SWEEP: dict[str, tuple[float, ...]] = {
     "KF_TRANS_M": (0.03, 0.1, 0.2), "KF_ROT_DEG": (5.0, 20.0), "KF_MIN_OVERLAP": (0.5, 0.85),
     "COVISIBLE_OVERLAP": (0.2, 0.6), "REACH_S": (3.0, 12.0), "MAX_COVISIBLE": (6, 10), "LOOP_SCORE": (0.6,),
+    "FALLBACK_GATE_M": (0.1,),
+}
+#: variants that move several constants together
+GROUPED: dict[str, dict[str, float]] = {
+    "no fallback gate": {"FALLBACK_GATE_M": float("inf"), "FALLBACK_GATE_DEG": float("inf")},
 }
 
 
@@ -71,7 +76,8 @@ def figures(seq, edges, poses, kinds: dict) -> dict:
 
 def variants() -> list[tuple[str, dict]]:
     """(label, constants) of every variant after ``window``."""
-    return [("default", {})] + [(f"{name} {v:g}", {name: v}) for name, vs in SWEEP.items() for v in vs]
+    return ([("default", {})] + [(f"{name} {v:g}", {name: v}) for name, vs in SWEEP.items() for v in vs]
+            + list(GROUPED.items()))
 
 
 def run_range(seq, cfg) -> dict:

@@ -15,7 +15,9 @@ from ctcvo.posegraph.graph import solve
 from ctcvo.teacher import cli
 from ctcvo.teacher.config import TINY
 from ctcvo.teacher.generate import run_sequence
+from ctcvo.teacher.keyframes import FALLBACK_GATE_M, gate_fallback
 from ctcvo.teacher.loops import verify
+from ctcvo.teacher.record import EdgeDiagnostics, EdgeEstimate
 
 CFG = dataclasses.replace(TINY, workers=1, keyframes=True)
 
@@ -83,6 +85,22 @@ def test_a_false_loop_is_rejected(loop_run):
     assert verify(e, e.T_i_j).ok
     far = e.T_i_j @ geo.se3_exp(np.array([0.5, 0.0, 0.0, 0.0, 0.0, 0.0]))  # another place, 0.5 m away
     assert verify(e, far).status == "loop_rejected"
+
+
+def test_a_fallback_keyframe_edge_far_from_its_prediction_is_rejected():
+    T = geo.se3_exp(np.array([0.2, 0.0, 0.1, 0.0, 0.05, 0.0]))
+    near = T @ geo.se3_exp(np.array([0.5 * FALLBACK_GATE_M, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    far = T @ geo.se3_exp(np.array([2.0 * FALLBACK_GATE_M, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    turned = T @ geo.se3_exp(np.array([0.0, 0.0, 0.0, 0.0, 0.0, np.deg2rad(10.0)]))
+    for path in ("depth", "rgbd", "dense"):
+        e = EdgeEstimate(3, 40, "ok", T_i_j=T, cov=np.eye(6), diag=EdgeDiagnostics(path=path))
+        assert gate_fallback(e, near).ok
+        assert gate_fallback(e, far).status == "fallback_disagrees"
+        assert gate_fallback(e, turned).status == "fallback_disagrees"
+    sparse = EdgeEstimate(3, 40, "ok", T_i_j=T, cov=np.eye(6), diag=EdgeDiagnostics(path="guided"))
+    assert gate_fallback(sparse, far).ok  # keypoint edges answer to the pose graph's rules alone
+    failed = EdgeEstimate(3, 40, "few_inliers", diag=EdgeDiagnostics(path="rgbd"))
+    assert gate_fallback(failed, far).status == "few_inliers"
 
 
 def test_keyframe_pass_in_worker_processes_gives_the_same_edges(monkeypatch):
