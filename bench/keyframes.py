@@ -5,10 +5,11 @@ For each validation range (redkitchen 0:450 and 350:450, TUM fr3/teddy, syntheti
 default teacher's window edges are estimated once (``keyframes`` off); then the keyframe pass
 (:func:`ctcvo.teacher.keyframes.add_keyframe_edges`) runs once per variant: ``window`` (no
 keyframe pass), ``default`` (the module's constants), each entry of :data:`SWEEP`, one
-constant changed, and each of :data:`GROUPED`. The pose graph (:func:`ctcvo.posegraph.graph.solve`, the default
-``PoseGraphConfig``, the calibrated covariances ``edges.g2o`` carries, as ``posegraph
-optimize`` solves it) optimises each variant's good edges; ATE, gap-1 and 1 s RPE are measured
-against the ground truth. Record ``bench/results/keyframes.json``.
+constant changed, and each of :data:`GROUPED`. The pose graph
+(:func:`ctcvo.posegraph.graph.solve`, the default ``PoseGraphConfig``, the calibrated
+covariances ``edges.g2o`` carries, as ``posegraph optimize`` solves it) optimises each
+variant's good edges; ATE, gap-1 and 1 s RPE are measured against the ground truth, and the
+keyframe edges' median NEES. Record ``bench/results/keyframes.json``.
 
     python -m bench.keyframes [--scenes SPEC:START:STOP ...]
 """
@@ -25,21 +26,22 @@ import numpy as np
 
 from bench import record
 from ctcvo.data.formats import Edge, Trajectory
-from ctcvo.data.metrics import ate_rmse, rpe_rmse
+from ctcvo.data.metrics import ate_rmse, groundtruth_residuals, rpe_rmse
 from ctcvo.data.scenes import open_scene
+from ctcvo.data.uncertainty import CHI2_6_MEDIAN, mahalanobis2
 from ctcvo.posegraph.graph import solve
-from ctcvo.teacher import keyframes, loops
+from ctcvo.teacher import covariance_model, keyframes, loops
 from ctcvo.teacher.config import DEFAULT
-from ctcvo.teacher.covariance_model import gap_scale
 from ctcvo.teacher.generate import features_of, run_sequence
 
 VALIDATION = [f"{record.REDKITCHEN}:0:450", f"{record.REDKITCHEN}:350:450", f"{record.TUM_TEDDY}:0:200",
               "synthetic/lab:0:200"]
-#: the constants moved one at a time, each to the values listed (module keyframes or loops)
+#: the constants moved one at a time, each to the values listed (module keyframes, loops or
+#: covariance_model, whose KEYFRAME_SCALE weighs the keyframe edges in the graph)
 SWEEP: dict[str, tuple[float, ...]] = {
     "KF_TRANS_M": (0.03, 0.1, 0.2), "KF_ROT_DEG": (5.0, 20.0), "KF_MIN_OVERLAP": (0.5, 0.85),
     "COVISIBLE_OVERLAP": (0.2, 0.6), "REACH_S": (3.0, 12.0), "MAX_COVISIBLE": (6, 10), "LOOP_SCORE": (0.6,),
-    "FALLBACK_GATE_M": (0.1,),
+    "FALLBACK_GATE_M": (0.1,), "KEYFRAME_SCALE": (0.35, 1.0),
 }
 #: variants that move several constants together
 GROUPED: dict[str, dict[str, float]] = {
@@ -47,10 +49,15 @@ GROUPED: dict[str, dict[str, float]] = {
 }
 
 
+def _module(name: str):
+    """The module of constant ``name``: keyframes, loops or covariance_model."""
+    return next(m for m in (keyframes, loops, covariance_model) if hasattr(m, name))
+
+
 @contextmanager
 def constants(**values):
     """The keyframe and loop modules' constants set to ``values`` for the ``with`` block."""
-    mods = {name: keyframes if hasattr(keyframes, name) else loops for name in values}
+    mods = {name: _module(name) for name in values}
     old = {name: getattr(mods[name], name) for name in values}
     try:
         for name, v in values.items():
@@ -62,16 +69,22 @@ def constants(**values):
 
 
 def figures(seq, edges, poses, kinds: dict) -> dict:
-    """Graph ATE and RPE of a run's good edges (calibrated covariances), and the edges by kind."""
+    """Graph ATE and RPE of a run's good edges (calibrated covariances), the edges by kind and
+    the keyframe edges' median NEES over chi-square(6)'s median (1: consistent)."""
     pos = {int(k): p for p, k in enumerate(seq.ids())}
-    good = [Edge(e.i, e.j, e.T_i_j, e.cov * gap_scale(seq.sensor.noise_model, pos[e.j] - pos[e.i]))
-            for e in edges if e.ok]
+    ok = [e for e in edges if e.ok]
+    kind = [kinds.get((e.i, e.j), "window") for e in ok]
+    good = [Edge(e.i, e.j, e.T_i_j, e.cov * covariance_model.gap_scale(seq.sensor.noise_model, pos[e.j] - pos[e.i], kind=k))
+            for e, k in zip(ok, kind)]
+    kf = [g for g, k in zip(good, kind) if k == "keyframe"]
+    nees = mahalanobis2(groundtruth_residuals(kf, seq.groundtruth(), seq.ids()), np.array([g.cov for g in kf]))
     gt = Trajectory(seq.times(), seq.groundtruth())
     est = Trajectory(seq.times(), solve(seq.ids(), good, poses).poses)
     second = max(1, int(round(1.0 / np.median(np.diff(seq.times())))))
     by_kind = Counter(kinds.get((e.i, e.j), "window") + ("" if e.ok else "_failed") for e in edges)
     return {"ate_m": ate_rmse(gt, est), "rpe_gap1_m": rpe_rmse(gt, est, 1)[0], "rpe_1s_m": rpe_rmse(gt, est, second)[0],
-            "chain_ate_m": ate_rmse(gt, Trajectory(seq.times(), poses)), "edges_by_kind": dict(by_kind)}
+            "chain_ate_m": ate_rmse(gt, Trajectory(seq.times(), poses)), "edges_by_kind": dict(by_kind),
+            "keyframe_median_nees_over_chi2": float(np.median(nees)) / CHI2_6_MEDIAN if len(kf) else None}
 
 
 def variants() -> list[tuple[str, dict]]:
@@ -90,7 +103,8 @@ def run_range(seq, cfg) -> dict:
         t0 = time.perf_counter()
         with constants(**values):
             kinds = keyframes.add_keyframe_edges(seq, cfg, edges, run.poses, features_of(seq, cfg))
-        row[label] = {**figures(seq, edges, run.poses, kinds), "keyframe_pass_s": time.perf_counter() - t0}
+            pass_s = time.perf_counter() - t0
+            row[label] = {**figures(seq, edges, run.poses, kinds), "keyframe_pass_s": pass_s}
         print(seq.name, label, {k: v for k, v in row[label].items() if k != "edges_by_kind"}, flush=True)
     return row
 
@@ -102,8 +116,7 @@ def main() -> None:
     args = ap.parse_args()
     cfg = dataclasses.replace(DEFAULT, workers=1, keyframes=False)
     rec = record.from_args(args, teacher=cfg, sweep={k: list(v) for k, v in SWEEP.items()},
-                           defaults={name: getattr(keyframes if hasattr(keyframes, name) else loops, name)
-                                     for name in SWEEP})
+                           defaults={name: getattr(_module(name), name) for name in SWEEP})
     out = {}
     for spec in args.scenes:
         scene, a, b = spec.rsplit(":", 2)

@@ -121,7 +121,8 @@ def _teacher_rows(seq) -> list[dict]:
     paths = Counter(e.diag.path for e in gap1)
     fails = sum(1 for e in gap1 if not e.ok)
     t0 = time.perf_counter()
-    edges = [Edge(e.i, e.j, e.T_i_j, e.cov * gap_scale(seq.sensor.noise_model, pos[e.j] - pos[e.i], cfg.covariance))
+    edges = [Edge(e.i, e.j, e.T_i_j, e.cov * gap_scale(seq.sensor.noise_model, pos[e.j] - pos[e.i], cfg.covariance,
+                                                       run.kinds.get((e.i, e.j), "window")))
              for e in run.edges if e.ok]  # the covariances of edges.g2o
     graph = solve(seq.ids(), edges, run.poses).poses
     solve_s = time.perf_counter() - t0

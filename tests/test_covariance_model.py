@@ -13,7 +13,7 @@ from ctcvo.cli import main
 from ctcvo.data.errors import ConfigError
 from ctcvo.data.formats import read_edges_csv, read_g2o
 from ctcvo.teacher.config import TeacherConfig
-from ctcvo.teacher.covariance_model import GAP_SCALES, gap_scale
+from ctcvo.teacher.covariance_model import GAP_SCALES, KEYFRAME_SCALE, gap_scale
 
 RECORD = Path(__file__).resolve().parents[1] / "bench" / "results" / "teacher-covariance.json"
 
@@ -21,7 +21,11 @@ RECORD = Path(__file__).resolve().parents[1] / "bench" / "results" / "teacher-co
 def test_gap_scale_per_model_gap_and_raw() -> None:
     assert gap_scale("kinect-v1", 1) == GAP_SCALES["kinect-v1"][0]
     assert gap_scale("kinect-v1", 3) == GAP_SCALES["kinect-v1"][2]
-    assert gap_scale("kinect-v1", 40) == GAP_SCALES["kinect-v1"][-1]  # keyframe edges: the last gap's
+    assert gap_scale("kinect-v1", 40) == GAP_SCALES["kinect-v1"][-1]  # beyond the table: the last gap's
+    # a keyframe edge weighs more than a window edge of its gap
+    last = GAP_SCALES["kinect-v1"][-1]
+    assert gap_scale("kinect-v1", 40, kind="keyframe") == last * KEYFRAME_SCALE < last
+    assert gap_scale("kinect-v1", 40, "raw", kind="keyframe") == 1.0
     assert gap_scale("synthetic", 2, "raw") == 1.0
     assert gap_scale("none", 5) == 1.0
     with pytest.raises(ConfigError, match="noise model"):
@@ -55,8 +59,9 @@ def test_generate_writes_raw_covariances_times_the_gap_scale(tmp_path: Path) -> 
     cal, raw = _edges(tmp_path / "cal"), _edges(tmp_path / "raw")
     assert cal.keys() == raw.keys()
     rows = {(int(r["i"]), int(r["j"])): r for r in read_edges_csv(tmp_path / "cal" / "edges.csv")}
+    assert any(r["kind"] == "keyframe" for r in rows.values())  # both kinds' scales are checked
     for (i, j), cov in cal.items():
-        s = gap_scale("synthetic", j - i)
+        s = gap_scale("synthetic", j - i, kind=rows[i, j]["kind"])
         assert rows[i, j]["cov_scale"] == pytest.approx(s)
         np.testing.assert_allclose(cov, raw[i, j] * s, rtol=1e-9, atol=0)
     rep = json.loads((tmp_path / "cal" / "report.json").read_text())["covariance"]

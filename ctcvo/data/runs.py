@@ -80,7 +80,8 @@ STAGE_VERSIONS: dict[str, int] = {
     # step on a gap-1 edge of a registered colour camera without photometric maps (TUM RGB-D's
     # and noise-free scenes' gap-1 labels change), kinect-v1 covariance scales refitted (every
     # real recording's edges.g2o); noisy synthetic scenes' labels are bit-identical; 9: a dense
-    # fallback's keyframe edge far from its prediction fails (``fallback_disagrees``); chunks of 75 frames
+    # fallback's keyframe edge far from its prediction fails (``fallback_disagrees``); chunks of 75 frames;
+    # keyframe edges' covariance scale times KEYFRAME_SCALE (every edges.g2o with keyframe edges)
     "teacher": 9,
     "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 1, "posegraph-calibrate": 1, "online": 1,
 }

@@ -132,16 +132,18 @@ class OnlineTeacher:
         self.chained.append(T)
         return T
 
-    def cov_scale(self, e) -> float:
-        """The factor of the covariance of estimate ``e`` (``EdgeEstimate``): its gap's scale,
-        the gap counted in frames taken."""
-        return gap_scale(self.noise_model, self._pos[e.j] - self._pos[e.i], self.cfg.covariance)
+    def cov_scale(self, e, kind: str = "window") -> float:
+        """The factor of the covariance of estimate ``e`` (``EdgeEstimate``) of edges.csv
+        ``kind``: its gap's scale, the gap counted in frames taken."""
+        return gap_scale(self.noise_model, self._pos[e.j] - self._pos[e.i], self.cfg.covariance, kind)
 
 
-def teacher_edges(estimates: list, teacher: OnlineTeacher) -> list[Edge]:
-    """The graph edges of the good teacher estimates (``EdgeEstimate``), covariances scaled
-    as ``teacher generate`` writes them."""
-    return [Edge(e.i, e.j, e.T_i_j, e.cov * teacher.cov_scale(e), {"source": "teacher"}) for e in estimates if e.ok]
+def teacher_edges(estimates: list, teacher: OnlineTeacher, kinds: dict[tuple[int, int], str] | None = None) -> list[Edge]:
+    """The graph edges of the good teacher estimates (``EdgeEstimate``; ``kinds``: edges.csv
+    kind by (i, j), else ``window``), covariances scaled as ``teacher generate`` writes them."""
+    kinds = kinds or {}
+    return [Edge(e.i, e.j, e.T_i_j, e.cov * teacher.cov_scale(e, kinds.get((e.i, e.j), "window")), {"source": "teacher"})
+            for e in estimates if e.ok]
 
 
 class Prefetcher:
@@ -325,7 +327,7 @@ class Estimator:
                 new.append(e)
                 self.kinds[(e.i, e.j)] = kind
         self.t_edges += new
-        self.graph.add_edges(teacher_edges(new, self.teacher))
+        self.graph.add_edges(teacher_edges(new, self.teacher, self.kinds))
 
     def finish_keyframes(self, asked: threading.Event | None = None) -> None:
         """At the end of the run: wait for the keyframe work in hand (Ctrl-C: see

@@ -43,7 +43,7 @@ def write_outputs(out: Path, name: str, est: Estimator, teacher_cfg, seconds: fl
     final = graph.final()[:n]  # the graph may hold a frame an interrupt cut short
     write_tum(out / FINAL_TRAJECTORY, Trajectory(times, final))
     t_edges = sorted(est.t_edges, key=lambda e: (e.i, e.j))  # the order of teacher generate's files
-    scale = {(e.i, e.j): teacher.cov_scale(e) for e in t_edges}
+    scale = {(e.i, e.j): teacher.cov_scale(e, est.kinds.get((e.i, e.j), "window")) for e in t_edges}
     good = [Edge(e.i, e.j, e.T_i_j, e.cov * scale[e.i, e.j]) for e in t_edges if e.ok]
     # the window's edges chained, as teacher generate chains them before its keyframe pass
     chained, _ = chain_trajectory(ids, [e for e in t_edges if (e.i, e.j) not in est.kinds])

@@ -520,7 +520,8 @@ def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path,
     frames = run.frames or seq  # a skipped frame has no pose (teacher.skips)
     ids, times = frames.ids(), frames.times()
     ts = {int(f): float(t) for f, t in zip(ids, times)}
-    scale = {(e.i, e.j): gap_scale(seq.sensor.noise_model, _gap(seq, e), cfg.covariance) for e in run.edges}
+    scale = {(e.i, e.j): gap_scale(seq.sensor.noise_model, _gap(seq, e), cfg.covariance, run.kinds.get((e.i, e.j), "window"))
+             for e in run.edges}
     good = [Edge(e.i, e.j, e.T_i_j, e.cov * scale[e.i, e.j]) for e in run.edges if e.ok]
     write_g2o(out / "edges.g2o", good, {int(f): T for f, T in zip(ids, run.poses)})
     write_edges_csv(out / "edges.csv", _edge_rows(run.edges, ts, run.kinds, scale))

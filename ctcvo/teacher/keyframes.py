@@ -20,10 +20,12 @@ keypoints starved) must agree with its prediction within :data:`FALLBACK_GATE_M`
 :data:`FALLBACK_GATE_DEG` (:func:`gate_fallback`; else status ``fallback_disagrees``). A depth
 alignment seconds long can converge to a wrong minimum the pose graph's rules do not catch:
 on fr3/teddy (validation) 4 of the 7 fallback keyframe edges were 97-172 mm off the ground
-truth, and the gate takes the graph's ATE there from 6.8 to 6.0 mm; redkitchen 0:450,
-350:450 and synthetic/lab are unchanged (record ``keyframes``, variant "no fallback gate").
-Dropping every fallback keyframe edge instead costs lab 1.1 mm; a 0.1 m gate gives the same
-figures as 0.05 m.
+truth, and the gate took the graph's ATE there from 6.8 to 6.0 mm with keyframe edges
+weighed as window edges; redkitchen 0:450, 350:450 and synthetic/lab were unchanged (record
+``keyframes`` at b9df11e, variant "no fallback gate"). Since they weigh more
+(:data:`teacher.covariance_model.KEYFRAME_SCALE`) the graph's outlier pass rejects those
+edges too, and the gate gives the same figures. Dropping
+every fallback keyframe edge instead cost lab 1.1 mm; a 0.1 m gate gives the same figures.
 
 The constants were swept one at a time on the validation ranges (redkitchen 0:450 and
 350:450, fr3/teddy, synthetic/lab) by ``python -m bench.keyframes`` (record
