@@ -11,7 +11,10 @@ covariances ``edges.g2o`` carries, as ``posegraph optimize`` solves it) optimise
 variant's good edges; ATE, gap-1 and 1 s RPE are measured against the ground truth, and the
 keyframe edges' median NEES. Record ``bench/results/keyframes.json``.
 
-    python -m bench.keyframes [--scenes SPEC:START:STOP ...]
+    python -m bench.keyframes [--scenes SPEC:START:STOP ...] [--camera CAM.json]
+
+The record's lab is undistorted with the camera ``teacher calibrate`` fits on office and lab
+(``--camera``), as the demo undistorts its rooms.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import dataclasses
 import time
 from collections import Counter
 from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 
@@ -29,6 +33,7 @@ from ctcvo.data.formats import Edge, Trajectory
 from ctcvo.data.metrics import ate_rmse, groundtruth_residuals, rpe_rmse
 from ctcvo.data.scenes import open_scene
 from ctcvo.data.uncertainty import CHI2_6_MEDIAN, mahalanobis2
+from ctcvo.data.undistort import with_camera
 from ctcvo.posegraph.graph import solve
 from ctcvo.teacher import covariance_model, keyframes, loops
 from ctcvo.teacher.config import DEFAULT
@@ -36,12 +41,12 @@ from ctcvo.teacher.generate import features_of, run_sequence
 
 VALIDATION = [f"{record.REDKITCHEN}:0:450", f"{record.REDKITCHEN}:350:450", f"{record.TUM_TEDDY}:0:200",
               "synthetic/lab:0:200"]
-#: the constants moved one at a time, each to the values listed (module keyframes, loops or
-#: covariance_model, whose KEYFRAME_SCALE weighs the keyframe edges in the graph)
+#: the constants moved one at a time, each to the values listed (module keyframes or loops;
+#: KEYFRAME_SCALE v: covariance_model.KEYFRAME_SCALES' factor of every noise model set to v)
 SWEEP: dict[str, tuple[float, ...]] = {
     "KF_TRANS_M": (0.03, 0.1, 0.2), "KF_ROT_DEG": (5.0, 20.0), "KF_MIN_OVERLAP": (0.5, 0.85),
     "COVISIBLE_OVERLAP": (0.2, 0.6), "REACH_S": (3.0, 12.0), "MAX_COVISIBLE": (6, 10), "LOOP_SCORE": (0.6,),
-    "FALLBACK_GATE_M": (0.1,), "KEYFRAME_SCALE": (0.35, 1.0),
+    "FALLBACK_GATE_M": (0.1,), "KEYFRAME_SCALE": (0.35, 0.5, 1.0, 2.0),
 }
 #: variants that move several constants together
 GROUPED: dict[str, dict[str, float]] = {
@@ -50,20 +55,31 @@ GROUPED: dict[str, dict[str, float]] = {
 
 
 def _module(name: str):
-    """The module of constant ``name``: keyframes, loops or covariance_model."""
-    return next(m for m in (keyframes, loops, covariance_model) if hasattr(m, name))
+    """The module of constant ``name``: keyframes or loops."""
+    return keyframes if hasattr(keyframes, name) else loops
+
+
+def _default(name: str):
+    """The shipped value of a :data:`SWEEP` name."""
+    return dict(covariance_model.KEYFRAME_SCALES) if name == "KEYFRAME_SCALE" else getattr(_module(name), name)
 
 
 @contextmanager
 def constants(**values):
-    """The keyframe and loop modules' constants set to ``values`` for the ``with`` block."""
-    mods = {name: _module(name) for name in values}
-    old = {name: getattr(mods[name], name) for name in values}
+    """The keyframe and loop modules' constants (and ``KEYFRAME_SCALE``, see :data:`SWEEP`)
+    set to ``values`` for the ``with`` block."""
+    scales = dict(covariance_model.KEYFRAME_SCALES)
+    mods = {name: _module(name) for name in values if name != "KEYFRAME_SCALE"}
+    old = {name: getattr(mods[name], name) for name in mods}
     try:
         for name, v in values.items():
-            setattr(mods[name], name, type(old[name])(v))
+            if name == "KEYFRAME_SCALE":
+                covariance_model.KEYFRAME_SCALES = {k: float(v) for k in scales}
+            else:
+                setattr(mods[name], name, type(old[name])(v))
         yield
     finally:
+        covariance_model.KEYFRAME_SCALES = scales
         for name, v in old.items():
             setattr(mods[name], name, v)
 
@@ -112,15 +128,19 @@ def run_range(seq, cfg) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=VALIDATION, help="SPEC:START:STOP of validation ranges")
+    ap.add_argument("--camera", type=Path, help="a camera file (teacher calibrate) that undistorts the synthetic ranges, "
+                    "as the demo undistorts its rooms")
     record.add_arguments(ap, "keyframes")
     args = ap.parse_args()
     cfg = dataclasses.replace(DEFAULT, workers=1, keyframes=False)
     rec = record.from_args(args, teacher=cfg, sweep={k: list(v) for k, v in SWEEP.items()},
-                           defaults={name: getattr(_module(name), name) for name in SWEEP})
+                           defaults={name: _default(name) for name in SWEEP})
     out = {}
     for spec in args.scenes:
         scene, a, b = spec.rsplit(":", 2)
         seq = open_scene(scene, frames=f"{a}:{b}")[0]
+        if args.camera is not None and scene.startswith("synthetic/"):
+            seq = with_camera(seq, args.camera)
         out[f"{scene.rsplit('/', 1)[-1]}:{a}:{b}"] = run_range(seq, cfg)
         rec.finish({"scenes": out})
 

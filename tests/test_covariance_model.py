@@ -13,7 +13,7 @@ from ctcvo.cli import main
 from ctcvo.data.errors import ConfigError
 from ctcvo.data.formats import read_edges_csv, read_g2o
 from ctcvo.teacher.config import TeacherConfig
-from ctcvo.teacher.covariance_model import GAP_SCALES, KEYFRAME_SCALE, gap_scale
+from ctcvo.teacher.covariance_model import GAP_SCALES, KEYFRAME_SCALES, gap_scale
 
 RECORD = Path(__file__).resolve().parents[1] / "bench" / "results" / "teacher-covariance.json"
 
@@ -24,7 +24,7 @@ def test_gap_scale_per_model_gap_and_raw() -> None:
     assert gap_scale("kinect-v1", 40) == GAP_SCALES["kinect-v1"][-1]  # beyond the table: the last gap's
     # a keyframe edge weighs more than a window edge of its gap
     last = GAP_SCALES["kinect-v1"][-1]
-    assert gap_scale("kinect-v1", 40, kind="keyframe") == last * KEYFRAME_SCALE < last
+    assert gap_scale("kinect-v1", 40, kind="keyframe") == last * KEYFRAME_SCALES["kinect-v1"] < last
     assert gap_scale("kinect-v1", 40, "raw", kind="keyframe") == 1.0
     assert gap_scale("synthetic", 2, "raw") == 1.0
     assert gap_scale("none", 5) == 1.0

@@ -23,7 +23,7 @@ on fr3/teddy (validation) 4 of the 7 fallback keyframe edges were 97-172 mm off 
 truth, and the gate took the graph's ATE there from 6.8 to 6.0 mm with keyframe edges
 weighed as window edges; redkitchen 0:450, 350:450 and synthetic/lab were unchanged (record
 ``keyframes`` at b9df11e, variant "no fallback gate"). Since they weigh more
-(:data:`teacher.covariance_model.KEYFRAME_SCALE`) the graph's outlier pass rejects those
+(:data:`teacher.covariance_model.KEYFRAME_SCALES`) the graph's outlier pass rejects those
 edges too, and the gate gives the same figures. Dropping
 every fallback keyframe edge instead cost lab 1.1 mm; a 0.1 m gate gives the same figures.
 
