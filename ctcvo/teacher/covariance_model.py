@@ -34,12 +34,15 @@ GAP_SCALES: dict[str, tuple[float, ...]] = {
 #: (:data:`GAP_SCALES`, the last gap's beyond the table), chosen by ``python -m bench.keyframes``
 #: (record ``keyframes``, variants ``KEYFRAME_SCALE v``: every model's factor v). ``kinect-v1``
 #: on redkitchen 0:450 and 350:450 and fr3/teddy: against 1, 0.5 lowers the teacher graph's ATE
-#: on all three and its 1 s RPE on two (teddy 12.4 -> 11.4 mm), gap-1 RPE within 0.02 mm; 0.35
-#: no better. Their median NEES says the opposite (3-5x too small covariances on redkitchen):
-#: the window's edges err together along the sequence, which no per-edge covariance shows.
+#: on all three and its 1 s RPE on two (teddy 12.4 -> 11.4 mm), gap-1 RPE within 0.02 mm. 0.35
+#: lowers the ATE by up to 0.6 mm more and teddy's 1 s RPE to 10.9, but raises 350:450's 1 s
+#: RPE (17.3 -> 17.4) and teddy's gap-1 RPE (2.68 -> 2.69); 0.5 was chosen when raw lab was in
+#: the set, and a finer sweep on the real ranges is still to do. Their median NEES says the opposite (3-5x too small covariances
+#: on redkitchen): the window's edges err together along the sequence, which no per-edge
+#: covariance shows.
 #: ``synthetic`` on lab 0:200 undistorted with the camera ``teacher calibrate`` fits on office
-#: and lab (as the demo runs it): 1, as 0.5 raises the ATE there 5.7 -> 6.2 mm (the residual
-#: lens distortion biases the long edges); 2 lowers it further but raises the 1 s RPE.
+#: and lab (as the demo runs it): 1, as 0.5 raises the ATE there 5.7 -> 6.2 mm (likely the residual
+#: lens distortion biasing the long edges); 2 lowers it further but raises the 1 s RPE.
 KEYFRAME_SCALES: dict[str, float] = {"kinect-v1": 0.5, "synthetic": 1.0, "none": 1.0}
 #: where :data:`GAP_SCALES` came from, for report.json
 SOURCE = "bench/results/teacher-covariance.json (per-gap median NEES against ground truth on validation ranges, one tail factor)"
