@@ -210,7 +210,7 @@ def keyframes_table(records: dict[str, dict]) -> list[str]:
     r = next(iter(recs.values()))
     scenes = r["figures"]["scenes"]
     variants = list(next(iter(scenes.values())))
-    rows, same = [], []
+    rows, same, default = [], [], None
     for v in variants:
         cells = [v]
         for row in scenes.values():
@@ -218,7 +218,9 @@ def keyframes_table(records: dict[str, dict]) -> list[str]:
             cells.append(f"{mm(x['ate_m'])} / {mm(x['rpe_1s_m'])} / {mm(x['rpe_gap1_m'], 2)}")
         kf = sum(row[v]["edges_by_kind"].get(k, 0) for row in scenes.values() for k in ("keyframe", "loop"))
         secs = sum(row[v].get("keyframe_pass_s", 0.0) for row in scenes.values())
-        if v != "default" and rows and rows[1][1:-1] == cells[1:] + [str(kf)]:
+        if v == "default":
+            default = cells[1:] + [str(kf)]
+        elif cells[1:] + [str(kf)] == default:
             same.append(v)  # every cell and edge count the default's
             continue
         rows.append(cells + [str(kf), num(secs)])

@@ -244,6 +244,13 @@ def rotation_angle_deg(T: ArrayLike) -> float:
     return float(np.degrees(np.arccos(c)))
 
 
+def agrees(T_a: ArrayLike, T_b: ArrayLike, max_m: float, max_deg: float) -> bool:
+    """Two transforms differ by at most ``max_m`` of translation and ``max_deg`` of rotation
+    (``inv(T_a) @ T_b``)."""
+    d = relative_pose(T_a, T_b)
+    return bool(np.linalg.norm(d[:3, 3]) <= max_m and rotation_angle_deg(d) <= max_deg)
+
+
 # ----------------------------------------------------------------------------------
 # covariances and GTSAM
 # ----------------------------------------------------------------------------------

@@ -45,9 +45,7 @@ def verify(e: EdgeEstimate, T_chain: NDArray[np.float64]) -> EdgeEstimate:
     chained motion ``T_chain`` within the gate; else marked ``loop_rejected``."""
     if not e.ok:
         return e
-    d = geo.relative_pose(T_chain, e.T_i_j)
-    agrees = np.linalg.norm(d[:3, 3]) <= LOOP_GATE_M and geo.rotation_angle_deg(d) <= LOOP_GATE_DEG
-    if e.inliers >= LOOP_MIN_INLIERS and agrees:
+    if e.inliers >= LOOP_MIN_INLIERS and geo.agrees(T_chain, e.T_i_j, LOOP_GATE_M, LOOP_GATE_DEG):
         return e
     return dataclasses.replace(e, status="loop_rejected")
 
