@@ -6,7 +6,8 @@ metric is reported as the median over the runs with its min-max spread. The traj
 the keyframe-refined one ORB-SLAM3 saves at shutdown (the backend's default labels) of the
 frames it tracked ``OK``; a frame it lost (not initialised, lost, or missing from the saved
 trajectory) is counted per run and left out of that run's metrics (an RPE pair may then
-span more than its delta). fps counts the whole run (vocabulary load and shutdown included);
+span more than its delta). fps counts the whole run (vocabulary load and shutdown included,
+not the start of the process each run has);
 ``tracking_fps`` the tracking calls only.
 
 Metrics (:func:`metrics`, also used for bench.teacher's other rows): ATE after SE(3)

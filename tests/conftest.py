@@ -18,6 +18,7 @@ SHARED_DATA = Path(os.environ.get("VO_SHARED_DATA", REPO.parent / "shared" / "da
 REDKITCHEN = SHARED_DATA / "7scenes" / "redkitchen" / "seq-sample"
 TUM_FR1_XYZ = SHARED_DATA / "tum" / "rgbd_dataset_freiburg1_xyz"
 TUM_IMAGES = SHARED_DATA / "tum" / "images" / "rgbd_dataset_freiburg1_xyz"
+TUM_TEDDY = SHARED_DATA / "tum" / "images" / "rgbd_dataset_freiburg3_teddy"
 
 
 def require_real_data(path: Path) -> Path:
@@ -46,6 +47,12 @@ def tum_fr1_xyz() -> Path:
 def tum_images() -> Path:
     """Path of the real TUM fr1/xyz folder with images (400 frames)."""
     return require_real_data(TUM_IMAGES)
+
+
+@pytest.fixture(scope="session")
+def tum_teddy() -> Path:
+    """Path of the real TUM fr3/teddy folder with images (200 frames, motion capture)."""
+    return require_real_data(TUM_TEDDY)
 
 
 def pytest_configure(config) -> None:

@@ -18,7 +18,17 @@ from ctcvo.data.io import git_revision, write_json
 from ctcvo.data.runs import Fingerprint, claim, file_digest, frames_id, output_folder, scene_id, stage_dir, write_fingerprint
 from ctcvo.data.scenes import open_scene
 from ctcvo.teacher import skips
-from ctcvo.teacher.orbslam3 import DEFAULT_LABELS, LABELS, MODES, edges_from, run_orbslam3, write_outputs
+from ctcvo.teacher.orbslam3 import (
+    DEFAULT_LABELS,
+    GAP_EXPONENT,
+    LABELS,
+    MODES,
+    SIGMA_ROT_GAP1_DEG,
+    SIGMA_TRANS_GAP1_M,
+    edges_from,
+    run_orbslam3,
+    write_outputs,
+)
 from ctcvo.teacher.vocabulary import build_vocabulary, descriptors_of, read_vocabulary, write_vocabulary
 
 log = logging.getLogger(__name__)
@@ -50,7 +60,8 @@ def generate_orbslam3(spec: str, vocabulary: Path, out: Path | None = None, spli
             fp = Fingerprint("teacher", {
                 "backend": "orbslam3", "scene": scene_id(spec), "sequence": seq.name, "frames": frames_id(seq.ids()),
                 "vocabulary": file_digest(vocabulary), "mode": mode, "labels": labels, "gaps": gaps,
-                "n_features": n_features, "settings": file_digest(settings) if settings is not None else None})
+                "n_features": n_features, "settings": file_digest(settings) if settings is not None else None,
+                "covariance": [SIGMA_TRANS_GAP1_M, SIGMA_ROT_GAP1_DEG, GAP_EXPONENT]})
             finished = (d / "report.json").is_file()
             if claim(d, fp, done=finished, has_outputs=finished, overwrite=overwrite, outputs=OUTPUT_FILES):
                 log.info("%s: ORB-SLAM3 labels of the same inputs in %s: kept (runs are not deterministic)",
