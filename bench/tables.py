@@ -243,6 +243,26 @@ def dense_gap1_table(records: dict[str, dict]) -> list[str]:
     return markdown(["range"] + variants, rows) + ["", provenance(recs)]
 
 
+def drift_table(records: dict[str, dict]) -> list[str]:
+    """bench.drift: per validation range and method, the translation / rotation RPE at each
+    time scale and the rotation's scale at 1 s."""
+    recs = select(records, "drift")
+    if not recs:
+        return missing("python -m bench.drift --orbslam3-vocabulary VOC.txt")
+    rec = next(iter(recs.values()))
+    scales = rec["config"]["scales_s"]
+    rows = []
+    for r in rec["figures"]["rows"]:
+        if "rpe_m" not in r:  # an ORB-SLAM3 that tracked no run
+            continue
+        method = f"{r['method']}, median of {r['runs']}" if "runs" in r else r["method"]
+        rows.append([range_label(Path(r["range"]).name), method]
+                    + [f"{mm(t)} / {num(d, 2)}" for t, d in zip(r["rpe_m"], r["rpe_deg"])]
+                    + [num(r["rotation_scale_1s"], 3)])
+    head = ["range", "method"] + ["1 frame" if s == 0 else f"{s:.2g} s" for s in scales] + ["rotation scale, 1 s"]
+    return markdown(head, rows) + ["", provenance(recs)]
+
+
 def covariance_table(records: dict[str, dict]) -> list[str]:
     recs = select(records, "teacher-covariance")
     if not recs:
@@ -447,6 +467,7 @@ def results_table(records: dict[str, dict]) -> list[str]:
 TABLES: dict[str, Callable[[dict[str, dict]], list[str]]] = {
     "teacher": teacher_table, "online": online_table, "online-validation": online_validation_table,
     "posegraph": posegraph_table, "keyframes": keyframes_table, "dense-gap1": dense_gap1_table,
+    "drift": drift_table,
     "learner": learner_table, "teacher-covariance": covariance_table,
     "render": render_table, "synthetic-realism": realism_table, "ablation": ablation_table,
     "teacher-noise": noise_table, "orbslam3-covariance": orbslam3_covariance_table, "demo": demo_table,

@@ -106,7 +106,7 @@ def run_opencv(seq) -> tuple[np.ndarray, float, int]:
     return chain_steps(rel), time.perf_counter() - t0, fails
 
 
-def _teacher_rows(seq) -> list[dict]:
+def teacher_rows(seq) -> list[dict]:
     """The teacher's chained gap-1 trajectory, and the pose graph of all its good edges
     (:func:`ctcvo.posegraph.graph.solve`, the default config, as ``posegraph optimize`` solves
     its edges.g2o, calibrated covariances included), its time added to the teacher's."""
@@ -152,7 +152,7 @@ def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frame
                 orbslam3_vocabulary: Path | None = None, orbslam3_runs: int = 3, camera: Path | None = None) -> list[dict]:
     seq = _open_sequence(spec, frames, synthetic_frames, camera)
     gt = Trajectory(seq.times(), seq.groundtruth())
-    rows = _teacher_rows(seq)
+    rows = teacher_rows(seq)
     # The single-process peers run with OpenCV and OpenMP on every core, whatever
     # OMP_NUM_THREADS says (it limits only the teacher here).
     with threadpool_limits(os.cpu_count() or 1, user_api="openmp"):
