@@ -81,8 +81,9 @@ STAGE_VERSIONS: dict[str, int] = {
     # and noise-free scenes' gap-1 labels change), kinect-v1 covariance scales refitted (every
     # real recording's edges.g2o); noisy synthetic scenes' labels are bit-identical; 9: a dense
     # fallback's keyframe edge far from its prediction fails (``fallback_disagrees``); chunks of 75 frames;
-    # keyframe edges' covariance scale times KEYFRAME_SCALES (real recordings' edges.g2o)
-    "teacher": 9,
+    # keyframe edges' covariance scale times KEYFRAME_SCALES (real recordings' edges.g2o); 10: as
+    # many chunks per worker (labels change where the chunk count did, e.g. 200 or 394 frames)
+    "teacher": 10,
     "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 1, "posegraph-calibrate": 1, "online": 1,
 }
 SYNTHETIC_PREFIX = "synthetic/"

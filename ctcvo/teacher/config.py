@@ -57,7 +57,8 @@ class TeacherConfig:
     """Frames per chunk of a worker; it shapes the edges through the chunk bounds. A sequence
     shorter than two chunks runs in one process. 75 against 150 on the validation ranges:
     the same graph ATE, 1 s and gap-1 RPE within 0.03 mm, and fr3/teddy 0:200 and
-    synthetic/lab 0:200 cut in two or three instead of one (wall 9 -> 7 s and 10 -> 8 s)."""
+    synthetic/lab 0:200 cut in two instead of one (wall 9 -> 7 s and 10 -> 8 s). The count
+    is a multiple of the workers (:func:`teacher.generate._chunks`)."""
     keyframes: bool = True
     """Also estimate edges between keyframes reaching back seconds, and verified loop edges
     (:mod:`teacher.keyframes`): on every validation range they lower the pose graph's ATE and
