@@ -220,10 +220,8 @@ def _started() -> None:
 
 
 def _chunks(n: int, cfg: TeacherConfig) -> list[tuple[int, int]]:
-    """Frame-position ranges [a, b) of the chunks (one chunk when not worth splitting): about
-    ``cfg.chunk_frames`` long, as many per process. Any other count leaves a process idle at the
-    end: 3 chunks of synthetic/lab 0:200 took 7.0 s on 2 workers, 2 chunks 6.0 s; 5 of
-    redkitchen 0:350 8.6 s, 4 chunks 7.8 s (lab 0:200's graph figures unchanged)."""
+    """Chunk ranges [a, b), ~``cfg.chunk_frames`` long, as many per process (lab 0:200 on 2: 3
+    chunks 7.0 s, 2 chunks 6.0 s, figures unchanged); one when not worth splitting."""
     if cfg.workers <= 1 or n < 2 * cfg.chunk_frames:
         return [(0, n)]
     k = cfg.workers * max(1, round(n / (cfg.chunk_frames * cfg.workers)))
