@@ -26,7 +26,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from bench import record  # noqa: E402
+from bench import orbslam3_peer, record  # noqa: E402
 from bench.orbslam3_peer import METHOD as ORBSLAM3  # noqa: E402
 from bench.orbslam3_peer import one_second  # noqa: E402
 from bench.teacher import run_open3d, teacher_rows  # noqa: E402
@@ -35,7 +35,6 @@ from ctcvo.data.formats import Trajectory  # noqa: E402
 from ctcvo.data.metrics import rpe_rmse  # noqa: E402
 from ctcvo.data.scenes import open_scene  # noqa: E402
 from ctcvo.teacher.config import TeacherConfig  # noqa: E402
-from ctcvo.teacher.orbslam3 import DEFAULT_LABELS, run_orbslam3  # noqa: E402
 
 VALIDATION = [f"{record.REDKITCHEN}:0:450", f"{record.TUM_TEDDY}:0:200"]
 SCALES_S = (0.0, 1 / 3, 1.0, 2.0, 3.0)  # 0: one frame
@@ -65,17 +64,11 @@ def drift_figures(gt: Trajectory, est: Trajectory, second: int) -> dict:
 def orbslam3_figures(seq, vocabulary: Path, runs: int, second: int) -> dict:
     """:func:`drift_figures` of ``runs`` ORB-SLAM3 SLAM runs, median of each over the runs,
     each run over the frames it tracked (as bench.orbslam3_peer counts them)."""
-    per_run = []
-    times, gt = seq.times(), seq.groundtruth()
-    for k in range(runs):
-        res = run_orbslam3(seq, vocabulary, mode="slam")
-        poses = res.poses(DEFAULT_LABELS)
-        have = res.ok & np.isfinite(poses).all(axis=(1, 2))
-        if have.sum() >= 2:
-            per_run.append(drift_figures(Trajectory(times[have], gt[have]), Trajectory(times[have], poses[have]),
-                                         second))
-        print(f"{seq.name}: ORB-SLAM3 run {k + 1}/{runs}: {int(len(have) - have.sum())} frames lost",
-              file=sys.stderr, flush=True)
+    def figures(seq, result):
+        gt, est, _ = orbslam3_peer.tracked(seq, result)
+        return drift_figures(gt, est, second) if len(est.poses) >= 2 else None
+
+    per_run = orbslam3_peer.each_run(seq, vocabulary, runs, figures)
     if not per_run:
         return {"runs": 0}
     med = {key: np.nanmedian([r[key] for r in per_run], axis=0).tolist() for key in ("rpe_m", "rpe_deg")}
@@ -101,15 +94,10 @@ def bench_range(spec: str, vocabulary: Path | None, runs: int) -> list[dict]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=VALIDATION, help="SPEC:START:STOP of validation ranges")
-    ap.add_argument("--orbslam3-vocabulary", type=Path, default=None,
-                    help="a DBoW2 vocabulary (ctcvo teacher vocabulary): adds ORB-SLAM3's rows")
-    ap.add_argument("--orbslam3-runs", type=int, default=3, help="ORB-SLAM3 runs per range (median reported)")
+    orbslam3_peer.add_arguments(ap, "rows")
     record.add_arguments(ap, "drift")
     args = ap.parse_args()
-    if args.orbslam3_runs < 1:
-        ap.error(f"--orbslam3-runs must be >= 1, got {args.orbslam3_runs}")
-    if args.orbslam3_vocabulary is not None and not args.orbslam3_vocabulary.is_file():
-        ap.error(f"--orbslam3-vocabulary {args.orbslam3_vocabulary}: no such file")
+    orbslam3_peer.check_arguments(ap, args)
     rec = record.from_args(args, teacher=TeacherConfig(), scales_s=list(SCALES_S))
     rows: list[dict] = []
     for spec in args.scenes:

@@ -47,15 +47,12 @@ def metrics(gt: Trajectory, est: Trajectory, second: int) -> dict[str, float]:
 
 def run_figures(seq, result) -> dict:
     """One run's figures: :func:`metrics` over the frames it tracked, its lost frames and fps."""
-    poses = result.poses(DEFAULT_LABELS)
-    have = result.ok & np.isfinite(poses).all(axis=(1, 2))
-    times, gt = seq.times(), seq.groundtruth()
-    out = {"lost_frames": int(len(have) - have.sum()), "fps": result.fps,
-           "tracking_fps": len(have) / result.track_seconds if result.track_seconds > 0 else float("nan"),
+    gt, est, lost = tracked(seq, result)
+    out = {"lost_frames": lost, "fps": result.fps,
+           "tracking_fps": len(result.ok) / result.track_seconds if result.track_seconds > 0 else float("nan"),
            "map_changes": int(result.map_changed.sum())}
-    if have.sum() >= 2:
-        out.update(metrics(Trajectory(times[have], gt[have]), Trajectory(times[have], poses[have]),
-                           one_second(times)))
+    if len(est.poses) >= 2:
+        out.update(metrics(gt, est, one_second(seq.times())))
     return out
 
 
@@ -78,11 +75,43 @@ def aggregate(runs: list[dict]) -> dict:
     return out
 
 
-def orbslam3_row(seq, vocabulary: Path, runs: int) -> dict:
-    """:func:`aggregate` of ``runs`` ORB-SLAM3 SLAM runs over ``seq``, one after the other."""
-    figs = []
+def add_arguments(ap, what: str) -> None:
+    """``--orbslam3-vocabulary`` (adds ORB-SLAM3's ``what``) and ``--orbslam3-runs``."""
+    ap.add_argument("--orbslam3-vocabulary", type=Path, default=None,
+                    help=f"a DBoW2 vocabulary (ctcvo teacher vocabulary, from training frames): adds ORB-SLAM3's {what}")
+    ap.add_argument("--orbslam3-runs", type=int, default=3,
+                    help="ORB-SLAM3 SLAM runs per sequence (median and min-max reported)")
+
+
+def check_arguments(ap, args) -> None:
+    """Stop with argparse's one-line error on a bad ``--orbslam3-*`` value."""
+    if args.orbslam3_runs < 1:
+        ap.error(f"--orbslam3-runs must be >= 1, got {args.orbslam3_runs}")
+    if args.orbslam3_vocabulary is not None and not args.orbslam3_vocabulary.is_file():
+        ap.error(f"--orbslam3-vocabulary {args.orbslam3_vocabulary}: no such file")
+
+
+def tracked(seq, result) -> tuple[Trajectory, Trajectory, int]:
+    """Ground truth and ORB-SLAM3's trajectory over the frames one run tracked, and the
+    frames it lost."""
+    poses = result.poses(DEFAULT_LABELS)
+    have = result.ok & np.isfinite(poses).all(axis=(1, 2))
+    times, gt = seq.times(), seq.groundtruth()
+    return Trajectory(times[have], gt[have]), Trajectory(times[have], poses[have]), int(len(have) - have.sum())
+
+
+def each_run(seq, vocabulary: Path, runs: int, figures) -> list[dict]:
+    """``figures(seq, result)`` of ``runs`` ORB-SLAM3 SLAM runs over ``seq``, one after the
+    other (a run whose figures are None is left out)."""
+    out = []
     for k in range(runs):
-        res = run_orbslam3(seq, Path(vocabulary), mode="slam")
-        figs.append(run_figures(seq, res))
-        print(f"{seq.name}: ORB-SLAM3 run {k + 1}/{runs}: {figs[-1]}", file=sys.stderr, flush=True)
-    return {"method": METHOD, **aggregate(figs)}
+        figs = figures(seq, run_orbslam3(seq, Path(vocabulary), mode="slam"))
+        print(f"{seq.name}: ORB-SLAM3 run {k + 1}/{runs}: {figs}", file=sys.stderr, flush=True)
+        if figs is not None:
+            out.append(figs)
+    return out
+
+
+def orbslam3_row(seq, vocabulary: Path, runs: int) -> dict:
+    """:func:`aggregate` of ``runs`` ORB-SLAM3 SLAM runs over ``seq``."""
+    return {"method": METHOD, **aggregate(each_run(seq, vocabulary, runs, run_figures))}

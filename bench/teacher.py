@@ -39,7 +39,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from bench import record, tables  # noqa: E402
+from bench import orbslam3_peer, record, tables  # noqa: E402
 from bench.orbslam3_peer import metrics, one_second, orbslam3_row  # noqa: E402
 from ctcvo.data import geometry as geo  # noqa: E402
 from ctcvo.data.chain import chain_steps  # noqa: E402
@@ -189,19 +189,13 @@ def main() -> None:
                     help="methods run beside the teacher (default: Open3D's hybrid odometry)")
     ap.add_argument("--synthetic-frames", type=int, default=None,
                     help="render each synthetic preset with this many frames instead of its own (a shorter walk)")
-    ap.add_argument("--orbslam3-vocabulary", type=Path, default=None,
-                    help="a DBoW2 vocabulary (ctcvo teacher vocabulary, from training frames): adds ORB-SLAM3's row")
-    ap.add_argument("--orbslam3-runs", type=int, default=3,
-                    help="ORB-SLAM3 SLAM runs per scene (median and min-max reported)")
+    orbslam3_peer.add_arguments(ap, "row")
     ap.add_argument("--camera", type=Path, default=None,
                     help="camera file (ctcvo teacher calibrate, from training or validation frames): every row runs "
                          "on the frames undistorted with it")
     record.add_arguments(ap, "teacher")
     args = ap.parse_args()
-    if args.orbslam3_runs < 1:
-        ap.error(f"--orbslam3-runs must be >= 1, got {args.orbslam3_runs}")
-    if args.orbslam3_vocabulary is not None and not args.orbslam3_vocabulary.is_file():
-        ap.error(f"--orbslam3-vocabulary {args.orbslam3_vocabulary}: no such file")
+    orbslam3_peer.check_arguments(ap, args)
     camera = None if args.camera is None else {"file": str(args.camera), "distortion": read_camera(args.camera)[1]}
     rec = record.from_args(args, teacher=TeacherConfig(), camera=camera)
     results = []

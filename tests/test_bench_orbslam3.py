@@ -60,3 +60,51 @@ def test_table_cells_show_median_spread_and_lost_frames():
               **_run(0.01, 0.002, 2.0, 0)}
     cells = dict(zip(tables.TEACHER_HEAD, tables.teacher_cells(single, "")))
     assert cells["ATE mm"] == "10.0" and cells["gap-1 fails / lost frames"] == "1"
+
+
+class _Result:
+    """A stand-in for run_orbslam3's result: ``ok`` frames tracked, identity poses elsewhere NaN."""
+
+    def __init__(self, ok: np.ndarray) -> None:
+        self.ok, self.fps, self.track_seconds = ok, 20.0, len(ok) / 40.0
+        self.map_changed = np.zeros(len(ok), dtype=bool)
+
+    def poses(self, use: str) -> np.ndarray:
+        poses = np.tile(np.eye(4), (len(self.ok), 1, 1))
+        poses[~self.ok] = np.nan
+        return poses
+
+
+class _Seq:
+    name = "made-up"
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+
+    def __len__(self) -> int:
+        return self.n
+
+    def times(self) -> np.ndarray:
+        return np.arange(self.n) / 30.0
+
+    def groundtruth(self) -> np.ndarray:
+        gt = np.tile(np.eye(4), (self.n, 1, 1))
+        gt[:, 0, 3] = np.arange(self.n) * 0.01  # 1 cm per frame along x
+        return gt
+
+
+def test_each_run_measures_the_tracked_frames_and_drops_runs_without_figures(monkeypatch):
+    tracked = [np.arange(60) < 45, np.arange(60) < 1]  # run 1 loses 15 frames, run 2 tracks one
+    monkeypatch.setattr(P, "run_orbslam3", lambda seq, vocabulary, mode: _Result(tracked.pop(0)))
+    seq = _Seq(60)
+    row = P.orbslam3_row(seq, "VOC.txt", runs=2)
+    assert row["runs"] == 2 and row["lost_frames_per_run"] == [15, 59]
+    assert row["tracking_fps"] == pytest.approx(40.0)
+    assert row["spread"]["ate_rmse_m_runs"] == 1 and row["rpe_trans_rmse_m"] == pytest.approx(0.01, rel=1e-6)
+
+    def figures(seq, result):
+        gt, est, lost = P.tracked(seq, result)
+        return {"frames": len(est.poses), "lost": lost} if len(est.poses) >= 2 else None
+
+    tracked[:] = [np.arange(60) < 45, np.arange(60) < 1]
+    assert P.each_run(seq, "VOC.txt", 2, figures) == [{"frames": 45, "lost": 15}]
