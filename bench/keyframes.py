@@ -1,8 +1,8 @@
 """Keyframe and loop edges on validation data: the teacher graph without them, with them, and
 with each of their constants moved one at a time.
 
-For each validation range (redkitchen 0:450 and 350:450, TUM fr3/teddy, synthetic/lab) the
-default teacher's window edges are estimated once (``keyframes`` off); then the keyframe pass
+For each validation range (redkitchen 0:450 and 350:450, TUM fr3/teddy, synthetic/lab; and the
+training room office) the default teacher's window edges are estimated once (``keyframes`` off); then the keyframe pass
 (:func:`ctcvo.teacher.keyframes.add_keyframe_edges`) runs once per variant: ``window`` (no
 keyframe pass), ``default`` (the module's constants), each entry of :data:`SWEEP`, one
 constant changed, and each of :data:`GROUPED`. The pose graph
@@ -13,7 +13,7 @@ keyframe edges' median NEES. Record ``bench/results/keyframes.json``.
 
     python -m bench.keyframes [--scenes SPEC:START:STOP ...] [--camera CAM.json]
 
-The record's lab is undistorted with the camera ``teacher calibrate`` fits on office and lab
+The record's rooms are undistorted with the camera ``teacher calibrate`` fits on office and lab
 (``--camera``), as the demo undistorts its rooms.
 """
 
@@ -40,13 +40,13 @@ from ctcvo.teacher.config import DEFAULT
 from ctcvo.teacher.generate import features_of, run_sequence
 
 VALIDATION = [f"{record.REDKITCHEN}:0:450", f"{record.REDKITCHEN}:350:450", f"{record.TUM_TEDDY}:0:200",
-              "synthetic/lab:0:200"]
+              "synthetic/lab:0:300", "synthetic/office:0:300"]
 #: the constants moved one at a time, each to the values listed (module keyframes or loops;
 #: KEYFRAME_SCALE v: covariance_model.KEYFRAME_SCALES' factor of every noise model set to v)
 SWEEP: dict[str, tuple[float, ...]] = {
     "KF_TRANS_M": (0.03, 0.1, 0.2), "KF_ROT_DEG": (5.0, 20.0), "KF_MIN_OVERLAP": (0.5, 0.85),
     "COVISIBLE_OVERLAP": (0.2, 0.6), "REACH_S": (3.0, 12.0), "MAX_COVISIBLE": (6, 10), "LOOP_SCORE": (0.6,),
-    "FALLBACK_GATE_M": (0.1,), "KEYFRAME_SCALE": (0.35, 0.5, 1.0, 2.0),
+    "FALLBACK_GATE_M": (0.1,), "KEYFRAME_SCALE": (0.35, 0.5, 1.0, 2.0, 4.0),
 }
 #: variants that move several constants together
 GROUPED: dict[str, dict[str, float]] = {

@@ -177,3 +177,59 @@ def test_the_incremental_api_frame_by_frame():
     assert [a.pos for a in works[2].covisible] == [0]  # 4 - 2 is within the gaps
     assert len(works[-1].covisible) == kf.MAX_COVISIBLE
     assert [(w.b.pos, [a.pos for a in w.loops]) for w in works if w.loops] == [(58, [0])]
+
+
+def test_a_frame_with_one_stream_repeated_is_never_a_keyframe_and_keyframes_carry_their_velocity():
+    """A frame whose colour (or depth) image repeats the previous frame's while the other is
+    new is passed over (the next new frame is picked); a keyframe's velocity is its pose
+    estimates' per second into it, unknown next to a repeated image."""
+    from ctcvo.data.sequence import Intrinsics
+    from ctcvo.teacher import keyframes as kf
+
+    intr = Intrinsics(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
+    pts = kf.depth_points(np.full((480, 640), 3.0, np.float32), intr)
+    step = geo.se3_exp(np.array([2.0 * kf.KF_TRANS_M, 0, 0, 0, 0.01, 0]))  # a keyframe every frame
+    keys = [(bytes([k]), bytes([k])) for k in range(8)]
+    keys[3] = (keys[2][0], b"new")  # frame 3's colour repeats frame 2's
+    keys[6] = (keys[5][0] + b"+", keys[5][1])  # frame 6's depth repeats frame 5's
+    sel, picked, velocity = kf.KeyframeSelector(intr), [], {}
+    T = np.eye(4)
+    for k in range(8):
+        if sel.offer(T, pts, keys[k], 0.1 * k):
+            picked.append(k)
+            velocity[k] = sel.velocity
+        T = T @ step
+    assert picked == [0, 1, 2, 4, 5, 7]
+    assert velocity[0] is None and velocity[4] is None  # frame 0: no motion yet; 4: after the repeat in 3
+    np.testing.assert_allclose(velocity[2], geo.se3_log(step) / 0.1, atol=1e-9)
+    assert velocity[7] is None  # after frame 6's repeated depth
+    assert sel.offer(T, pts) is True and sel.velocity is None  # keys unknown: taken as new, no time, no velocity
+
+
+def test_keyframe_edges_are_corrected_for_the_rolling_shutter():
+    """The keyframe pass resolves the sensor's readout (synthetic/tiny: 27 ms) as the window
+    does: on the same pose estimates, its edges between keyframes of known velocity move
+    against those of a teacher told the shutter is global; a noise-free scene (no readout)
+    gives the same edges either way."""
+    from ctcvo.teacher import generate, keyframes
+
+    def kf_edges(scene):
+        seq = open_scene(scene)[0]
+        poses, _ = generate.chain_trajectory(seq.ids(), generate._run_chunk(seq, CFG, 0, len(seq))[0])
+        works = keyframes.keyframe_works(seq, CFG, poses)
+        moving = {w.b.frame_id for w in works if w.b.velocity is not None}
+        assert len(moving) >= len(works) - 2
+        out = []
+        for rolling in (None, 0.0):
+            cfg = dataclasses.replace(CFG, rolling_shutter_s=rolling)
+            found = keyframes.keyframe_edges(seq, cfg, poses, generate.features_of(seq, cfg))
+            out.append({(e.i, e.j): e.T_i_j for e, _ in found if e.ok})
+        return out, moving
+
+    (auto, off), moving = kf_edges("synthetic/tiny")
+    assert auto.keys() == off.keys()
+    both = [k for k in auto if k[0] in moving and k[1] in moving]
+    assert len(both) >= 3
+    assert all(np.linalg.norm(auto[k][:3, 3] - off[k][:3, 3]) > 1e-5 for k in both)  # corrected (metres)
+    (clean_auto, clean_off), _ = kf_edges("synthetic/tiny-clean")
+    assert clean_auto and all(np.array_equal(clean_auto[k], clean_off[k]) for k in clean_auto)

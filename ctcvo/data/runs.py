@@ -82,8 +82,11 @@ STAGE_VERSIONS: dict[str, int] = {
     # real recording's edges.g2o); noisy synthetic scenes' labels are bit-identical; 9: a dense
     # fallback's keyframe edge far from its prediction fails (``fallback_disagrees``); chunks of 75 frames;
     # keyframe edges' covariance scale times KEYFRAME_SCALES (real recordings' edges.g2o); 10: as
-    # many chunks per worker (labels change where the chunk count did, e.g. 200 or 394 frames)
-    "teacher": 10,
+    # many chunks per worker (labels change where the chunk count did, e.g. 200 or 394 frames);
+    # 11: keyframe edges corrected for the rolling shutter (the keyframe pass resolves
+    # rolling_shutter_s and gives keyframes their velocity), no keyframe with one stream's image
+    # repeated, synthetic KEYFRAME_SCALES 4 (every keyframe edge changes)
+    "teacher": 11,
     "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 1, "posegraph-calibrate": 1, "online": 1,
 }
 SYNTHETIC_PREFIX = "synthetic/"

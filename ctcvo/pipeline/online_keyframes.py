@@ -32,7 +32,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from ctcvo.data.sequence import Frame, Intrinsics
-from ctcvo.teacher.features import FrameFeatures, extract, make_orb
+from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb
 from ctcvo.teacher.keyframes import Keyframe, KeyframeHistory, KeyframeSelector, depth_points, estimate_work
 from ctcvo.teacher.loops import thumbnail
 
@@ -64,10 +64,10 @@ class KeyframeWorker:
         """Frame ``frame``, the ``pos``-th taken, with its pose estimate (the chained one):
         whether it is a keyframe (then queued for the helper thread)."""
         pts = depth_points(frame.depth, self.intr)
-        if not self.selector.offer(T_world_cam, pts):
+        if not self.selector.offer(T_world_cam, pts, image_keys(frame.rgb, frame.depth), float(frame.timestamp)):
             return False
         self.picked += 1
-        self.queue.put((pos, frame, np.array(T_world_cam), pts))
+        self.queue.put((pos, frame, np.array(T_world_cam), pts, self.selector.velocity))
         return True
 
     def take(self, posed: int) -> list:
@@ -111,9 +111,9 @@ class KeyframeWorker:
         orb, feats = make_orb(self.cfg), {}  # ORB detectors are not shared between threads
         try:
             while (item := self.queue.get()) is not None and not self.stop.is_set():
-                pos, frame, T, pts = item
+                pos, frame, T, pts, velocity = item
                 feats[pos] = self._features(frame, orb)
-                kf = Keyframe(pos, int(frame.frame_id), float(frame.timestamp), T, pts, thumbnail(frame.rgb))
+                kf = Keyframe(pos, int(frame.frame_id), float(frame.timestamp), T, pts, thumbnail(frame.rgb), velocity)
                 edges = estimate_work(self.history.add(kf), feats.__getitem__, self.intr, self.cfg)
                 with self.lock:
                     self.done.append((pos, edges))

@@ -55,6 +55,7 @@ from ctcvo.teacher.keyframes import depth_points, estimate_works, keyframe_works
 from ctcvo.teacher.loops import thumbnail
 from ctcvo.teacher.maps import PhotoMaps
 from ctcvo.teacher.record import EdgeEstimate, count_by_kind
+from ctcvo.teacher.timing import rolling_shutter_for
 from ctcvo.teacher.window import EdgeWindow
 
 log = logging.getLogger(__name__)
@@ -126,7 +127,7 @@ def features_of(seq: Sequence, cfg: TeacherConfig) -> Callable[[int], FrameFeatu
 
 
 def _keyframe_pass(frames: Sequence, cfg: TeacherConfig, poses: NDArray[np.float64],
-                   looks: dict[int, tuple[NDArray, NDArray]]) -> list[tuple[EdgeEstimate, str]]:
+                   looks: dict[int, tuple[NDArray, NDArray, tuple]]) -> list[tuple[EdgeEstimate, str]]:
     """The keyframe and loop edges (:mod:`teacher.keyframes`) of ``frames``, whose window
     edges chained to ``poses``. The keyframes are picked here; their works are cut into up
     to ``cfg.workers`` runs of consecutive keyframes with about as many edges each, estimated
@@ -153,6 +154,7 @@ KF_EDGES_PER_WORKER = 8
 def _estimate_works(frames: Sequence, cfg: TeacherConfig, works: list) -> list[tuple[EdgeEstimate, str]]:
     """:func:`teacher.keyframes.estimate_works` with Open3D and BLAS on ``cfg.threads``, as
     the window runs them (the labels depend on the thread count)."""
+    cfg = dataclasses.replace(cfg, rolling_shutter_s=rolling_shutter_for(frames.sensor, cfg))
     with openmp_threads(cfg.threads):
         return estimate_works(works, features_of(frames, cfg), frames.intrinsics, cfg)
 
@@ -243,7 +245,7 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     Returns the edges, the frames that could not be read ({position: why}; skipped, see
     :mod:`teacher.skips`; with ``strict`` the first one's error stops the chunk, as does a
     run of ``gaps`` in a row) and, with ``cfg.keyframes``, what the keyframe pass needs of
-    each frame of [k0, k1) (``looks``: {frame id: (depth points, thumbnail)}).
+    each frame of [k0, k1) (``looks``: {frame id: (depth points, thumbnail, image keys)}).
     """
     n = len(seq)
     ids, times, offsets = seq.ids(), seq.times(), seq.depth_offsets()
@@ -255,13 +257,14 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     colour = colour_camera_for(seq.sensor, cfg)  # it also picks the dense step's method (dense_method_for)
     cfg = dataclasses.replace(cfg, rolling_shutter_s=rolling_shutter_for(seq.sensor, cfg))
 
-    looks: dict[int, tuple[NDArray, NDArray]] = {}
+    looks: dict[int, tuple[NDArray, NDArray, tuple]] = {}
 
     def _extract(k: int) -> FrameFeatures:
         rgb, depth = seq.rgb(k), seq.depth(k)
+        f = extract(rgb, depth, cfg, orb, intr.K, colour)  # one thread uses this ORB
         if cfg.keyframes and k < k1:  # what the keyframe pass needs of every frame, while the images are here
-            looks[int(ids[k])] = (depth_points(depth, intr), thumbnail(rgb))
-        return extract(rgb, depth, cfg, orb, intr.K, colour)  # one thread uses this ORB
+            looks[int(ids[k])] = (depth_points(depth, intr), thumbnail(rgb), f.keys)
+        return f
 
     # fingerprints of the frame before the chunk, to tell whether frame k0 repeats it; the
     # walks back over earlier frames (rare) share them
@@ -372,13 +375,6 @@ def colour_camera_for(sensor: Sensor, cfg: TeacherConfig) -> ColourCamera | None
     if cfg.colour_camera == "kinect-v1":
         return KINECT_V1_COLOUR
     return sensor.colour
-
-
-def rolling_shutter_for(sensor: Sensor, cfg: TeacherConfig) -> float:
-    """``cfg.rolling_shutter_s``, auto (None) resolved: the sensor's own readout
-    (``Sequence.sensor``: a synthetic scene's sensor model's, 0 when noise-free; Kinect v1's,
-    :data:`data.sensor.KINECT_V1_READOUT_S`, for real recordings)."""
-    return sensor.readout_s if cfg.rolling_shutter_s is None else float(cfg.rolling_shutter_s)
 
 
 def dense_method_for(sensor: Sensor, cfg: TeacherConfig) -> str:

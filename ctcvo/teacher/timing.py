@@ -7,11 +7,19 @@ from numpy.typing import NDArray
 
 from ctcvo.data import geometry as geo
 from ctcvo.data.open3d_import import o3d
+from ctcvo.data.sensor import Sensor
 from ctcvo.data.sequence import Intrinsics
 from ctcvo.teacher.config import TeacherConfig
 from ctcvo.teacher.features import FrameFeatures, backproject, project
 from ctcvo.teacher.maps import DENSE_SCALE, DENSE_TARGET_SCALE, DenseMaps
 from ctcvo.teacher.record import EdgeEstimate
+
+
+def rolling_shutter_for(sensor: Sensor, cfg: TeacherConfig) -> float:
+    """``cfg.rolling_shutter_s``, auto (None) resolved: the sensor's own readout
+    (``Sequence.sensor``: a synthetic scene's sensor model's, 0 when noise-free; Kinect v1's,
+    :data:`data.sensor.KINECT_V1_READOUT_S`, for real recordings)."""
+    return sensor.readout_s if cfg.rolling_shutter_s is None else float(cfg.rolling_shutter_s)
 
 
 def depth_moved(fi: FrameFeatures, fj: FrameFeatures, dt: float) -> bool:
@@ -97,9 +105,10 @@ def rolling_shutter_views(fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics
     kept). Returns ``((uv_i, z_i), (uv_j, z_j), dense_i, dense_j)``; None without the
     correction (off, or a velocity unknown). Keypoints without depth keep their pixel; the
     dense maps keep their normals and carry no photometric maps (the hybrid stage runs on
-    gap-1 edges only, which are never corrected)."""
+    gap-1 edges only, which are never corrected). The window sets the velocities of its frames,
+    the keyframe pass those of its keyframes (:func:`teacher.keyframes.estimate_work`)."""
     if not cfg.rolling_shutter_s or fi.velocity_out is None or fj.velocity_in is None:
-        return None  # off, auto not resolved (teacher.generate.rolling_shutter_for), or a velocity unknown
+        return None  # off, auto not resolved (rolling_shutter_for), or a velocity unknown
     (kp_i, dense_i), (kp_j, dense_j) = _rolling_view(fi, "out", intr, cfg), _rolling_view(fj, "in", intr, cfg)
     return kp_i, kp_j, dense_i, dense_j
 
