@@ -85,8 +85,9 @@ STAGE_VERSIONS: dict[str, int] = {
     # many chunks per worker (labels change where the chunk count did, e.g. 200 or 394 frames);
     # 11: keyframe edges corrected for the rolling shutter (the keyframe pass resolves
     # rolling_shutter_s and gives keyframes their velocity), no keyframe with one stream's image
-    # repeated, synthetic KEYFRAME_SCALES 4 (every keyframe edge changes)
-    "teacher": 11,
+    # repeated, synthetic KEYFRAME_SCALES 4 (every keyframe edge changes); 12: kinect-v1
+    # KEYFRAME_SCALES 0.25 (real recordings' keyframe edges in edges.g2o)
+    "teacher": 12,
     "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 1, "posegraph-calibrate": 1, "online": 1,
 }
 SYNTHETIC_PREFIX = "synthetic/"
