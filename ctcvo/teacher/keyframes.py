@@ -35,10 +35,11 @@ alignment seconds long can converge to a wrong minimum the pose graph's rules do
 on fr3/teddy (validation) 4 of the 7 fallback keyframe edges were 97-172 mm off the ground
 truth, and the gate took the graph's ATE there from 6.8 to 6.0 mm with keyframe edges
 weighed as window edges; redkitchen 0:450, 350:450 and synthetic/lab were unchanged (record
-``keyframes`` at b9df11e, variant "no fallback gate"). Since they weigh more
-(:data:`teacher.covariance_model.KEYFRAME_SCALES`) the graph's outlier pass rejects those
-edges too, and the gate gives the same figures. Dropping every fallback keyframe edge instead
-cost lab 1.1 mm; a 0.1 m gate gives the same figures.
+``keyframes`` at b9df11e, variant "no fallback gate"). At kinect-v1's keyframe factor 0.5
+(:data:`teacher.covariance_model.KEYFRAME_SCALES`) the graph's outlier pass rejected those
+edges too; at 0.25 it does not, and without the gate teddy's ATE is 6.1 mm, not 4.9 (record
+``keyframes`` at 410f99c). Dropping every fallback keyframe edge instead cost lab 1.1 mm; a
+0.1 m gate gives the same figures.
 
 The constants were swept one at a time on the validation ranges (redkitchen 0:450 and
 350:450, fr3/teddy, synthetic/lab) by ``python -m bench.keyframes`` (record
