@@ -71,7 +71,10 @@ def ate_rmse(gt: Trajectory, est: Trajectory) -> float:
 
 
 def rpe_rmse(gt: Trajectory, est: Trajectory, delta: int = 1) -> tuple[float, float]:
-    """RPE RMSE (translation metres, rotation degrees) over frame pairs ``delta`` apart (evo)."""
+    """RPE RMSE (translation metres, rotation degrees) over every frame pair ``delta`` apart
+    (evo's ``all_pairs``, as TUM's ``evaluate_rpe.py`` pairs them). evo's default takes only
+    the pairs (0, delta), (delta, 2 delta), ...: a 1 s RPE over 150 frames of 30 Hz would
+    rest on 5 pairs. At ``delta`` 1 both are the same."""
     from evo.core import metrics
 
     _check(gt, est)
@@ -80,7 +83,7 @@ def rpe_rmse(gt: Trajectory, est: Trajectory, delta: int = 1) -> tuple[float, fl
     ref, e = gt.to_evo(), est.to_evo()
     out = []
     for rel in (metrics.PoseRelation.translation_part, metrics.PoseRelation.rotation_angle_deg):
-        rpe = metrics.RPE(rel, delta=delta, delta_unit=metrics.Unit.frames, all_pairs=False)
+        rpe = metrics.RPE(rel, delta=delta, delta_unit=metrics.Unit.frames, all_pairs=True)
         rpe.process_data((ref, e))
         out.append(float(rpe.get_statistic(metrics.StatisticsType.rmse)))
     return out[0], out[1]
