@@ -36,14 +36,14 @@ GAP_SCALES: dict[str, tuple[float, ...]] = {
 #: on redkitchen 0:450 and 350:450 and fr3/teddy 0:200, keyframe edges corrected for the rolling
 #: shutter: 0.25, the smallest factor that keeps every range's gap-1 RPE within 0.02 mm of 0.5's.
 #: Against 0.5 it lowers the teacher graph's ATE (25.7 -> 24.0, 13.6 -> 13.5, 5.1 -> 4.9 mm) and
-#: the 1 s RPE on two ranges (teddy 11.2 -> 10.3, 350:450 16.2 -> 16.1), 0:450's 1 s RPE 21.0 ->
-#: 21.4; 0.2 puts 0:450's gap-1 RPE at +0.02 mm, 0.15 at +0.05 (its 1 s RPE 22.5). Their median
+#: the 1 s RPE on two ranges (teddy 9.3 -> 8.7, 350:450 22.7 -> 22.6), 0:450's 1 s RPE 21.4 ->
+#: 21.7; 0.2 puts 0:450's gap-1 RPE at +0.02 mm, 0.15 at +0.05 (its 1 s RPE 22.4). Their median
 #: NEES says the opposite (3-9x too small covariances on the real ranges): the window's edges err
 #: together along the sequence, which no per-edge covariance shows.
 #: ``synthetic`` on lab 0:300 (validation) and office 0:300 (training), undistorted with the
 #: camera ``teacher calibrate`` fits on both (as the demo runs them), keyframe edges corrected
 #: for the rolling shutter: 4, as against 1 it lowers the graph's ATE (lab 7.9 -> 6.6 mm, office
-#: 8.6 -> 4.5), 1 s RPE on office (7.1 -> 6.6) and gap-1 RPE on both, lab's 1 s RPE 4.0 -> 4.3;
+#: 8.6 -> 4.5), 1 s RPE on office (6.7 -> 6.5) and gap-1 RPE on both, lab's 1 s RPE 4.1 -> 4.3;
 #: 2 and 10 leave the larger sum of ATEs (12.6 and 13.0 mm against 11.0). The synthetic depth
 #: bias pattern (``depth_bias_coeff``, fixed in image coordinates) biases the edges that see a
 #: surface at other pixels: without it the same lab's graph is best at 1-2 (ATE 2.2 mm).
