@@ -379,6 +379,15 @@ def test_sigint_ends_the_run_after_the_frame_in_hand(tmp_path):
     assert edges and all(e.i in ids and e.j in ids for e in edges)
 
 
+def test_cli_window_defaults_to_online_gaps():
+    """``ctcvo online`` estimates edges to the last ONLINE_GAPS frames unless --gaps says
+    otherwise; a preset with fewer keeps its own; teacher generate keeps 5."""
+    def gaps(*argv):
+        return online_cli._configs(online_cli.build_parser().parse_args(["--scene", "x", *argv]))[0].gaps
+    assert online_loop.ONLINE_GAPS == 3 < online.TEACHER_DEFAULT.gaps == 5
+    assert gaps() == 3 and gaps("--preset", "tiny") == TINY.gaps == 2 and gaps("--gaps", "5") == 5
+
+
 def test_cli_errors_are_one_line(tmp_path, capsys):
     assert online_cli.main(["--scene", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 1
     err = capsys.readouterr().err.strip()

@@ -48,7 +48,7 @@ from ctcvo.data.undistort import with_camera
 from ctcvo.learner.config import PredictConfig, to_dict
 from ctcvo.learner.online import OnlineLearner
 from ctcvo.pipeline.online_keyframes import KeyframeWorker
-from ctcvo.pipeline.online_loop import Estimator, OnlineConfig, OnlineTeacher, drive
+from ctcvo.pipeline.online_loop import ONLINE_GAPS, Estimator, OnlineConfig, OnlineTeacher, drive
 from ctcvo.pipeline.online_outputs import OUTPUT_FILES, REPORT, TRAJECTORY, TRAJECTORY_HEADER, percentiles_ms, write_outputs
 from ctcvo.posegraph.config import ONLINE
 from ctcvo.posegraph.online import OnlineGraph
@@ -94,7 +94,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Path | Non
         max_frames: int | None = None, progress: bool = True) -> OnlineResult:
     """Run the online pipeline over ``source`` (see the module docstring); KeyboardInterrupt
     ends it early with every output written for the frames so far (``interrupted``)."""
-    teacher_cfg = teacher_cfg or TEACHER_DEFAULT
+    teacher_cfg = teacher_cfg or dataclasses.replace(TEACHER_DEFAULT, gaps=ONLINE_GAPS)
     out = ensure_dir(Path(out))
     learner = OnlineLearner(checkpoint, predict_cfg, device) if checkpoint is not None else None
     graph = OnlineGraph(graph_cfg)
@@ -157,7 +157,7 @@ def online(spec: str, out: Path | None = None, *, frames: str | None = None, fol
     or killed one is run again; outputs of other inputs are replaced with ``overwrite``,
     otherwise :class:`data.runs.StaleOutputError` says what differs. A run is finished when
     its ``report.json`` (written last) says it was not interrupted."""
-    teacher_cfg = teacher_cfg or TEACHER_DEFAULT
+    teacher_cfg = teacher_cfg or dataclasses.replace(TEACHER_DEFAULT, gaps=ONLINE_GAPS)
     out = Path(out) if out is not None else stage_dir(spec, "online")
     with output_folder(out):
         source = open_source(spec, frames, follow, cfg, camera)

@@ -15,7 +15,7 @@ from ctcvo.data.io import setup_logging
 from ctcvo.data.scenes import add_topic_options, scene_with_topics
 from ctcvo.learner.config import PredictConfig
 from ctcvo.pipeline.online import online
-from ctcvo.pipeline.online_loop import OnlineConfig
+from ctcvo.pipeline.online_loop import ONLINE_GAPS, OnlineConfig
 from ctcvo.pipeline.online_outputs import TRAJECTORY
 from ctcvo.teacher.config import PRESETS as TEACHER_PRESETS
 
@@ -50,7 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=OnlineConfig.timeout_s,
                    help="--follow: end after this many seconds without a new frame")
     p.add_argument("--poll", type=float, default=OnlineConfig.poll_s, help="--follow: seconds between polls")
-    p.add_argument("--gaps", type=int, help="teacher edges to the last K frames (default: the preset's)")
+    p.add_argument("--gaps", type=int, help=f"teacher edges to the last K frames (default {ONLINE_GAPS}, or the preset's "
+                   "if fewer; teacher generate's are 5)")
     p.add_argument("--preset", default="default", choices=sorted(TEACHER_PRESETS), help="teacher preset")
     p.add_argument("--keyframes", action=argparse.BooleanOptionalAction, default=None,
                    help="also estimate keyframe and loop edges (as teacher generate), in a helper thread off the "
@@ -73,8 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _configs(args: argparse.Namespace) -> tuple:
     """The teacher, predict and online configs of the options (ConfigError for bad online ones)."""
     tcfg = TEACHER_PRESETS[args.preset]
-    if args.gaps is not None:
-        tcfg = dataclasses.replace(tcfg, gaps=args.gaps)
+    tcfg = dataclasses.replace(tcfg, gaps=args.gaps if args.gaps is not None else min(tcfg.gaps, ONLINE_GAPS))
     if args.keyframes is not None:
         tcfg = dataclasses.replace(tcfg, keyframes=args.keyframes)
     pcfg = PredictConfig(**{k: v for k, v in (("samples", args.samples), ("max_gap", args.max_gap)) if v is not None})
