@@ -57,6 +57,8 @@ from ctcvo.teacher.generate import colour_camera_for
 from ctcvo.teacher.timing import rolling_shutter_for
 
 log = logging.getLogger(__name__)
+#: the teacher ``ctcvo online`` runs when given none: the default one, window ``ONLINE_GAPS``
+TEACHER_ONLINE = dataclasses.replace(TEACHER_DEFAULT, gaps=ONLINE_GAPS)
 
 
 @dataclass
@@ -94,7 +96,7 @@ def run(source: FrameSource, out: Path, teacher_cfg=None, checkpoint: Path | Non
         max_frames: int | None = None, progress: bool = True) -> OnlineResult:
     """Run the online pipeline over ``source`` (see the module docstring); KeyboardInterrupt
     ends it early with every output written for the frames so far (``interrupted``)."""
-    teacher_cfg = teacher_cfg or dataclasses.replace(TEACHER_DEFAULT, gaps=ONLINE_GAPS)
+    teacher_cfg = teacher_cfg or TEACHER_ONLINE
     out = ensure_dir(Path(out))
     learner = OnlineLearner(checkpoint, predict_cfg, device) if checkpoint is not None else None
     graph = OnlineGraph(graph_cfg)
@@ -157,7 +159,7 @@ def online(spec: str, out: Path | None = None, *, frames: str | None = None, fol
     or killed one is run again; outputs of other inputs are replaced with ``overwrite``,
     otherwise :class:`data.runs.StaleOutputError` says what differs. A run is finished when
     its ``report.json`` (written last) says it was not interrupted."""
-    teacher_cfg = teacher_cfg or dataclasses.replace(TEACHER_DEFAULT, gaps=ONLINE_GAPS)
+    teacher_cfg = teacher_cfg or TEACHER_ONLINE
     out = Path(out) if out is not None else stage_dir(spec, "online")
     with output_folder(out):
         source = open_source(spec, frames, follow, cfg, camera)
