@@ -47,6 +47,7 @@ SWEEP: dict[str, tuple[float, ...]] = {
     "KF_TRANS_M": (0.03, 0.1, 0.2), "KF_ROT_DEG": (5.0, 20.0), "KF_MIN_OVERLAP": (0.5, 0.85),
     "COVISIBLE_OVERLAP": (0.2, 0.6), "REACH_S": (3.0, 12.0), "MAX_COVISIBLE": (6, 10), "LOOP_SCORE": (0.6,),
     "FALLBACK_GATE_M": (0.1,), "KEYFRAME_SCALE": (0.15, 0.25, 0.5, 1.0, 2.0, 4.0),
+    "REGISTERED_FEATURE_FACTOR": (1, 2, 4), "SEPARATE_FEATURE_FACTOR": (2, 3),
 }
 #: variants that move several constants together
 GROUPED: dict[str, dict[str, float]] = {

@@ -233,3 +233,21 @@ def test_keyframe_edges_are_corrected_for_the_rolling_shutter():
     assert all(np.linalg.norm(auto[k][:3, 3] - off[k][:3, 3]) > 1e-5 for k in both)  # corrected (metres)
     (clean_auto, clean_off), _ = kf_edges("synthetic/tiny-clean")
     assert clean_auto and all(np.array_equal(clean_auto[k], clean_off[k]) for k in clean_auto)
+
+
+def test_keyframes_of_registered_colour_extract_more_features():
+    """Keyframes extract ``REGISTERED_FEATURE_FACTOR`` times the window's ORB features where the
+    colour is registered to the depth (a noise-free room: no colour model), the window's count
+    times ``SEPARATE_FEATURE_FACTOR`` with a separate colour camera; online's helper thread uses
+    the same detector."""
+    from ctcvo.teacher import generate, keyframes
+
+    for scene, factor in (("synthetic/tiny-clean", keyframes.REGISTERED_FEATURE_FACTOR),
+                          ("synthetic/tiny", keyframes.SEPARATE_FEATURE_FACTOR)):
+        seq = open_scene(scene)[0]
+        colour = generate.colour_camera_for(seq.sensor, CFG)
+        assert (colour is None) == (scene == "synthetic/tiny-clean")
+        assert keyframes.keyframe_orb(CFG, colour).getMaxFeatures() == CFG.n_features * factor
+        n_kf = len(generate.features_of(seq, CFG)(0).uv)
+        n_win = len(generate.extract(seq.rgb(0), seq.depth(0), CFG, generate.make_orb(CFG), seq.intrinsics.K, colour).uv)
+        assert n_kf > n_win if factor > 1 else n_kf == n_win

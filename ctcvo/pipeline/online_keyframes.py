@@ -32,8 +32,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from ctcvo.data.sequence import Frame, Intrinsics
-from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb
-from ctcvo.teacher.keyframes import Keyframe, KeyframeHistory, KeyframeSelector, depth_points, estimate_work
+from ctcvo.teacher.features import FrameFeatures, extract, image_keys
+from ctcvo.teacher.keyframes import Keyframe, KeyframeHistory, KeyframeSelector, depth_points, estimate_work, keyframe_orb
 from ctcvo.teacher.loops import thumbnail
 
 log = logging.getLogger(__name__)
@@ -108,7 +108,7 @@ class KeyframeWorker:
     def _work(self) -> None:
         # OpenMP's thread count is per thread: Open3D's kernels here on the teacher's count
         threadpool_limits(self.cfg.threads, user_api="openmp")
-        orb, feats = make_orb(self.cfg), {}  # ORB detectors are not shared between threads
+        orb, feats = keyframe_orb(self.cfg, self.colour), {}  # ORB detectors are not shared between threads
         try:
             while (item := self.queue.get()) is not None and not self.stop.is_set():
                 pos, frame, T, pts, velocity = item
