@@ -237,17 +237,25 @@ def test_keyframe_edges_are_corrected_for_the_rolling_shutter():
 
 def test_keyframes_of_registered_colour_extract_more_features():
     """Keyframes extract ``REGISTERED_FEATURE_FACTOR`` times the window's ORB features where the
-    colour is registered to the depth (a noise-free room: no colour model), the window's count
-    times ``SEPARATE_FEATURE_FACTOR`` with a separate colour camera; online's helper thread uses
-    the same detector."""
+    colour is registered to the depth (a noise-free room: no colour model), strongest first, and
+    the searches without a prediction take the strongest ``n_features`` (a prefix: the same
+    indices); the window's count times ``SEPARATE_FEATURE_FACTOR`` with a separate colour
+    camera; online's helper thread uses the same detector."""
     from ctcvo.teacher import generate, keyframes
 
+    assert keyframes.REGISTERED_FEATURE_FACTOR > 1
     for scene, factor in (("synthetic/tiny-clean", keyframes.REGISTERED_FEATURE_FACTOR),
                           ("synthetic/tiny", keyframes.SEPARATE_FEATURE_FACTOR)):
         seq = open_scene(scene)[0]
         colour = generate.colour_camera_for(seq.sensor, CFG)
         assert (colour is None) == (scene == "synthetic/tiny-clean")
-        assert keyframes.keyframe_orb(CFG, colour).getMaxFeatures() == CFG.n_features * factor
-        n_kf = len(generate.features_of(seq, CFG)(0).uv)
+        assert keyframes.keyframe_orb(CFG, colour).orb.getMaxFeatures() == CFG.n_features * factor
+        f = generate.features_of(seq, CFG)(0)
         n_win = len(generate.extract(seq.rgb(0), seq.depth(0), CFG, generate.make_orb(CFG), seq.intrinsics.K, colour).uv)
-        assert n_kf > n_win if factor > 1 else n_kf == n_win
+        if factor == 1:
+            assert len(f.uv) == n_win and f.searched is None and f.strongest() is f
+            continue
+        assert len(f.uv) > n_win and f.searched == CFG.n_features
+        s = f.strongest()
+        assert len(s.uv) == CFG.n_features and np.array_equal(s.desc, f.desc[:CFG.n_features])
+        assert np.array_equal(s.uv, f.uv[:CFG.n_features]) and s.tree().n == CFG.n_features

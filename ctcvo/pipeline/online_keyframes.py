@@ -32,8 +32,16 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from ctcvo.data.sequence import Frame, Intrinsics
-from ctcvo.teacher.features import FrameFeatures, extract, image_keys
-from ctcvo.teacher.keyframes import Keyframe, KeyframeHistory, KeyframeSelector, depth_points, estimate_work, keyframe_orb
+from ctcvo.teacher.features import FrameFeatures, image_keys
+from ctcvo.teacher.keyframes import (
+    Keyframe,
+    KeyframeHistory,
+    KeyframeSelector,
+    depth_points,
+    estimate_work,
+    keyframe_features,
+    keyframe_orb,
+)
 from ctcvo.teacher.loops import thumbnail
 
 log = logging.getLogger(__name__)
@@ -124,7 +132,7 @@ class KeyframeWorker:
     def _features(self, frame: Frame, orb) -> FrameFeatures:
         """A keyframe's features as ``teacher generate``'s keyframe pass extracts them
         (:func:`teacher.generate.features_of`: not the window's, which the window annotates)."""
-        return extract(frame.rgb, frame.depth, self.cfg, orb, self.intr.K, self.colour)
+        return keyframe_features(frame.rgb, frame.depth, self.cfg, orb, self.intr.K, self.colour)
 
     def report(self, dropped: int) -> dict:
         """``report.json``'s ``keyframes``."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from dataclasses import dataclass, field
 
@@ -41,7 +42,8 @@ class FrameFeatures:
     the camera's velocity from the frame's gap-1 edge in and out of it, for the rolling
     shutter correction (``cfg.rolling_shutter_s``, :func:`rolling_shutter_views`); None when
     unknown. ``registered``: the colour camera is the depth camera's (no colour camera model
-    moved the keypoints).
+    moved the keypoints). ``searched``: the keypoints come strongest first and the searches
+    without a prediction, and the wide one, take only this many (:meth:`strongest`; None: all).
     """
 
     uv: NDArray[np.float32]
@@ -57,13 +59,26 @@ class FrameFeatures:
     velocity_in: NDArray[np.float64] | None = None
     velocity_out: NDArray[np.float64] | None = None
     registered: bool = True
+    searched: int | None = None
     _tree: cKDTree | None = None
     _rolling: dict = field(default_factory=dict, repr=False)
+    _strongest: FrameFeatures | None = field(default=None, repr=False)
 
     @property
     def desc64(self) -> NDArray[np.uint64]:
         """Descriptors as (N, 4) uint64 words for vectorised Hamming distances."""
         return self.desc.view(np.uint64)
+
+    def strongest(self) -> FrameFeatures:
+        """The frame with its first ``searched`` keypoints alone (itself when None): a keypoint
+        index of the view is the same keypoint's here, so its matches index this frame too."""
+        if self.searched is None or self.searched >= len(self.uv):
+            return self
+        if self._strongest is None:
+            n = self.searched
+            self._strongest = dataclasses.replace(self, uv=self.uv[:n], desc=self.desc[:n], z=self.z[:n], searched=None,
+                                                  _tree=None, _rolling={}, _strongest=None)
+        return self._strongest
 
     def tree(self) -> cKDTree:
         """k-d tree over the keypoint positions (built on first use, then reused)."""

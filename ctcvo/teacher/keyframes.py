@@ -40,7 +40,9 @@ weighed as window edges; redkitchen 0:450, 350:450 and synthetic/lab were unchan
 (:data:`teacher.covariance_model.KEYFRAME_SCALES`) the graph's outlier pass rejected those
 edges too; at 0.25 it does not, and without the gate teddy's ATE is 6.1 mm, not 4.9 (record
 ``keyframes`` at 410f99c). Dropping every fallback keyframe edge instead cost lab 1.1 mm; a
-0.1 m gate gives the same figures.
+0.1 m gate gives the same figures. Since TUM's keyframes extract more features
+(:func:`keyframe_orb`) no teddy keyframe edge falls back, and the gate changes no validation
+range (record ``keyframes`` at a4921f1); it stays for the edges that still starve.
 
 The constants were swept one at a time on the validation ranges (redkitchen 0:450 and
 350:450, fr3/teddy, synthetic/lab) by ``python -m bench.keyframes`` (record
@@ -54,14 +56,13 @@ import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from ctcvo.data import geometry as geo
 from ctcvo.data.sequence import Intrinsics, Sequence
 from ctcvo.teacher.config import TeacherConfig
-from ctcvo.teacher.features import FrameFeatures, image_keys, make_orb, stale_stream
+from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb, stale_stream
 from ctcvo.teacher.loops import loop_candidates, thumbnail, verify
 from ctcvo.teacher.odometry import estimate_edge
 from ctcvo.teacher.record import EdgeEstimate
@@ -81,10 +82,31 @@ SEPARATE_FEATURE_FACTOR = 1  # ... with a separate colour camera (7-Scenes, the 
 _STRIDE = 8  # depth pixels sampled for the overlap (every 8th row and column)
 
 
-def keyframe_orb(cfg: TeacherConfig, colour: object | None) -> cv2.ORB:
+class KeyframeORB:
+    """The keyframes' ORB detector (:func:`keyframe_orb`): keypoints strongest first (by
+    response) when there is a surplus, ``searched`` of them for the searches without a
+    prediction (None: all)."""
+
+    def __init__(self, cfg: TeacherConfig, factor: int) -> None:
+        self.orb = make_orb(dataclasses.replace(cfg, n_features=cfg.n_features * factor))
+        self.searched = cfg.n_features if factor > 1 else None
+
+    def detectAndCompute(self, gray: NDArray[np.uint8], mask: None) -> tuple:  # noqa: N802 - OpenCV's name
+        kps, desc = self.orb.detectAndCompute(gray, mask)
+        if self.searched is None or desc is None or not kps:
+            return kps, desc
+        order = np.argsort([-k.response for k in kps], kind="stable")
+        return [kps[k] for k in order], desc[order]
+
+
+def keyframe_orb(cfg: TeacherConfig, colour: object | None) -> KeyframeORB:
     """The ORB detector of the keyframes' features: ``cfg.n_features`` times
     :data:`REGISTERED_FEATURE_FACTOR` where the colour is registered to the depth (``colour``
     None: TUM RGB-D), times :data:`SEPARATE_FEATURE_FACTOR` with a separate colour camera.
+    The surplus serves the guided search, which a prediction keeps cheap; the searches without
+    one (a loop candidate's, a starved edge's) take the strongest ``cfg.n_features``, as the
+    window's frames have (:meth:`FrameFeatures.strongest`): all of 3000 made the keyframe pass
+    on fr1/xyz twice as long (5.8 -> 12.1 s) for the exhaustive matching.
 
     Why: a keyframe edge's rotation over seconds rests on how many keypoints it matches where
     the dense step is the depth alone and the ground truth does not follow the depth. On
@@ -96,7 +118,16 @@ def keyframe_orb(cfg: TeacherConfig, colour: object | None) -> cv2.ORB:
     and 0:450's 1 s RPE rose 21.7 -> 23.4 mm with 2000; the synthetic rooms were level
     (record ``keyframes``, variants ``*_FEATURE_FACTOR``)."""
     factor = REGISTERED_FEATURE_FACTOR if colour is None else SEPARATE_FEATURE_FACTOR
-    return make_orb(dataclasses.replace(cfg, n_features=cfg.n_features * factor))
+    return KeyframeORB(cfg, factor)
+
+
+def keyframe_features(rgb: NDArray[np.uint8], depth: NDArray[np.float32], cfg: TeacherConfig, orb: KeyframeORB,
+                      K: NDArray[np.float64], colour: object | None) -> FrameFeatures:
+    """A keyframe's features: :func:`teacher.features.extract` with the detector of
+    :func:`keyframe_orb`, its ``searched`` count noted."""
+    f = extract(rgb, depth, cfg, orb, K, colour)
+    f.searched = orb.searched
+    return f
 
 
 def depth_points(depth: NDArray[np.float32], intr: Intrinsics) -> NDArray[np.float64]:

@@ -120,7 +120,8 @@ def _keypoint_estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, int
     """Step 1: the first keypoint estimate that passes its checks, of the feature tracks (when
     numerous enough), guided matching (with a prediction), exhaustive matching, then the wide
     matching without the ratio test (guided, then cross-checked over all keypoints); else the
-    attempt with the most inliers."""
+    attempt with the most inliers. All but the guided matching take the frames'
+    :meth:`FrameFeatures.strongest` keypoints (a keyframe's surplus is for the guided search)."""
     attempts = []
     if tracks is not None and len(tracks) >= MIN_MATCHES:
         attempts.append(("tracks", tracks, None))
@@ -134,7 +135,8 @@ def _keypoint_estimate(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, int
     for source, pairs, pred in attempts:
         if pairs is None:
             matcher = match_wide if source in ("wide", "crosscheck") else match
-            pairs = matcher(fi, fj, pred, intr.K)
+            a, b = (fi, fj) if source == "guided" else (fi.strongest(), fj.strongest())
+            pairs = matcher(a, b, pred, intr.K)
         res = sparse_estimate(i, j, fi, fj, intr, cfg, dt, pairs, rolling)
         res.diag.source = source
         if best is None or res.inliers > best.inliers or res.ok:
