@@ -35,9 +35,10 @@ GAP_SCALES: dict[str, tuple[float, ...]] = {
 #: (record ``keyframes``, variants ``KEYFRAME_SCALE v``: every model's factor v). ``kinect-v1``
 #: on redkitchen 0:450 and 350:450 and fr3/teddy 0:200, keyframe edges corrected for the rolling
 #: shutter: 0.25, the smallest factor that keeps every range's gap-1 RPE within 0.02 mm of 0.5's.
-#: Against 0.5 it lowers the teacher graph's ATE (25.7 -> 24.0, 13.6 -> 13.5, 5.1 -> 4.9 mm) and
+#: Against 0.5 it lowered the teacher graph's ATE (25.7 -> 24.0, 13.6 -> 13.5, 5.1 -> 4.9 mm) and
 #: the 1 s RPE on two ranges (teddy 9.3 -> 8.7, 350:450 22.7 -> 22.6), 0:450's 1 s RPE 21.4 ->
-#: 21.7; 0.2 puts 0:450's gap-1 RPE at +0.02 mm, 0.15 at +0.05 (its 1 s RPE 22.4). Their median
+#: 21.7; 0.2 puts 0:450's gap-1 RPE at +0.02 mm, 0.15 at +0.05 (its 1 s RPE 22.4). (Teddy's figures
+#: are from before its keyframes took 3x the features; since, 0.15-0.5 are within 0.2 mm there.) Their median
 #: NEES says the opposite (3-9x too small covariances on the real ranges): the window's edges err
 #: together along the sequence, which no per-edge covariance shows.
 #: ``synthetic`` on lab 0:300 (validation) and office 0:300 (training), undistorted with the

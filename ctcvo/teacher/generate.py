@@ -47,18 +47,11 @@ from ctcvo.data.sensor import KINECT_V1_COLOUR, ColourCamera, Sensor
 from ctcvo.data.sequence import Sequence
 from ctcvo.data.uncertainty import mahalanobis2, nees_stats
 from ctcvo.data.undistort import with_camera
-from ctcvo.teacher import processes, skips
+from ctcvo.teacher import keyframes, processes, skips
 from ctcvo.teacher.config import TeacherConfig, dense_method
 from ctcvo.teacher.covariance_model import describe, gap_scale
 from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb
-from ctcvo.teacher.keyframes import (
-    depth_points,
-    estimate_works,
-    keyframe_features,
-    keyframe_orb,
-    keyframe_works,
-    merge_keyframe_edges,
-)
+from ctcvo.teacher.keyframes import depth_points, estimate_works, keyframe_works, merge_keyframe_edges
 from ctcvo.teacher.loops import thumbnail
 from ctcvo.teacher.maps import PhotoMaps
 from ctcvo.teacher.record import EdgeEstimate, count_by_kind
@@ -130,9 +123,9 @@ def features_of(seq: Sequence, cfg: TeacherConfig) -> Callable[[int], FrameFeatu
     """A keyframe's features by position: extracted as :func:`_run_chunk` extracts them, by
     :func:`teacher.keyframes.keyframe_orb`'s detector."""
     colour = colour_camera_for(seq.sensor, cfg)
-    orb = keyframe_orb(cfg, colour)
+    orb = keyframes.keyframe_orb(cfg, colour)
     cfg = dataclasses.replace(cfg, rolling_shutter_s=rolling_shutter_for(seq.sensor, cfg))
-    return lambda k: keyframe_features(seq.rgb(k), seq.depth(k), cfg, orb, seq.intrinsics.K, colour)
+    return lambda k: keyframes.keyframe_features(seq.rgb(k), seq.depth(k), cfg, orb, seq.intrinsics.K, colour)
 
 
 def _keyframe_pass(frames: Sequence, cfg: TeacherConfig, poses: NDArray[np.float64],

@@ -42,7 +42,7 @@ edges too; at 0.25 it does not, and without the gate teddy's ATE is 6.1 mm, not 
 ``keyframes`` at 410f99c). Dropping every fallback keyframe edge instead cost lab 1.1 mm; a
 0.1 m gate gives the same figures. Since TUM's keyframes extract more features
 (:func:`keyframe_orb`) no teddy keyframe edge falls back, and the gate changes no validation
-range (record ``keyframes`` at a4921f1); it stays for the edges that still starve.
+range (record ``keyframes`` at 3807a40); it stays for the edges that still starve.
 
 The constants were swept one at a time on the validation ranges (redkitchen 0:450 and
 350:450, fr3/teddy, synthetic/lab) by ``python -m bench.keyframes`` (record
@@ -113,10 +113,11 @@ def keyframe_orb(cfg: TeacherConfig, colour: object | None) -> KeyframeORB:
     fr3/teddy 0:200 (validation, motion capture) 1000 features left 4 keyframe edges to the
     dense fallbacks and others on 60-90 matches; with 3000 none fell back, the keyframe edges'
     RMS error fell 0.75 -> 0.61 deg and 14.1 -> 5.2 mm, and the graph's 1 s RPE 8.7 -> 7.3 mm
-    (2000: 7.8; 4000: 7.4). On redkitchen (a separate colour camera exposed at other moments
-    than the depth, ground truth from the depth) more keypoints weigh the dense step down
-    and 0:450's 1 s RPE rose 21.7 -> 23.4 mm with 2000; the synthetic rooms were level
-    (record ``keyframes``, variants ``*_FEATURE_FACTOR``)."""
+    (2000: 7.7; 4000: 7.3), gap-1 2.66 -> 2.64, ATE level (4.9). On redkitchen (a separate
+    colour camera exposed at other moments than the depth, ground truth from the depth) more
+    keypoints weigh the dense step down: with 2000, 0:450's ATE 24.0 -> 25.0 and 1 s RPE 21.7
+    -> 24.0 mm; the synthetic rooms were level (record ``keyframes`` at 3807a40, variants
+    ``*_FEATURE_FACTOR``)."""
     factor = REGISTERED_FEATURE_FACTOR if colour is None else SEPARATE_FEATURE_FACTOR
     return KeyframeORB(cfg, factor)
 
