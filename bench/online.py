@@ -22,7 +22,8 @@ For each scene, on the same frames:
   default), the figure the online run stands in for.
 
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.online [--checkpoint CKPT] [--frames 0:300]
-    OMP_NUM_THREADS=1 .venv/bin/python -m bench.online --frames 0:150 --gaps 3 --pose-after-gap1 --name online-low-latency
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.online --frames 450:600 --gaps 4 --pose-after-gap1 \\
+        --keyframes both --name online-low-latency
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.online --frames 0:150 --keyframes both --name online-keyframes
 
 ``--keyframes`` sets the online teacher's keyframe pass (``TeacherConfig.keyframes``, a helper

@@ -88,7 +88,9 @@ def test_online_validation_table_puts_each_setting_in_its_column():
         return {"revision": "abc", "date_utc": "2026-01-01T00:00:00Z", "machine": machine,
                 "config": {"frames": "0:200"}, "figures": {"rows": [row]}}
 
-    lines = tables.online_validation_table({"val-a": rec(5, True, 0.010, 30.0), "val-b": rec(5, False, 0.011, 140.0)})
+    lines = tables.online_validation_table({"val-a": rec(5, True, 0.010, 30.0), "val-b": rec(5, False, 0.011, 140.0),
+                                            "val-c": rec(3, True, 0.012, 20.0)})
     row = next(x for x in lines if x.startswith("| lab"))
-    assert row.split(" | ")[1:] == ["11.0 / 10.0 / -", "11.0 / 10.0 / -", "140 / 30 / -", "70 / 15 / - |"]
+    assert row.split(" | ")[1:] == ["11.0 / 10.0 / - / 12.0", "11.0 / 10.0 / - / 12.0", "140 / 30 / - / 20",
+                                    "70 / 15 / - / 10 |"]
     assert "`val-a`" in lines[-1] and "`val-b`" in lines[-1]

@@ -384,8 +384,8 @@ def test_cli_window_defaults_to_online_gaps():
     otherwise; a preset with fewer keeps its own; teacher generate keeps 5."""
     def gaps(*argv):
         return online_cli._configs(online_cli.build_parser().parse_args(["--scene", "x", *argv]))[0].gaps
-    assert online_loop.ONLINE_GAPS == 3 < online.TEACHER_DEFAULT.gaps == 5
-    assert gaps() == 3 and gaps("--preset", "tiny") == TINY.gaps == 2 and gaps("--gaps", "5") == 5
+    assert online_loop.ONLINE_GAPS == 4 < online.TEACHER_DEFAULT.gaps == 5
+    assert gaps() == 4 and gaps("--preset", "tiny") == TINY.gaps == 2 and gaps("--gaps", "5") == 5
 
 
 def test_cli_errors_are_one_line(tmp_path, capsys):
