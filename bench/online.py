@@ -199,8 +199,8 @@ def main() -> int:
     ap.add_argument("--frames", default="0:300")
     ap.add_argument("--checkpoint", type=Path, help="learner checkpoint for the runs with the learner")
     ap.add_argument("--gaps", type=int, default=DEFAULT.gaps,
-                    help="the online teacher's K (default: teacher generate's 5, as the val-* records ran; "
-                    "ctcvo online's own default is 3; batch: always the default's)")
+                    help=f"the online teacher's K (default: teacher generate's {DEFAULT.gaps}, as the val-* records ran; "
+                    f"ctcvo online's own default is {online.ONLINE_GAPS}; batch: always the default's)")
     ap.add_argument("--pose-after-gap1", action=argparse.BooleanOptionalAction,
                     default=online.OnlineConfig.pose_after_gap1,
                     help="ctcvo online --pose-after-gap1 in the online runs (default: on, as ctcvo online)")

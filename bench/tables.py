@@ -182,7 +182,7 @@ def online_validation_table(records: dict[str, dict]) -> list[str]:
     rows = [[rng, cell(by, lambda x: mm(x["ate_m"]["final"])), cell(by, lambda x: mm(x["ate_m"]["causal"])),
              cell(by, lambda x: f"{x['online_latency_ms']['p95']:.0f}"),
              cell(by, lambda x: f"{x['online_30hz_latency_ms']['p95']:.0f}")] for rng, by in sorted(cells.items())]
-    head = ["validation range (gaps 5 / + pose after gap 1 / + gaps 4 / gaps 3)", "final ATE mm", "causal ATE mm",
+    head = ["validation range (gaps 5 / + pose after gap 1 / + gaps 4 / + gaps 3)", "final ATE mm", "causal ATE mm",
             "latency p95 ms", "paced 30 Hz p95 ms"]
     return markdown(head, rows) + ["", provenance(recs)]
 
