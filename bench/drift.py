@@ -81,7 +81,7 @@ def bench_range(spec: str, vocabulary: Path | None, runs: int) -> list[dict]:
     scene, a, b = spec.rsplit(":", 2)
     seq = open_scene(scene, frames=f"{a}:{b}")[0]
     gt, second = Trajectory(seq.times(), seq.groundtruth()), one_second(seq.times())
-    rows = [(r["method"], r["poses"]) for r in teacher_rows(seq)]
+    rows = [(r["method"], r["poses"]) for r in teacher_rows(seq, runs=1)]
     rows.append(("Open3D hybrid (gap 1)", run_open3d(seq)[0]))
     out = [{"range": spec, "method": m, **drift_figures(gt, Trajectory(seq.times(), p), second)} for m, p in rows]
     if vocabulary is not None:

@@ -2,7 +2,8 @@
 ``cv2.Odometry`` (RGB_DEPTH) vs ORB-SLAM3 RGB-D, side by side on the same frames in one run.
 
 For each scene: frames per second end to end (decode included; the teacher also
-estimates its gap 2..K edges, the odometry peers only gap 1), ATE (SE(3)-aligned), RPE at
+estimates its gap 2..K edges, the odometry peers only gap 1; the teacher timed over
+``--teacher-runs`` runs like ORB-SLAM3, the median, the first run being the cold one), ATE (SE(3)-aligned), RPE at
 1 frame and at 1 s (translation, rotation) and the paper's se(3) L2, all through evo, of the
 teacher's chained gap-1 trajectory, of the pose graph of all its edges (``teacher pose
 graph``: what ``posegraph optimize`` makes of the teacher's edges.g2o) and of each peer; for
@@ -106,31 +107,50 @@ def run_opencv(seq) -> tuple[np.ndarray, float, int]:
     return chain_steps(rel), time.perf_counter() - t0, fails
 
 
-def teacher_rows(seq) -> list[dict]:
-    """The teacher's chained gap-1 trajectory, and the pose graph of all its good edges
-    (:func:`ctcvo.posegraph.graph.solve`, the default config, as ``posegraph optimize`` solves
-    its edges.g2o, calibrated covariances included), its time added to the teacher's."""
-    # The teacher runs as `teacher generate` runs it (one OpenCV thread per process,
-    # data.sequence's default: it uses the cores through its own processes and threads).
+def _teacher_run(seq) -> tuple:
+    """One teacher run as `teacher generate` runs it, and the pose graph of its good edges:
+    (run, graph poses, solve seconds)."""
+    # one OpenCV thread per process, data.sequence's default: the teacher uses the cores
+    # through its own processes and threads
     cfg = TeacherConfig()
     cv2.setNumThreads(1)
     run = run_sequence(seq, cfg, progress=False)
     cv2.setNumThreads(os.cpu_count() or 1)
     pos = {int(f): p for p, f in enumerate(seq.ids())}
-    gap1 = [e for e in run.edges if pos[e.j] - pos[e.i] == 1]
-    paths = Counter(e.diag.path for e in gap1)
-    fails = sum(1 for e in gap1 if not e.ok)
     t0 = time.perf_counter()
     edges = [Edge(e.i, e.j, e.T_i_j, e.cov * gap_scale(seq.sensor.noise_model, pos[e.j] - pos[e.i], cfg.covariance,
                                                        run.kinds.get((e.i, e.j), "window")))
              for e in run.edges if e.ok]  # the covariances of edges.g2o
     graph = solve(seq.ids(), edges, run.poses).poses
-    solve_s = time.perf_counter() - t0
-    return [{"method": "this teacher (gaps 1-5)", "poses": run.poses, "seconds": run.seconds, "fails": fails,
+    return run, graph, time.perf_counter() - t0
+
+
+def _timing(seconds: list[float], same: bool) -> dict:
+    """The median of ``seconds`` (one per run) with every run's, and whether the runs' poses agreed."""
+    return {"seconds": float(np.median(seconds)), "seconds_per_run": seconds, "runs": len(seconds),
+            "same_poses_every_run": same}
+
+
+def teacher_rows(seq, runs: int = 3) -> list[dict]:
+    """The teacher's chained gap-1 trajectory, and the pose graph of all its good edges
+    (:func:`ctcvo.posegraph.graph.solve`, the default config, as ``posegraph optimize`` solves
+    its edges.g2o, calibrated covariances included), its time added to the teacher's.
+    Timed over ``runs`` runs like the ORB-SLAM3 peer: the median time (the first run is the
+    cold one); the figures are the first run's, and ``same_poses_every_run`` says whether
+    the later runs gave the same poses."""
+    done = [_teacher_run(seq) for _ in range(runs)]
+    run, graph, solve_s = done[0]
+    same = all(np.array_equal(r.poses, run.poses) and np.array_equal(g, graph) for r, g, _ in done[1:])
+    pos = {int(f): p for p, f in enumerate(seq.ids())}
+    gap1 = [e for e in run.edges if pos[e.j] - pos[e.i] == 1]
+    paths = Counter(e.diag.path for e in gap1)
+    fails = sum(1 for e in gap1 if not e.ok)
+    return [{"method": "this teacher (gaps 1-5)", "poses": run.poses, "fails": fails,
+             **_timing([r.seconds for r, _, _ in done], same),
              "cv_bridges": sum(1 for b in run.bridges if b["method"] == "constant velocity"),
              "gap1_paths": dict(sorted(paths.items()))},
-            {"method": "teacher pose graph (gaps 1-5)", "poses": graph, "seconds": run.seconds + solve_s,
-             "fails": fails, "solve_s": solve_s}]
+            {"method": "teacher pose graph (gaps 1-5)", "poses": graph, "fails": fails, "solve_s": solve_s,
+             **_timing([r.seconds + s for r, _, s in done], same)}]
 
 
 def _open_sequence(spec: str, frames: str | None, synthetic_frames: int | None, camera: Path | None = None):
@@ -149,10 +169,11 @@ def _open_sequence(spec: str, frames: str | None, synthetic_frames: int | None, 
 
 
 def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frames: int | None = None,
-                orbslam3_vocabulary: Path | None = None, orbslam3_runs: int = 3, camera: Path | None = None) -> list[dict]:
+                orbslam3_vocabulary: Path | None = None, orbslam3_runs: int = 3, camera: Path | None = None,
+                teacher_runs: int = 3) -> list[dict]:
     seq = _open_sequence(spec, frames, synthetic_frames, camera)
     gt = Trajectory(seq.times(), seq.groundtruth())
-    rows = teacher_rows(seq)
+    rows = teacher_rows(seq, teacher_runs)
     # The single-process peers run with OpenCV and OpenMP on every core, whatever
     # OMP_NUM_THREADS says (it limits only the teacher here).
     with threadpool_limits(os.cpu_count() or 1, user_api="openmp"):
@@ -166,7 +187,8 @@ def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frame
     out = []
     for r in rows:
         rep = metrics(gt, Trajectory(seq.times(), r["poses"]), second)
-        extra = {k: r[k] for k in ("cv_bridges", "gap1_paths", "solve_s") if k in r}
+        extra = {k: r[k] for k in ("cv_bridges", "gap1_paths", "solve_s", "runs", "seconds_per_run",
+                                   "same_poses_every_run") if k in r}
         out.append({"scene": spec, "frames": len(seq), "method": r["method"], "fps": len(seq) / r["seconds"],
                     "gap1_failures": r["fails"], **extra, **rep})
         print(f"{spec}: {out[-1]}", file=sys.stderr, flush=True)
@@ -190,12 +212,16 @@ def main() -> None:
     ap.add_argument("--synthetic-frames", type=int, default=None,
                     help="render each synthetic preset with this many frames instead of its own (a shorter walk)")
     orbslam3_peer.add_arguments(ap, "row")
+    ap.add_argument("--teacher-runs", type=int, default=3,
+                    help="teacher runs per scene, timed like ORB-SLAM3's: the median time (default 3)")
     ap.add_argument("--camera", type=Path, default=None,
                     help="camera file (ctcvo teacher calibrate, from training or validation frames): every row runs "
                          "on the frames undistorted with it")
     record.add_arguments(ap, "teacher")
     args = ap.parse_args()
     orbslam3_peer.check_arguments(ap, args)
+    if args.teacher_runs < 1:
+        ap.error(f"--teacher-runs must be >= 1, got {args.teacher_runs}")
     camera = None if args.camera is None else {"file": str(args.camera), "distortion": read_camera(args.camera)[1]}
     rec = record.from_args(args, teacher=TeacherConfig(), camera=camera)
     results = []
@@ -204,7 +230,7 @@ def main() -> None:
             print(f"skipping {spec}: not found", file=sys.stderr)
             continue
         results += bench_scene(spec, args.frames, args.peers, args.synthetic_frames, args.orbslam3_vocabulary,
-                               args.orbslam3_runs, args.camera)
+                               args.orbslam3_runs, args.camera, args.teacher_runs)
         rec.finish({"rows": results})  # after every scene, so a long run that is cut short keeps what it measured
     print("\n".join(tables.markdown(tables.TEACHER_HEAD, [tables.teacher_cells(r, "") for r in results])))
 
