@@ -110,7 +110,9 @@ def read_json_file(path: Path, what: str, fmt: int, key: str, kind: type) -> dic
 
 
 def git_revision() -> str:
-    """The project's git revision (``unknown`` outside a checkout)."""
+    """The project's git revision (``unknown`` outside a checkout), ``-dirty`` when a tracked
+    file other than a benchmark record (``bench/results/``) differs from it: records are
+    outputs, and one benchmark after another would otherwise mark every later one dirty."""
     here = Path(__file__).resolve().parent
     try:
         out = subprocess.run(
@@ -118,7 +120,7 @@ def git_revision() -> str:
             text=True, timeout=5, check=True,
         )
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", ":/", ":(top,exclude)bench/results"], cwd=here,
             capture_output=True, text=True, timeout=5,
         ).stdout.strip()
         return out.stdout.strip() + ("-dirty" if dirty else "")
