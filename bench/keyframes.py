@@ -4,7 +4,9 @@ with each of their constants moved one at a time.
 For each validation range (redkitchen 0:450 and 350:450, TUM fr3/teddy, synthetic/lab; and the
 training room office) the default teacher's window edges are estimated once (``keyframes`` off); then the keyframe pass
 (:func:`ctcvo.teacher.keyframes.add_keyframe_edges`) runs once per variant: ``window`` (no
-keyframe pass), ``default`` (the module's constants), each entry of :data:`SWEEP`, one
+keyframe pass), ``default`` (the module's constants), ``bundle off`` (default without the
+bundle adjustment of its landmark sightings, where the colour is registered) or ``bundle on``
+(default with it, where the teacher writes none), each entry of :data:`SWEEP`, one
 constant changed, and each of :data:`GROUPED`. The pose graph
 (:func:`ctcvo.posegraph.graph.solve`, the default ``PoseGraphConfig``, the calibrated
 covariances ``edges.g2o`` carries, as ``posegraph optimize`` solves it) optimises each
@@ -36,8 +38,9 @@ from ctcvo.data.uncertainty import CHI2_6_MEDIAN, mahalanobis2
 from ctcvo.data.undistort import with_camera
 from ctcvo.posegraph.graph import solve
 from ctcvo.teacher import covariance_model, keyframes, loops
-from ctcvo.teacher.config import DEFAULT
+from ctcvo.teacher.config import DEFAULT, colour_camera_for
 from ctcvo.teacher.generate import features_of, run_sequence
+from ctcvo.teacher.observations import sightings
 
 VALIDATION = [f"{record.REDKITCHEN}:0:450", f"{record.REDKITCHEN}:350:450", f"{record.TUM_TEDDY}:0:200",
               "synthetic/lab:0:300", "synthetic/office:0:300"]
@@ -85,9 +88,10 @@ def constants(**values):
             setattr(mods[name], name, v)
 
 
-def figures(seq, edges, poses, kinds: dict) -> dict:
-    """Graph ATE and RPE of a run's good edges (calibrated covariances), the edges by kind and
-    the keyframe edges' median NEES over chi-square(6)'s median (1: consistent)."""
+def figures(seq, edges, poses, kinds: dict, observations=None) -> dict:
+    """Graph ATE and RPE of a run's good edges (calibrated covariances; with ``observations``,
+    the bundle adjustment), the edges by kind and the keyframe edges' median NEES over
+    chi-square(6)'s median (1: consistent)."""
     pos = {int(k): p for p, k in enumerate(seq.ids())}
     ok = [e for e in edges if e.ok]
     kind = [kinds.get((e.i, e.j), "window") for e in ok]
@@ -96,7 +100,7 @@ def figures(seq, edges, poses, kinds: dict) -> dict:
     kf = [g for g, k in zip(good, kind) if k == "keyframe"]
     nees = mahalanobis2(groundtruth_residuals(kf, seq.groundtruth(), seq.ids()), np.array([g.cov for g in kf]))
     gt = Trajectory(seq.times(), seq.groundtruth())
-    est = Trajectory(seq.times(), solve(seq.ids(), good, poses).poses)
+    est = Trajectory(seq.times(), solve(seq.ids(), good, poses, observations=observations).poses)
     second = max(1, int(round(1.0 / np.median(np.diff(seq.times())))))
     by_kind = Counter(kinds.get((e.i, e.j), "window") + ("" if e.ok else "_failed") for e in edges)
     return {"ate_m": ate_rmse(gt, est), "rpe_gap1_m": rpe_rmse(gt, est, 1)[0], "rpe_1s_m": rpe_rmse(gt, est, second)[0],
@@ -115,14 +119,21 @@ def run_range(seq, cfg) -> dict:
     t0 = time.perf_counter()
     run = run_sequence(seq, cfg, progress=False)
     row = {"window": {**figures(seq, run.edges, run.poses, {}), "seconds": time.perf_counter() - t0}}
+    registered = colour_camera_for(seq.sensor, cfg) is None
     for label, values in variants():
         edges = list(run.edges)
         t0 = time.perf_counter()
         with constants(**values):
             kinds = keyframes.add_keyframe_edges(seq, cfg, edges, run.poses, features_of(seq, cfg))
             pass_s = time.perf_counter() - t0
-            row[label] = {**figures(seq, edges, run.poses, kinds), "keyframe_pass_s": pass_s}
-        print(seq.name, label, {k: v for k, v in row[label].items() if k != "edges_by_kind"}, flush=True)
+            seen = sightings([e for e in edges if (e.i, e.j) in kinds], seq.intrinsics)
+            row[label] = {**figures(seq, edges, run.poses, kinds, seen if registered else None),
+                          "keyframe_pass_s": pass_s}
+            if label == "default":  # the bundle adjustment off, or on whatever the colour camera
+                row["bundle " + ("off" if registered else "on")] = figures(seq, edges, run.poses, kinds,
+                                                                        None if registered else seen)
+        for lab in [label] + (["bundle off" if registered else "bundle on"] if label == "default" else []):
+            print(seq.name, lab, {k: v for k, v in row[lab].items() if k != "edges_by_kind"}, flush=True)
     return row
 
 

@@ -121,7 +121,7 @@ def _teacher_run(seq) -> tuple:
     edges = [Edge(e.i, e.j, e.T_i_j, e.cov * gap_scale(seq.sensor.noise_model, pos[e.j] - pos[e.i], cfg.covariance,
                                                        run.kinds.get((e.i, e.j), "window")))
              for e in run.edges if e.ok]  # the covariances of edges.g2o
-    graph = solve(seq.ids(), edges, run.poses).poses
+    graph = solve(seq.ids(), edges, run.poses, observations=run.observations).poses
     return run, graph, time.perf_counter() - t0
 
 

@@ -334,7 +334,7 @@ def test_every_writer_has_a_reader_that_reads_back_what_it_wrote(tmp_path: Path)
     """No write-only formats: each ``write_X`` of the module has a ``read_X``, and what it writes
     reads back unchanged."""
     writers = sorted(n[6:] for n in dir(formats) if n.startswith("write_") and callable(getattr(formats, n)))
-    assert writers == ["edges_csv", "g2o", "tum"]
+    assert writers == ["edges_csv", "g2o", "observations", "tum"]
     assert all(callable(getattr(formats, "read_" + w, None)) for w in writers)
     traj = Trajectory(np.array([0.0, 0.5]), np.stack([np.eye(4), geo.se3_exp(np.array([0.1, 0, 0, 0, 0.2, 0]))]))
     formats.write_tum(tmp_path / "t.tum", traj)
@@ -350,6 +350,9 @@ def test_every_writer_has_a_reader_that_reads_back_what_it_wrote(tmp_path: Path)
     rows = [{"i": 0, "j": 1, "status": "ok", "matches": 12}]
     formats.write_edges_csv(tmp_path / "e.csv", rows)
     assert formats.read_edges_csv(tmp_path / "e.csv") == rows
+    seen = np.array([[0, 0, 0.1, -0.2, 1.5, 0.002], [0, 1, 0.11, -0.2, 1.4, 0.002]])
+    formats.write_observations(tmp_path / "o.csv", seen)
+    np.testing.assert_array_equal(formats.read_observations(tmp_path / "o.csv"), seen)
 
 
 def test_setup_logging_shows_ours_at_info_and_libraries_at_warning() -> None:

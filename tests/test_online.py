@@ -755,3 +755,16 @@ def test_ctrl_c_gives_one_line_and_exit_130(tmp_path, redkitchen):
     assert "Open3D" not in err
     after = [line for line in err.splitlines() if " online: " not in line]
     assert len(after) <= 2 and after[-1].startswith("interrupted after "), after
+
+
+def test_online_writes_and_adjusts_the_batch_teachers_landmark_sightings(tmp_path):
+    """With registered colour the online teacher's observations.csv is teacher generate's, and
+    the final solve adjusts them as posegraph optimize does."""
+    from ctcvo.teacher.generate import generate
+
+    cfg = replace(TCFG, colour_camera="registered")
+    generate("synthetic/tiny", tmp_path / "batch", config=replace(cfg, workers=1), progress=False)
+    run = online.run(online.open_source("synthetic/tiny"), tmp_path / "online", cfg, progress=False)
+    ours = next((tmp_path / "online").rglob("teacher/observations.csv")).read_text()
+    assert ours == next((tmp_path / "batch").rglob("observations.csv")).read_text()
+    assert run.report["final_polish"]["bundle"]["sightings"] > 0

@@ -6,6 +6,8 @@
   (translation, rotation) order; ``gtsam.readG2o`` reads these files. Vertices
   ``VERTEX_SE3:QUAT`` carry an initial trajectory.
 * ``edges.csv``: per-edge quality figures and status, including failed edges.
+* ``observations.csv``: keyframes' sightings of landmarks (normalised pixel and depth), for
+  the pose graph's bundle adjustment.
 
 Every writer is atomic; every reader validates strictly and raises
 :class:`~data.errors.FormatError` with the file, line and reason.
@@ -334,3 +336,47 @@ def read_edges_csv(path: Path) -> list[dict]:
                 raise FormatError(f"{path}:{lineno}: a row needs i, j and status")
             out.append(row)
     return out
+
+
+# ----------------------------------------------------------------------------------
+# Keyframe observations (observations.csv)
+# ----------------------------------------------------------------------------------
+#: columns of ``observations.csv``: one row per sighting of a landmark in a frame
+OBSERVATION_COLUMNS = ("landmark", "frame", "x", "y", "z", "sigma")
+
+
+def write_observations(path: Path, table: NDArray[np.float64]) -> None:
+    """Write ``observations.csv`` from an (K, 6) array in :data:`OBSERVATION_COLUMNS` order."""
+    with atomic_write(path) as fh:
+        fh.write(",".join(OBSERVATION_COLUMNS) + "\n")
+        for lm, fr, x, y, z, s in np.asarray(table, dtype=np.float64).tolist():
+            fh.write(f"{int(lm)},{int(fr)},{x!r},{y!r},{z!r},{s!r}\n")
+
+
+def read_observations(path: Path) -> NDArray[np.float64]:
+    """Read ``observations.csv`` into an (K, 6) array (:data:`OBSERVATION_COLUMNS`); every
+    value finite, ``z`` and ``sigma`` positive, ``landmark`` and ``frame`` integers, no frame
+    seeing a landmark twice."""
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"missing observation table {path}")
+    with open(path, newline="") as fh:
+        header = fh.readline().strip()
+        if tuple(header.split(",")) != OBSERVATION_COLUMNS:
+            raise FormatError(f"{path}: header must be {','.join(OBSERVATION_COLUMNS)}")
+        try:
+            table = np.loadtxt(fh, delimiter=",", ndmin=2, dtype=np.float64)
+        except ValueError as exc:
+            raise FormatError(f"{path}: malformed row ({' '.join(str(exc).split())[:120]})") from None
+    if table.size == 0:
+        return np.zeros((0, 6))
+    if table.shape[1] != 6:
+        raise FormatError(f"{path}: rows must have {len(OBSERVATION_COLUMNS)} values, got {table.shape[1]}")
+    bad = ~np.isfinite(table).all(axis=1) | (table[:, 4] <= 0) | (table[:, 5] <= 0) \
+        | (table[:, :2] != np.round(table[:, :2])).any(axis=1)
+    if bad.any():
+        raise FormatError(f"{path}:{int(np.flatnonzero(bad)[0]) + 2}: non-finite value, non-positive z or sigma, "
+                          "or a non-integer landmark or frame")
+    if len(np.unique(table[:, :2], axis=0)) != len(table):
+        raise FormatError(f"{path}: a frame sees the same landmark twice")
+    return table

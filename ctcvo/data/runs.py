@@ -86,9 +86,12 @@ STAGE_VERSIONS: dict[str, int] = {
     # 11: keyframe edges corrected for the rolling shutter (the keyframe pass resolves
     # rolling_shutter_s and gives keyframes their velocity), no keyframe with one stream's image
     # repeated, synthetic KEYFRAME_SCALES 4 (every keyframe edge changes); 12: kinect-v1
-    # KEYFRAME_SCALES 0.25 (real recordings' keyframe edges in edges.g2o)
-    "teacher": 12,
-    "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 1, "posegraph-calibrate": 1, "online": 1,
+    # KEYFRAME_SCALES 0.25 (real recordings' keyframe edges in edges.g2o); 13: TUM keyframes on 3x the
+    # ORB features (REGISTERED_FEATURE_FACTOR: TUM keyframe edges change), observations.csv beside a
+    # registered colour camera
+    "teacher": 13,
+    # posegraph 2: the bundle adjustment of a teacher folder's observations.csv
+    "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 2, "posegraph-calibrate": 1, "online": 1,
 }
 SYNTHETIC_PREFIX = "synthetic/"
 

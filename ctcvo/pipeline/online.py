@@ -53,7 +53,7 @@ from ctcvo.pipeline.online_outputs import OUTPUT_FILES, REPORT, TRAJECTORY, TRAJ
 from ctcvo.posegraph.config import ONLINE
 from ctcvo.posegraph.online import OnlineGraph
 from ctcvo.teacher.config import DEFAULT as TEACHER_DEFAULT
-from ctcvo.teacher.generate import colour_camera_for
+from ctcvo.teacher.config import colour_camera_for
 from ctcvo.teacher.timing import rolling_shutter_for
 
 log = logging.getLogger(__name__)

@@ -123,6 +123,9 @@ class KeyframeWorker:
                 feats[pos] = self._features(frame, orb)
                 kf = Keyframe(pos, int(frame.frame_id), float(frame.timestamp), T, pts, thumbnail(frame.rgb), velocity)
                 edges = estimate_work(self.history.add(kf), feats.__getitem__, self.intr, self.cfg)
+                if self.colour is not None:  # the final solve adjusts sightings of registered colour only
+                    for e, _ in edges:
+                        e.inlier_pairs = e.inlier_points = None
                 with self.lock:
                     self.done.append((pos, edges))
                     self.finished += 1

@@ -81,7 +81,7 @@ class OnlineTeacher:
 
     def __init__(self, intr: Intrinsics, cfg, colour=None, noise_model: str = "kinect-v1") -> None:
         """``colour``: the colour camera model (``data.sensor.ColourCamera``; None:
-        colour registered to depth), as :func:`teacher.generate.colour_camera_for` picks it;
+        colour registered to depth), as :func:`teacher.config.colour_camera_for` picks it;
         ``noise_model``: the sensor's (``data.sensor.Sensor.noise_model``), whose per-gap
         covariance scales the edges get (:mod:`teacher.covariance_model`), as in ``teacher generate``."""
         self.intr, self.cfg, self.colour, self.noise_model = intr, cfg, colour, noise_model

@@ -8,13 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ctcvo.data.formats import Edge, Trajectory, read_tum, write_edges_csv, write_g2o, write_tum
+from ctcvo.data.formats import Edge, Trajectory, read_tum, write_edges_csv, write_g2o, write_observations, write_tum
 from ctcvo.data.io import ensure_dir, git_revision, json_safe, write_json
 from ctcvo.data.metrics import trajectory_report
 from ctcvo.data.runs import frames_id
 from ctcvo.pipeline.online_loop import Estimator
 from ctcvo.teacher.generate import _edge_rows as edge_rows  # edges.csv's rows, as teacher generate writes them
 from ctcvo.teacher.generate import chain_trajectory
+from ctcvo.teacher.observations import sightings
 from ctcvo.teacher.record import count_by_kind
 
 TRAJECTORY = "trajectory.tum"
@@ -40,9 +41,13 @@ def write_outputs(out: Path, name: str, est: Estimator, teacher_cfg, seconds: fl
     ids = np.array(teacher.ids, dtype=np.int64)
     times = np.array(teacher.times)
     n = len(ids)
-    final = graph.final()[:n]  # the graph may hold a frame an interrupt cut short
-    write_tum(out / FINAL_TRAJECTORY, Trajectory(times, final))
     t_edges = sorted(est.t_edges, key=lambda e: (e.i, e.j))  # the order of teacher generate's files
+    seen = None  # the keyframes' landmark sightings, as teacher generate writes them
+    if est.keyframes is not None and teacher.colour is None:
+        kept = set(ids.tolist())
+        seen = sightings([e for e in t_edges if (e.i, e.j) in est.kinds and e.i in kept and e.j in kept], teacher.intr)
+    final = graph.final(observations=seen)[:n]  # the graph may hold a frame an interrupt cut short
+    write_tum(out / FINAL_TRAJECTORY, Trajectory(times, final))
     scale = {(e.i, e.j): teacher.cov_scale(e, est.kinds.get((e.i, e.j), "window")) for e in t_edges}
     good = [Edge(e.i, e.j, e.T_i_j, e.cov * scale[e.i, e.j]) for e in t_edges if e.ok]
     # the window's edges chained, as teacher generate chains them before its keyframe pass
@@ -51,6 +56,8 @@ def write_outputs(out: Path, name: str, est: Estimator, teacher_cfg, seconds: fl
     write_g2o(tdir / "edges.g2o", good, {int(f): T for f, T in zip(ids, chained)})
     write_edges_csv(tdir / "edges.csv", edge_rows(t_edges, dict(zip(ids.tolist(), times.tolist())), est.kinds, scale))
     write_tum(tdir / "trajectory.tum", Trajectory(times, chained))
+    if seen is not None:
+        write_observations(tdir / "observations.csv", seen)
     has_gt = n >= 2 and all(g is not None for g in gts)
     if has_gt:
         gt = Trajectory(times, np.stack(gts))

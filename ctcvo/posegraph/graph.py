@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from ctcvo.data import geometry as geo
 from ctcvo.data.formats import Edge
+from ctcvo.posegraph.bundle import bundle_solve
 from ctcvo.posegraph.config import DEFAULT, PoseGraphConfig
 from ctcvo.posegraph.edges import (
     EdgeArrays,
@@ -93,6 +94,9 @@ class SolveResult:
     """Covariance scale applied to each edge source (1.0 without calibration)."""
     calibration: dict | None = None
     """Per-source covariance calibration from residuals (see :func:`_calibrate`)."""
+    bundle: dict | None = None
+    """The bundle adjustment's landmarks, sightings, iterations and seconds
+    (:func:`posegraph.bundle.bundle_solve`); None without observations."""
 
 
 
@@ -239,7 +243,8 @@ def _reject_outliers(prob: _Problem, st: _State, first_res: NDArray[np.float64])
 
 
 def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: NDArray[np.float64] | None = None,
-          cfg: PoseGraphConfig = DEFAULT, fixed_sources: Sequence[str] = (), label: str = "") -> SolveResult:
+          cfg: PoseGraphConfig = DEFAULT, fixed_sources: Sequence[str] = (), label: str = "",
+          observations: NDArray[np.float64] | None = None) -> SolveResult:
     """Optimise the pose graph.
 
     Args:
@@ -251,12 +256,15 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: NDArray[
             data (or deliberately set): they keep scale 1 in the per-source calibration.
         label: which graph this is, at the start of its log lines (a run that solves two
             graphs, such as ``posegraph optimize``'s fused and teacher-only ones).
+        observations: (K, 6) keyframes' landmark sightings (``observations.csv``), solved
+            jointly with the final graph (:mod:`posegraph.bundle`; batch LM only).
 
     Steps: validate; first (robust) solve; with ``cfg.calibrate``, estimate one covariance
     scale per source from the whitened residuals and re-solve (warm-started) until the
     scales settle; reject edges whose whitened residual under the calibrated covariances
-    exceeds ``cfg.residual_threshold`` and solve again (warm-started) if any were; check
-    the final linear system is determinate; optional marginals. Raises
+    exceeds ``cfg.residual_threshold`` and solve again (warm-started) if any were; with
+    observations, the bundle adjustment; check the final linear system is determinate;
+    optional marginals. Raises
     :class:`GraphError` on bad input.
     """
     t0, c0 = time.perf_counter(), time.process_time()
@@ -276,6 +284,11 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: NDArray[
     final_res = prob.residuals(st.poses, st.src_scale[st.src]) if flagged.any() else first_res
     outliers = [OutlierRecord(int(a.ids[n, 0]), int(a.ids[n, 1]), a.source[n], "residual", float(first_res[n]),
                               "removed" if st.drop[n] else "downweighted") for n in np.flatnonzero(flagged).tolist()]
+    bundle = None
+    if observations is not None and len(observations) and cfg.solver == "lm":
+        st.graph, st.result, bundle = bundle_solve(st.graph, st.result, observations, frame_ids, st.poses)
+        st.poses = poses_from_values(frame_ids, st.result)
+        final_res = prob.residuals(st.poses, st.src_scale[st.src])
     marg = None
     if cfg.marginals:  # factorises the undamped system: also the determinacy check
         marg = marginal_covariances(st.graph, st.result, frame_ids)
@@ -286,7 +299,7 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: NDArray[
         initial_error=initial_error, final_error=float(st.graph.error(st.result)),
         solver=cfg.solver, iterations=st.iterations, time_s=time.perf_counter() - t0, marginals=marg,
         first_residuals=first_res, cpu_s=time.process_time() - c0,
-        source_scales={n: float(v) for n, v in zip(names, st.src_scale)}, calibration=calib,
+        source_scales={n: float(v) for n, v in zip(names, st.src_scale)}, calibration=calib, bundle=bundle,
     )
     log.info("%s%s: %d poses, %d edges (%d outliers), error %.4g -> %.4g in %.2f s", prob.tag, cfg.solver,
              len(frame_ids), len(edges), len(outliers), res.initial_error, res.final_error, res.time_s)

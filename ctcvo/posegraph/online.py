@@ -191,11 +191,12 @@ class OnlineGraph:
         log.debug("frame %d: covariance scales %s, %d outlier edges", self.ids[-1], self.scale, int(flagged.sum()))
         return True
 
-    def final(self, polish: bool = True) -> NDArray[np.float64]:
+    def final(self, polish: bool = True, observations: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
         """(N, 4, 4) smoothed poses. A last review and ``ISAM2_FINAL_UPDATES`` ISAM2
         updates give the ISAM2 estimate (kept in ``isam2_poses``); with ``polish`` the
         batch solve of ``posegraph optimize`` (:func:`posegraph.graph.solve`, LM, its
-        covariance calibration and outlier pass from scratch) then runs on the same edges,
+        covariance calibration and outlier pass from scratch, the bundle adjustment of the
+        keyframes' landmark ``observations`` when given) then runs on the same edges,
         warm-started from it.
 
         Why the polish: with the robust kernel ISAM2's Gauss-Newton steps stop at a higher
@@ -217,11 +218,11 @@ class OnlineGraph:
         t0 = time.perf_counter()
         try:
             res = solve(np.array(self.ids, dtype=np.int64), self.edges, self.isam2_poses,
-                        dataclasses.replace(self.cfg, solver="lm"), label="final batch solve")
+                        dataclasses.replace(self.cfg, solver="lm"), label="final batch solve", observations=observations)
         except GraphError as exc:  # e.g. a frame no edge reaches: keep the ISAM2 estimate
             log.warning("final batch solve skipped (%s); the ISAM2 estimate is the final trajectory", exc)
             return self.isam2_poses
         order = np.argsort(np.argsort(np.array(self.ids)))  # solve sorts by id
         self.polish = {"seconds": time.perf_counter() - t0, "iterations": res.iterations,
-                       "outliers": len(res.outliers), "source_scales": res.source_scales}
+                       "outliers": len(res.outliers), "source_scales": res.source_scales, "bundle": res.bundle}
         return res.poses[order]

@@ -272,11 +272,14 @@ def _groundtruth(srcs: dict[str, Source], frames: Frames, scene: str | None, spl
 
 def _solve_graph(srcs: dict[str, Source], used: list[str], frames: Frames, edges: list, guide, cfg: PoseGraphConfig,
                  fixed: list[str], label: str) -> _Graph:
-    """Solve the graph of ``edges`` (sources ``used``), bridged where it is disconnected;
-    ``label`` names it in the solver's log lines."""
+    """Solve the graph of ``edges`` (sources ``used``), bridged where it is disconnected,
+    with the teacher's landmark sightings when it is used and has them; ``label`` names it
+    in the solver's log lines."""
     bridges = pe.bridge_edges(frames.ids, edges, guide, pe.bridge_cov(frames.ids, edges))
     initial, init_how = fusion.initial_poses(srcs, used, frames, edges + bridges)
-    result = solve(frames.ids, edges + bridges, initial, cfg, fixed_sources=fixed + ["bridge"], label=label)
+    obs = srcs["teacher"].observations if "teacher" in used else None
+    result = solve(frames.ids, edges + bridges, initial, cfg, fixed_sources=fixed + ["bridge"], label=label,
+                   observations=obs)
     return _Graph(result, edges, bridges, init_how)
 
 
@@ -355,6 +358,7 @@ def _solver_report(result: SolveResult) -> dict:
         "residuals": {"median": float(np.median(result.residuals)), "max": float(np.max(result.residuals))},
         "solver": {"name": result.solver, "iterations": result.iterations, "initial_error": result.initial_error,
                    "final_error": result.final_error, "time_s": result.time_s, "cpu_s": result.cpu_s},
+        "bundle": result.bundle,
     }
 
 

@@ -19,12 +19,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ctcvo.data.errors import DataError, FormatError
-from ctcvo.data.formats import Edge, Trajectory, read_edges_csv, read_g2o, read_tum
+from ctcvo.data.formats import Edge, Trajectory, read_edges_csv, read_g2o, read_observations, read_tum
 
 log = logging.getLogger(__name__)
 
 EDGES_FILE = "edges.g2o"
 EDGES_CSV = "edges.csv"
+OBSERVATIONS_CSV = "observations.csv"
 TRAJECTORY_FILE = "trajectory.tum"
 GROUNDTRUTH_FILE = "groundtruth.tum"
 REPORT_FILE = "report.json"
@@ -54,6 +55,9 @@ class Source:
     = its se(3) L2 error over zero motion's on the validation pairs (below 1: better than
     a camera that never moves), ``reference`` (what the error was measured against),
     ``pairs`` and ``from`` (the file)."""
+    observations: NDArray[np.float64] | None = None
+    """The folder's ``observations.csv`` (keyframes' landmark sightings, the teacher's on a
+    registered-colour sensor) for the bundle adjustment (:mod:`posegraph.bundle`)."""
 
 
 @dataclass
@@ -90,7 +94,10 @@ def load_dir(path: Path, name: str) -> Source:
     if (path / GROUNDTRUTH_FILE).is_file():
         src.groundtruth = read_tum(path / GROUNDTRUTH_FILE)
     src.skill = read_skill(path)
-    log.info("%s: %d edges from %s", name, len(src.edges), path)
+    if (path / OBSERVATIONS_CSV).is_file():
+        src.observations = read_observations(path / OBSERVATIONS_CSV)
+    log.info("%s: %d edges%s from %s", name, len(src.edges), "" if src.observations is None else
+             f" and {len(src.observations)} landmark sightings", path)
     return src
 
 

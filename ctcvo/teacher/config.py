@@ -7,7 +7,7 @@ import math
 from dataclasses import asdict, dataclass, replace
 
 from ctcvo.data.errors import ConfigError
-from ctcvo.data.sensor import ColourCamera
+from ctcvo.data.sensor import KINECT_V1_COLOUR, ColourCamera, Sensor
 
 DENSE_METHODS = ("auto", "hybrid", "point-to-plane")
 COLOUR_CAMERAS = ("auto", "registered", "kinect-v1")
@@ -106,3 +106,23 @@ def dense_method(cfg: TeacherConfig, colour: ColourCamera | None) -> str:
     if cfg.dense_method != "auto":
         return cfg.dense_method
     return "hybrid" if colour is not None and colour.synchronous else "point-to-plane"
+
+
+def colour_camera_for(sensor: Sensor, cfg: TeacherConfig) -> ColourCamera | None:
+    """The colour camera model ``cfg.colour_camera`` names (None: registered); ``auto``: the
+    sensor's own (``Sequence.sensor``, set by its reader)."""
+    if cfg.colour_camera == "registered":
+        return None
+    if cfg.colour_camera == "kinect-v1":
+        return KINECT_V1_COLOUR
+    return sensor.colour
+
+
+def dense_method_for(sensor: Sensor, cfg: TeacherConfig) -> str:
+    """The dense step's method: ``cfg.dense_method``, with ``auto`` resolved by the colour
+    camera model ``colour_camera_for`` picks (:func:`teacher.config.dense_method`):
+    ``hybrid`` for a synthetic scene's sensor model (colour and depth exposed at the same
+    instant), ``point-to-plane`` otherwise (real Kinect v1 recordings: 7-Scenes, whose
+    ground truth follows the depth while the colour is exposed at other times, TUM RGB-D;
+    noise-free synthetic scenes, whose colour needs no model)."""
+    return dense_method(cfg, colour_camera_for(sensor, cfg))

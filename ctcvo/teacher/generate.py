@@ -37,30 +37,32 @@ from tqdm import tqdm
 
 from ctcvo.data.chain import chain_edges
 from ctcvo.data.errors import ConfigError, DataError
-from ctcvo.data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_tum
+from ctcvo.data.formats import Edge, Trajectory, write_edges_csv, write_g2o, write_observations, write_tum
 from ctcvo.data.io import ensure_dir, git_revision, json_safe, write_json
 from ctcvo.data.metrics import groundtruth_residuals, label_errors_by_gap, trajectory_report
 from ctcvo.data.open3d_import import openmp_threads
 from ctcvo.data.runs import Fingerprint, claim, frames_id, output_folder, scene_id, stage_dir, write_fingerprint
 from ctcvo.data.scenes import open_scene
-from ctcvo.data.sensor import KINECT_V1_COLOUR, ColourCamera, Sensor
+from ctcvo.data.sensor import ColourCamera
 from ctcvo.data.sequence import Sequence
 from ctcvo.data.uncertainty import mahalanobis2, nees_stats
 from ctcvo.data.undistort import with_camera
 from ctcvo.teacher import keyframes, processes, skips
-from ctcvo.teacher.config import TeacherConfig, dense_method
+from ctcvo.teacher.config import TeacherConfig, colour_camera_for, dense_method_for
 from ctcvo.teacher.covariance_model import describe, gap_scale
 from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb
 from ctcvo.teacher.keyframes import depth_points, estimate_works, keyframe_works, merge_keyframe_edges
 from ctcvo.teacher.loops import thumbnail
 from ctcvo.teacher.maps import PhotoMaps
+from ctcvo.teacher.observations import sightings
 from ctcvo.teacher.record import EdgeEstimate, count_by_kind
 from ctcvo.teacher.timing import rolling_shutter_for
 from ctcvo.teacher.window import EdgeWindow
 
 log = logging.getLogger(__name__)
 
-OUTPUT_FILES = ("edges.g2o", "edges.csv", "trajectory.tum", "groundtruth.tum", "config.json", "report.json")
+OUTPUT_FILES = ("edges.g2o", "edges.csv", "observations.csv", "trajectory.tum", "groundtruth.tum", "config.json",
+                "report.json")
 
 
 @dataclass
@@ -77,6 +79,8 @@ class TeacherRun:
     """The frames ``poses`` belong to: the sequence less the skipped ones (None: all of it)."""
     skipped: list[dict] = dataclasses.field(default_factory=list)
     """``report.json``'s ``frames_skipped`` (:func:`teacher.skips.report`)."""
+    observations: NDArray[np.float64] | None = None
+    """``observations.csv``'s table (:func:`teacher.observations.sightings`); None: not written."""
 
 
 def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True, strict: bool = False) -> TeacherRun:
@@ -113,10 +117,16 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True, stric
     frames = seq.without([f["frame"] for f in skipped]) if bad else seq
     poses, bridges = chain_trajectory(frames.ids(), edges)
     kinds: dict[tuple[int, int], str] = {}
+    seen = None
     if cfg.keyframes and len(frames) >= 2:
-        kinds = merge_keyframe_edges(edges, _keyframe_pass(frames, cfg, poses, looks))
+        found = _keyframe_pass(frames, cfg, poses, looks)
+        if colour_camera_for(frames.sensor, cfg) is None:  # registered colour: see teacher.observations
+            seen = sightings([e for e, _ in found], frames.intrinsics)
+        for e, _ in found:
+            e.inlier_pairs = e.inlier_points = None  # keeps results small
+        kinds = merge_keyframe_edges(edges, found)
         edges.sort(key=lambda e: (e.i, e.j))
-    return TeacherRun(edges, poses, bridges, time.perf_counter() - t0, kinds, frames, skipped)
+    return TeacherRun(edges, poses, bridges, time.perf_counter() - t0, kinds, frames, skipped, seen)
 
 
 def features_of(seq: Sequence, cfg: TeacherConfig) -> Callable[[int], FrameFeatures]:
@@ -369,26 +379,6 @@ def _photo_before(seq: Sequence, k: int, cfg: TeacherConfig, orb, colour: Colour
     return (photo if grey else photo.depth_only()), behind
 
 
-def colour_camera_for(sensor: Sensor, cfg: TeacherConfig) -> ColourCamera | None:
-    """The colour camera model ``cfg.colour_camera`` names (None: registered); ``auto``: the
-    sensor's own (``Sequence.sensor``, set by its reader)."""
-    if cfg.colour_camera == "registered":
-        return None
-    if cfg.colour_camera == "kinect-v1":
-        return KINECT_V1_COLOUR
-    return sensor.colour
-
-
-def dense_method_for(sensor: Sensor, cfg: TeacherConfig) -> str:
-    """The dense step's method: ``cfg.dense_method``, with ``auto`` resolved by the colour
-    camera model ``colour_camera_for`` picks (:func:`teacher.config.dense_method`):
-    ``hybrid`` for a synthetic scene's sensor model (colour and depth exposed at the same
-    instant), ``point-to-plane`` otherwise (real Kinect v1 recordings: 7-Scenes, whose
-    ground truth follows the depth while the colour is exposed at other times, TUM RGB-D;
-    noise-free synthetic scenes, whose colour needs no model)."""
-    return dense_method(cfg, colour_camera_for(sensor, cfg))
-
-
 def chain_trajectory(ids: NDArray[np.int64], edges: list[EdgeEstimate]) -> tuple[NDArray[np.float64], list[dict]]:
     """Chain the good edges into ``T_world_cam`` (frame 0 at the identity) with
     :func:`data.chain.chain_edges`: gap-1 edges first, a failed gap-1 edge bridged by the
@@ -524,6 +514,8 @@ def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path,
     good = [Edge(e.i, e.j, e.T_i_j, e.cov * scale[e.i, e.j]) for e in run.edges if e.ok]
     write_g2o(out / "edges.g2o", good, {int(f): T for f, T in zip(ids, run.poses)})
     write_edges_csv(out / "edges.csv", _edge_rows(run.edges, ts, run.kinds, scale))
+    if run.observations is not None:
+        write_observations(out / "observations.csv", run.observations)
     write_tum(out / "trajectory.tum", Trajectory(times, run.poses))
     gt = frames.groundtruth(partial=True)
     if gt is not None and (has := np.isfinite(gt).all(axis=(1, 2))).any():

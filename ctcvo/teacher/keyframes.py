@@ -64,6 +64,7 @@ from ctcvo.data.sequence import Intrinsics, Sequence
 from ctcvo.teacher.config import TeacherConfig
 from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb, stale_stream
 from ctcvo.teacher.loops import loop_candidates, thumbnail, verify
+from ctcvo.teacher.observations import attach_points
 from ctcvo.teacher.odometry import estimate_edge
 from ctcvo.teacher.record import EdgeEstimate
 from ctcvo.teacher.timing import rolling_shutter_for
@@ -282,17 +283,18 @@ def estimate_work(work: KeyframeWork, features_of: Callable[[int], FrameFeatures
     (``features_of(pos)``: a keyframe's features, extracted as the window extracts them):
     ``keyframe`` edges predicted by the pose estimates, ``loop`` edges verified against them
     (:func:`teacher.loops.verify`), fallbacks' keyframe edges gated (:func:`gate_fallback`).
+    Good edges carry their inliers' points (:func:`teacher.observations.attach_points`).
     Returns (edge, kind) pairs; failed edges are kept."""
     b, out = work.b, []
     for a in work.covisible:
         T_pred = geo.relative_pose(a.T_world_cam, b.T_world_cam)
-        e = estimate_edge(a.frame_id, b.frame_id, _moving(features_of(a.pos), a), _moving(features_of(b.pos), b), intr,
-                          cfg, b.time - a.time, T_pred=T_pred)
-        out.append((gate_fallback(e, T_pred), "keyframe"))
+        fa, fb = _moving(features_of(a.pos), a), _moving(features_of(b.pos), b)
+        e = estimate_edge(a.frame_id, b.frame_id, fa, fb, intr, cfg, b.time - a.time, T_pred=T_pred)
+        out.append((attach_points(gate_fallback(e, T_pred), fa, fb, intr, cfg), "keyframe"))
     for a in work.loops:
-        e = estimate_edge(a.frame_id, b.frame_id, _moving(features_of(a.pos), a), _moving(features_of(b.pos), b), intr,
-                          cfg, b.time - a.time)
-        out.append((verify(e, geo.relative_pose(a.T_world_cam, b.T_world_cam)), "loop"))
+        fa, fb = _moving(features_of(a.pos), a), _moving(features_of(b.pos), b)
+        e = estimate_edge(a.frame_id, b.frame_id, fa, fb, intr, cfg, b.time - a.time)
+        out.append((attach_points(verify(e, geo.relative_pose(a.T_world_cam, b.T_world_cam)), fa, fb, intr, cfg), "loop"))
     return out
 
 

@@ -68,6 +68,9 @@ class EdgeEstimate:
     diag: EdgeDiagnostics = field(default_factory=EdgeDiagnostics)
     inlier_pairs: NDArray[np.int64] | None = None
     """(M, 2) keypoint indices (in i, in j) of the inlier correspondences."""
+    inlier_points: NDArray[np.float64] | None = None
+    """(M, 6) ``(u_i, v_i, z_i, u_j, v_j, z_j)`` of the inlier pairs as the estimate used them
+    (keyframe and loop edges; :func:`teacher.observations.attach_points`)."""
 
     @property
     def ok(self) -> bool:

@@ -113,6 +113,15 @@ def rolling_shutter_views(fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics
     return kp_i, kp_j, dense_i, dense_j
 
 
+def middle_row_keypoints(f: FrameFeatures, role: str, intr: Intrinsics, cfg: TeacherConfig) -> tuple:
+    """Frame ``f``'s keypoints ``(uv, z)`` moved to its middle row's moment at its own velocity
+    out of it (``role`` ``out``) or into it (``in``), as :func:`rolling_shutter_views` moves
+    them; as they are without the correction or that velocity."""
+    if not cfg.rolling_shutter_s or (f.velocity_out if role == "out" else f.velocity_in) is None:
+        return f.uv, f.z
+    return _rolling_view(f, role, intr, cfg)[0]
+
+
 def _rolling_view(f: FrameFeatures, role: str, intr: Intrinsics, cfg: TeacherConfig) -> tuple:
     """``((uv, z), dense)`` of :func:`rolling_shutter_views` for frame ``f`` as an edge's
     older (``out``) or newer (``in``) frame."""

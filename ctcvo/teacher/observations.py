@@ -1,0 +1,81 @@
+"""Keyframes' landmark sightings (``observations.csv``) for the pose graph's bundle adjustment.
+
+The keyframe and loop edges (:mod:`teacher.keyframes`) match keypoints between keyframes;
+their inlier matches, chained across edges, are feature tracks: landmarks seen from several
+keyframes. Each sighting is written with the point and depth the edge's estimate used
+(moved to the keyframe's middle-row moment by the rolling shutter correction), as a
+normalised image point, for :mod:`posegraph.bundle` to solve jointly with the edges.
+
+Written only where the colour camera is the depth camera (TUM RGB-D: registered colour):
+there a keypoint's pixel is a pinhole projection of the depth camera the poses belong to.
+With a separate colour camera (7-Scenes, the synthetic rooms) it passes through an
+approximate colour model (:class:`data.sensor.ColourCamera`), and the bundle adjustment lost
+on every such validation range (:mod:`posegraph.bundle`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from ctcvo.data.sequence import Intrinsics
+from ctcvo.teacher.features import FrameFeatures
+from ctcvo.teacher.record import EdgeEstimate
+from ctcvo.teacher.timing import middle_row_keypoints
+
+#: a sighting's standard deviation (px) in x and y: ORB-SLAM3's at the finest ORB level
+#: (1 px times 1.2 per level; the level is not kept); never varied
+SIGHTING_SIGMA_PX = 1.0
+#: keypoint indices below this per frame (features are at most a few thousand)
+_KEY_BASE = 1 << 20
+
+
+def attach_points(e: EdgeEstimate, fi: FrameFeatures, fj: FrameFeatures, intr: Intrinsics, cfg) -> EdgeEstimate:
+    """``e`` with ``inlier_points``: for each of its inlier pairs the pixel and depth of the
+    keypoint in i and in j, each moved to its frame's middle-row moment at the frame's own
+    velocity (:func:`teacher.timing.middle_row_keypoints`; a keyframe's velocity is the same
+    into and out of it, so a keypoint gets the same point in every edge); ``e`` unchanged
+    without pairs."""
+    if not e.ok or e.inlier_pairs is None or not len(e.inlier_pairs):
+        return e
+    (uv_i, z_i), (uv_j, z_j) = middle_row_keypoints(fi, "out", intr, cfg), middle_row_keypoints(fj, "in", intr, cfg)
+    p, q = e.inlier_pairs[:, 0], e.inlier_pairs[:, 1]
+    e.inlier_points = np.column_stack([uv_i[p], z_i[p], uv_j[q], z_j[q]]).astype(np.float64)
+    return e
+
+
+def sightings(edges: list[EdgeEstimate], intr: Intrinsics) -> NDArray[np.float64]:
+    """The observation table (:data:`data.formats.OBSERVATION_COLUMNS`) of the good edges'
+    ``inlier_points``: one landmark per connected set of matched keypoints, left out where it
+    holds two keypoints of one frame (a wrong match) or fewer than two sightings with depth."""
+    keys, pts = [], []
+    for e in edges:
+        if not e.ok or e.inlier_pairs is None or e.inlier_points is None:
+            continue
+        keys.append(np.column_stack([e.i * _KEY_BASE + e.inlier_pairs[:, 0], e.j * _KEY_BASE + e.inlier_pairs[:, 1]]))
+        pts.append(e.inlier_points)
+    if not keys:
+        return np.zeros((0, 6))
+    pair_keys, pair_pts = np.concatenate(keys), np.concatenate(pts)
+    nodes, idx = np.unique(pair_keys.ravel(), return_inverse=True)
+    idx = idx.reshape(-1, 2)
+    where = np.zeros((len(nodes), 3))
+    where[idx[:, 0]], where[idx[:, 1]] = pair_pts[:, :3], pair_pts[:, 3:]
+    n = len(nodes)
+    _, label = connected_components(coo_matrix((np.ones(len(idx)), (idx[:, 0], idx[:, 1])), shape=(n, n)), directed=False)
+    frame = nodes // _KEY_BASE
+    has_depth = where[:, 2] > 0
+    # one keypoint per frame and landmark: a set holding two of one frame is a wrong match
+    uniq = np.unique(np.column_stack([label, frame]), axis=0)
+    per_label = np.bincount(label, minlength=label.max() + 1)
+    clean = per_label == np.bincount(uniq[:, 0], minlength=label.max() + 1)
+    seen = np.bincount(label[has_depth], minlength=label.max() + 1)
+    keep = has_depth & clean[label] & (seen[label] >= 2)
+    landmark = np.unique(label[keep], return_inverse=True)[1]
+    f = float(np.sqrt(intr.fx * intr.fy))
+    table = np.column_stack([landmark, frame[keep], (where[keep, 0] - intr.cx) / intr.fx,
+                             (where[keep, 1] - intr.cy) / intr.fy, where[keep, 2],
+                             np.full(int(keep.sum()), SIGHTING_SIGMA_PX / f)])
+    return table[np.lexsort((table[:, 1], table[:, 0]))]
