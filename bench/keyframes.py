@@ -4,10 +4,10 @@ with each of their constants moved one at a time.
 For each validation range (redkitchen 0:450 and 350:450, TUM fr3/teddy, synthetic/lab; and the
 training room office) the default teacher's window edges are estimated once (``keyframes`` off); then the keyframe pass
 (:func:`ctcvo.teacher.keyframes.add_keyframe_edges`) runs once per variant: ``window`` (no
-keyframe pass), ``default`` (the module's constants), ``bundle off`` (default without the
-bundle adjustment of its landmark sightings, where the colour is registered) or ``bundle on``
-(default with it, where the teacher writes none), each entry of :data:`SWEEP`, one
-constant changed, and each of :data:`GROUPED`. The pose graph
+keyframe pass), ``default`` (the module's constants; the bundle adjustment of the landmark
+sightings where the colour is registered, as the teacher writes them), ``no bundle`` and
+``bundle, any colour camera`` (default without it, and with it whatever the colour camera),
+each entry of :data:`SWEEP`, one constant changed, and each of :data:`GROUPED`. The pose graph
 (:func:`ctcvo.posegraph.graph.solve`, the default ``PoseGraphConfig``, the calibrated
 covariances ``edges.g2o`` carries, as ``posegraph optimize`` solves it) optimises each
 variant's good edges; ATE, gap-1 and 1 s RPE are measured against the ground truth, and the
@@ -129,10 +129,10 @@ def run_range(seq, cfg) -> dict:
             seen = sightings([e for e in edges if (e.i, e.j) in kinds], seq.intrinsics)
             row[label] = {**figures(seq, edges, run.poses, kinds, seen if registered else None),
                           "keyframe_pass_s": pass_s}
-            if label == "default":  # the bundle adjustment off, or on whatever the colour camera
-                row["bundle " + ("off" if registered else "on")] = figures(seq, edges, run.poses, kinds,
-                                                                        None if registered else seen)
-        for lab in [label] + (["bundle off" if registered else "bundle on"] if label == "default" else []):
+            if label == "default":  # the bundle adjustment never, and whatever the colour camera
+                row["no bundle"] = figures(seq, edges, run.poses, kinds)
+                row["bundle, any colour camera"] = figures(seq, edges, run.poses, kinds, seen)
+        for lab in [label] + (["no bundle", "bundle, any colour camera"] if label == "default" else []):
             print(seq.name, lab, {k: v for k, v in row[lab].items() if k != "edges_by_kind"}, flush=True)
     return row
 
