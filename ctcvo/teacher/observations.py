@@ -10,7 +10,7 @@ Written only where the colour camera is the depth camera (TUM RGB-D: registered 
 there a keypoint's pixel is a pinhole projection of the depth camera the poses belong to.
 With a separate colour camera (7-Scenes, the synthetic rooms) it passes through an
 approximate colour model (:class:`data.sensor.ColourCamera`), and the bundle adjustment lost
-on every such validation range (:mod:`posegraph.bundle`).
+on some such validation ranges (:mod:`posegraph.bundle`).
 """
 
 from __future__ import annotations
