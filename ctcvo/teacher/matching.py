@@ -15,6 +15,11 @@ RATIO = 0.85  # Lowe ratio test; set by hand (fa44eca); kept against 0.75 and 0.
 SEARCH_RADIUS_PX = 12.0  # guided matching radius; set by hand (fa44eca); kept against 8 and 20 on the validation ranges
 MAX_HAMMING = 64  # of 256 bits; set by hand (fa44eca); kept against 48 and 80 on the validation ranges
 FALLBACK_RADIUS_SCALE = 3.0  # wide matching radius / SEARCH_RADIUS_PX; a priori (b8a2c06): a ~3 deg sudden turn
+#: guided matching drops candidate pairs this far apart (bits) before it sorts them, which
+#: changes no match: such a pair is never a match (> MAX_HAMMING); as an i's second best it
+#: passes the ratio test for any best <= MAX_HAMMING, as no second best does (MAX_HAMMING <
+#: RATIO * this); and the best i of a j this far from it matches no i either
+_IRRELEVANT_HAMMING = int(MAX_HAMMING / RATIO) + 1
 
 def match(fi: FrameFeatures, fj: FrameFeatures,
           T_i_j_pred: NDArray | None = None, K: NDArray | None = None) -> NDArray[np.int64]:
@@ -43,6 +48,12 @@ def match(fi: FrameFeatures, fj: FrameFeatures,
     x = np.take(fi.desc64, qi, axis=0)  # np.take: 4 times faster than fancy indexing here
     x ^= np.take(fj.desc64, cj, axis=0)
     d = np.add.reduce(np.bitwise_count(x), axis=1, dtype=np.int64)
+    # pairs at _IRRELEVANT_HAMMING or more change no result (see there): most candidates are
+    # unrelated keypoints (~128 bits apart), so the sorts below see a fraction of them
+    near_enough = d < _IRRELEVANT_HAMMING
+    qi, cj, d = qi[near_enough], cj[near_enough], d[near_enough]
+    if len(d) == 0:
+        return np.zeros((0, 2), np.int64)
     # best and second best in j for each i (one sort on the key (i, distance); d < 512)
     o = _stable_argsort((qi << 9) | d)
     qi_s, cj_s, d_s = qi[o], cj[o], d[o]
