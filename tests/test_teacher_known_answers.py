@@ -128,3 +128,42 @@ def test_no_time_apart_leaves_the_estimate_alone(dt: float) -> None:
     T = geo.se3_exp(np.array([0.01, 0, 0, 0, 0, 0.01]))
     res = to_colour_moments(EdgeEstimate(0, 1, "ok", T.copy(), np.eye(6)), fi, fj, dt)
     np.testing.assert_array_equal(res.T_i_j, T)
+
+
+def test_guided_matching_drops_only_pairs_that_change_nothing(monkeypatch):
+    """Dropping candidate pairs 76+ bits apart before the sorts (matching._IRRELEVANT_HAMMING)
+    gives the matches of the full candidate set: random descriptors, each keypoint of i with a
+    copy in j 0-89 bits off and, for half of them, a decoy 55-89 bits off beside it (seconds
+    best where the ratio test decides), so a lower bound would change matches."""
+    from ctcvo.teacher import matching
+    from ctcvo.teacher.features import FrameFeatures
+
+    rng = np.random.default_rng(3)
+    n = 400
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+
+    def off(d, bits):
+        b = np.unpackbits(d)
+        b[rng.choice(256, bits, replace=False)] ^= 1
+        return np.packbits(b)
+
+    uv = rng.uniform([0, 0], [640, 480], (n, 2)).astype(np.float32)
+    desc_i = rng.integers(0, 256, (n, 32), dtype=np.uint8)
+    copies = np.stack([off(d, int(b)) for d, b in zip(desc_i, rng.integers(0, 90, n))])
+    decoys = np.stack([off(d, int(b)) for d, b in zip(desc_i[: n // 2], rng.integers(55, 90, n // 2))])
+    uv_j = np.concatenate([uv + rng.normal(0, 2, (n, 2)), uv[: n // 2] + rng.normal(0, 2, (n // 2, 2))]).astype(np.float32)
+    desc_j = np.concatenate([copies, decoys])
+    blank = np.zeros((480, 640), np.uint8), np.zeros((480, 640), np.float32)
+    fi = FrameFeatures(uv, desc_i, np.full(n, 2.0, np.float32), *blank)
+    fj = FrameFeatures(uv_j, desc_j, np.full(len(uv_j), 2.0, np.float32), *blank)
+
+    def run(limit):
+        monkeypatch.setattr(matching, "_IRRELEVANT_HAMMING", limit)
+        fi._tree = fj._tree = None
+        return matching.match(fi, fj, np.eye(4), K)
+
+    bound = matching._IRRELEVANT_HAMMING
+    full = run(10**9)
+    assert 50 < len(full) < n
+    assert np.array_equal(run(bound), full)
+    assert not np.array_equal(run(66), full)  # the bound is not arbitrary: a lower one changes matches
