@@ -63,18 +63,22 @@ def sighting_factors(table: NDArray[np.float64], poses: dict[int, NDArray[np.flo
     frame id). Landmark ``l``'s key is ``gtsam.symbol('l', l)``; frames keep their ids."""
     cal = gtsam.Cal3_S2Stereo(1.0, 1.0, 0.0, 0.0, 0.0, VIRTUAL_BASELINE_M)
     models: dict[float, object] = {}
-    factors, values = [], gtsam.Values()
-    for lm, fr, x, y, z, s in table.tolist():
-        key = gtsam.symbol("l", int(lm))
+    keys = [gtsam.symbol("l", int(lm)) for lm in table[:, 0]]
+    factors = []
+    for key, (fr, x, y, z, s) in zip(keys, table[:, 1:].tolist()):
         model = models.get(s)
         if model is None:
             model = models[s] = gtsam.noiseModel.Robust.Create(
                 gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K), gtsam.noiseModel.Isotropic.Sigma(3, s))
         factors.append(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(x, x - VIRTUAL_BASELINE_M / z, y), model,
                                                    int(fr), key, cal))
-        if not values.exists(key):
-            T = poses[int(fr)]
-            values.insert(key, T[:3, :3] @ np.array([x * z, y * z, z]) + T[:3, 3])
+    _, first = np.unique(table[:, 0], return_index=True)
+    T = np.stack([poses[int(f)] for f in table[first, 1]])
+    x, y, z = table[first, 2], table[first, 3], table[first, 4]
+    world = np.einsum("nij,nj->ni", T[:, :3, :3], np.stack([x * z, y * z, z], axis=1)) + T[:, :3, 3]
+    values = gtsam.Values()
+    for n, X in zip(first.tolist(), world):
+        values.insert(keys[n], X)
     return factors, values
 
 

@@ -284,6 +284,8 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: NDArray[
     final_res = prob.residuals(st.poses, st.src_scale[st.src]) if flagged.any() else first_res
     outliers = [OutlierRecord(int(a.ids[n, 0]), int(a.ids[n, 1]), a.source[n], "residual", float(first_res[n]),
                               "removed" if st.drop[n] else "downweighted") for n in np.flatnonzero(flagged).tolist()]
+    if not cfg.marginals:  # the edges' graph: sightings (3 each, stereo) leave no pose less determinate
+        check_determinate(st.graph, st.result)
     bundle = None
     if observations is not None and len(observations) and cfg.solver == "lm":
         st.graph, st.result, bundle = bundle_solve(st.graph, st.result, observations, frame_ids, st.poses)
@@ -292,8 +294,6 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: NDArray[
     marg = None
     if cfg.marginals:  # factorises the undamped system: also the determinacy check
         marg = marginal_covariances(st.graph, st.result, frame_ids)
-    else:
-        check_determinate(st.graph, st.result)
     res = SolveResult(
         frame_ids=frame_ids, poses=st.poses, outliers=outliers, residuals=final_res, used=~st.drop,
         initial_error=initial_error, final_error=float(st.graph.error(st.result)),
