@@ -35,12 +35,12 @@ def isam2() -> gtsam.ISAM2:
     return gtsam.ISAM2(params)
 
 
-def run_lm(graph, values, relative_tol: float | None = None):
+def run_lm(graph, values, relative_tol: float | None = None, max_iterations: int = LM_MAX_ITERATIONS):
     """(result values, iterations) of batch Levenberg-Marquardt from ``values``, stopping once
     an iteration lowers the error by less than ``relative_tol`` of it (None:
-    ``LM_RELATIVE_ERROR_TOL``)."""
+    ``LM_RELATIVE_ERROR_TOL``) or after ``max_iterations``."""
     params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(LM_MAX_ITERATIONS)
+    params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(LM_RELATIVE_ERROR_TOL if relative_tol is None else relative_tol)
     params.setAbsoluteErrorTol(LM_ABSOLUTE_ERROR_TOL)
     try:
