@@ -16,6 +16,7 @@ from ctcvo.data.scenes import open_scene
 from ctcvo.data.sequence import Intrinsics
 from ctcvo.posegraph import bundle
 from ctcvo.posegraph.cli import main as posegraph_main
+from ctcvo.posegraph.config import ONLINE
 from ctcvo.posegraph.graph import solve
 from ctcvo.teacher.config import TINY
 from ctcvo.teacher.generate import run_sequence, write_outputs
@@ -86,6 +87,7 @@ def test_bundle_pulls_a_biased_graph_onto_its_landmarks():
     assert err(joint.poses, keyframes) < 0.001  # exact sightings put the keyframes back
     assert err(joint.poses) < 0.3 * err(graph.poses)  # and the frames between them with them
     assert joint.bundle["landmarks"] == len(world) and joint.bundle["sightings"] == len(table)
+    assert solve(ids, edges, cfg=ONLINE, observations=table).bundle is None  # batch LM only (logged)
     # sightings of frames outside the graph, and landmarks left with too few, stay out
     assert bundle.usable(table, ids[:4]).shape[0] == 0  # keyframes 0 and 3 only: two sightings each
     assert len(bundle.usable(table, ids[:7])) == 3 * len(world)

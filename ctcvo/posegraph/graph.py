@@ -287,7 +287,10 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: NDArray[
     if not cfg.marginals:  # the edges' graph: sightings (3 each, stereo) leave no pose less determinate
         check_determinate(st.graph, st.result)
     bundle = None
-    if observations is not None and len(observations) and cfg.solver == "lm":
+    if observations is not None and len(observations) and cfg.solver != "lm":
+        log.info("%s%d landmark sightings left out: the bundle adjustment runs with the batch LM solver only",
+                 prob.tag, len(observations))
+    elif observations is not None and len(observations):
         st.graph, st.result, bundle = bundle_solve(st.graph, st.result, observations, frame_ids, st.poses)
         st.poses = poses_from_values(frame_ids, st.result)
         final_res = prob.residuals(st.poses, st.src_scale[st.src])
