@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -30,6 +31,10 @@ def test_observations_csv_round_trip_and_malformed_files(tmp_path):
     table = np.array([[0, 3, 0.1, -0.2, 1.5, 0.002], [0, 7, 0.12, -0.19, 1.4, 0.002], [1, 3, 0.0, 0.3, 2.0, 0.002]])
     write_observations(tmp_path / "o.csv", table)
     assert np.array_equal(read_observations(tmp_path / "o.csv"), table)
+    write_observations(tmp_path / "none.csv", np.zeros((0, 6)))  # a registered run without sightings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert read_observations(tmp_path / "none.csv").shape == (0, 6)
     header = "landmark,frame,x,y,z,sigma\n"
     for body, why in [("0,3,0.1,0.2,nan,0.002\n", "non-finite"), ("0,3,0.1,0.2,-1,0.002\n", "z"),
                       ("0.5,3,0.1,0.2,1,0.002\n", "integer"), ("0,3,0.1,0.2,1\n", "rows"), ("0,3,a,0.2,1,1\n", "malformed"),

@@ -364,12 +364,13 @@ def read_observations(path: Path) -> NDArray[np.float64]:
         header = fh.readline().strip()
         if tuple(header.split(",")) != OBSERVATION_COLUMNS:
             raise FormatError(f"{path}: header must be {','.join(OBSERVATION_COLUMNS)}")
-        try:
-            table = np.loadtxt(fh, delimiter=",", ndmin=2, dtype=np.float64)
-        except ValueError as exc:
-            raise FormatError(f"{path}: malformed row ({' '.join(str(exc).split())[:120]})") from None
-    if table.size == 0:
+        body = fh.read()
+    if not body.strip():  # no sightings (loadtxt would warn on an empty body)
         return np.zeros((0, 6))
+    try:
+        table = np.loadtxt(io.StringIO(body), delimiter=",", ndmin=2, dtype=np.float64)
+    except ValueError as exc:
+        raise FormatError(f"{path}: malformed row ({' '.join(str(exc).split())[:120]})") from None
     if table.shape[1] != 6:
         raise FormatError(f"{path}: rows must have {len(OBSERVATION_COLUMNS)} values, got {table.shape[1]}")
     bad = ~np.isfinite(table).all(axis=1) | (table[:, 4] <= 0) | (table[:, 5] <= 0) \
