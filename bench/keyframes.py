@@ -130,8 +130,9 @@ def run_range(seq, cfg) -> dict:
             row[label] = {**figures(seq, edges, run.poses, kinds, seen if registered else None),
                           "keyframe_pass_s": pass_s}
             if label == "default":  # the bundle adjustment never, and whatever the colour camera
-                row["no bundle"] = figures(seq, edges, run.poses, kinds)
-                row["bundle, any colour camera"] = figures(seq, edges, run.poses, kinds, seen)
+                same = {k: v for k, v in row[label].items() if k != "keyframe_pass_s"}  # default's own case
+                row["no bundle"] = figures(seq, edges, run.poses, kinds) if registered else same
+                row["bundle, any colour camera"] = same if registered else figures(seq, edges, run.poses, kinds, seen)
         for lab in [label] + (["no bundle", "bundle, any colour camera"] if label == "default" else []):
             print(seq.name, lab, {k: v for k, v in row[lab].items() if k != "edges_by_kind"}, flush=True)
     return row
