@@ -6,7 +6,9 @@ training room office) the default teacher's window edges are estimated once (``k
 (:func:`ctcvo.teacher.keyframes.add_keyframe_edges`) runs once per variant: ``window`` (no
 keyframe pass), ``default`` (the module's constants; the bundle adjustment of the landmark
 sightings where the colour is registered, as the teacher writes them), ``no bundle`` and
-``bundle, any colour camera`` (default without it, and with it whatever the colour camera),
+``bundle, any colour camera`` (default without it, and with it whatever the colour camera:
+the keyframes' tracks, as the window keeps its own only where the colour is registered),
+``keyframes' tracks only`` (default without the window's tracks),
 each entry of :data:`SWEEP`, one constant changed, and each of :data:`GROUPED`. The pose graph
 (:func:`ctcvo.posegraph.graph.solve`, the default ``PoseGraphConfig``, the calibrated
 covariances ``edges.g2o`` carries, as ``posegraph optimize`` solves it) optimises each
@@ -40,7 +42,7 @@ from ctcvo.posegraph.graph import solve
 from ctcvo.teacher import covariance_model, keyframes, loops
 from ctcvo.teacher.config import DEFAULT, colour_camera_for
 from ctcvo.teacher.generate import features_of, run_sequence
-from ctcvo.teacher.observations import sightings
+from ctcvo.teacher.observations import merged, sightings
 
 VALIDATION = [f"{record.REDKITCHEN}:0:450", f"{record.REDKITCHEN}:350:450", f"{record.TUM_TEDDY}:0:200",
               "synthetic/lab:0:300", "synthetic/office:0:300"]
@@ -108,6 +110,10 @@ def figures(seq, edges, poses, kinds: dict, observations=None) -> dict:
             "keyframe_median_nees_over_chi2": float(np.median(nees)) / CHI2_6_MEDIAN if len(kf) else None}
 
 
+ONLY_KEYFRAMES = "keyframes' tracks only"
+EXTRA = ["no bundle", "bundle, any colour camera", ONLY_KEYFRAMES]  # variants of default's edges
+
+
 def variants() -> list[tuple[str, dict]]:
     """(label, constants) of every variant after ``window``."""
     return ([("default", {})] + [(f"{name} {v:g}", {name: v}) for name, vs in SWEEP.items() for v in vs]
@@ -126,14 +132,15 @@ def run_range(seq, cfg) -> dict:
         with constants(**values):
             kinds = keyframes.add_keyframe_edges(seq, cfg, edges, run.poses, features_of(seq, cfg))
             pass_s = time.perf_counter() - t0
-            seen = sightings([e for e in edges if (e.i, e.j) in kinds], seq.intrinsics)
-            row[label] = {**figures(seq, edges, run.poses, kinds, seen if registered else None),
-                          "keyframe_pass_s": pass_s}
-            if label == "default":  # the bundle adjustment never, and whatever the colour camera
+            own = sightings([e for e in edges if (e.i, e.j) in kinds], seq.intrinsics)
+            seen = merged(own, run.observations) if registered else None  # as teacher generate writes them
+            row[label] = {**figures(seq, edges, run.poses, kinds, seen), "keyframe_pass_s": pass_s}
+            if label == "default":  # the bundle adjustment never, whatever the colour camera, without the window's
                 same = {k: v for k, v in row[label].items() if k != "keyframe_pass_s"}  # default's own case
                 row["no bundle"] = figures(seq, edges, run.poses, kinds) if registered else same
-                row["bundle, any colour camera"] = same if registered else figures(seq, edges, run.poses, kinds, seen)
-        for lab in [label] + (["no bundle", "bundle, any colour camera"] if label == "default" else []):
+                row["bundle, any colour camera"] = same if registered else figures(seq, edges, run.poses, kinds, own)
+                row[ONLY_KEYFRAMES] = figures(seq, edges, run.poses, kinds, own) if registered else same
+        for lab in [label] + (EXTRA if label == "default" else []):
             print(seq.name, lab, {k: v for k, v in row[lab].items() if k != "edges_by_kind"}, flush=True)
     return row
 

@@ -1,5 +1,5 @@
-"""Keyframes' landmark sightings: observations.csv, the tracks the teacher builds, and the
-pose graph's bundle adjustment."""
+"""Landmark sightings: observations.csv, the tracks the teacher builds (keyframes' and the
+window's), and the pose graph's bundle adjustment."""
 
 from __future__ import annotations
 
@@ -110,7 +110,15 @@ def test_the_teacher_writes_sightings_for_registered_colour_only(registered_run,
     t = run.observations
     assert t is not None and len(t) > 0
     kf = {f for e in run.edges if run.kinds.get((e.i, e.j)) in ("keyframe", "loop") for f in (e.i, e.j)}
-    assert set(t[:, 1].astype(int)) <= kf  # keyframes' sightings
+    window = run_sequence(seq, dataclasses.replace(cfg, keyframes=False), progress=False).observations
+    pos = {int(f): p for p, f in enumerate(seq.ids())}
+    for lm in np.unique(window[:, 0]):  # the window's landmarks are followed frame by frame
+        assert np.all(np.diff([pos[int(f)] for f in window[window[:, 0] == lm, 1]]) == 1)
+    assert set(window[:, 1].astype(int)) - kf  # into the frames between keyframes
+    rows = {tuple(r) for r in t[:, 1:].tolist()}
+    assert all(tuple(r) in rows for r in window[:, 1:].tolist())  # the run's table holds them
+    from_keyframes = [r for r in t[:, 1:].tolist() if tuple(r) not in {tuple(w) for w in window[:, 1:].tolist()}]
+    assert from_keyframes and {int(r[0]) for r in from_keyframes} <= kf  # and the keyframes' own
     assert all(e.inlier_points is None for e in run.edges)  # not kept in the results
     write_outputs(seq, run, cfg, tmp_path / "t", {})
     assert np.array_equal(read_observations(tmp_path / "t" / "observations.csv"), t)
@@ -129,3 +137,32 @@ def test_posegraph_optimize_adjusts_the_teachers_sightings(registered_run, tmp_p
     (tmp_path / "t" / "observations.csv").write_text("landmark,frame,x,y,z,sigma\n0,0,0.1,0.1,-1,0.01\n")
     assert posegraph_main(["optimize", "--teacher", str(tmp_path / "t"), "--out", str(tmp_path / "h"),
                            "--no-plots"]) != 0  # a corrupt table: one-line error, no traceback
+
+
+def test_the_window_keeps_points_of_gap1_edges_between_new_images_only():
+    """With ``sightings`` the window's good gap-1 edges keep their inlier pairs and points,
+    except into and out of a frame that repeats one image of the frame before it; the longer
+    edges keep neither; without it no edge keeps them."""
+    from ctcvo.teacher.features import extract
+    from ctcvo.teacher.window import EdgeWindow
+
+    seq = open_scene("synthetic/tiny")[0]
+    cfg = dataclasses.replace(TINY, gaps=3)
+
+    def edges(sightings: bool) -> dict:
+        w, out = EdgeWindow(seq.intrinsics, cfg, sightings=sightings), {}
+        for k in range(7):
+            rgb = seq.rgb(3) if k == 4 else seq.rgb(k)  # frame 4 repeats frame 3's colour
+            fk = extract(rgb, seq.depth(k), cfg, K=seq.intrinsics.K)
+            out.update({(e.i, e.j): e for e in w.add(int(seq.ids()[k]), k / 30, fk)})
+        return out
+
+    ids = seq.ids()
+    got = edges(True)
+    with_points = {(int(i), int(j)) for (i, j), e in got.items() if e.inlier_points is not None}
+    assert with_points == {(int(ids[k]), int(ids[k + 1])) for k in (0, 1, 2, 5)}
+    for ij in with_points:
+        e = got[ij]
+        assert e.ok and e.inlier_points.shape == (len(e.inlier_pairs), 6) and np.all(e.inlier_points[:, 2] > 0)
+    assert all(e.inlier_pairs is None for ij, e in got.items() if ij not in with_points)
+    assert all(e.inlier_points is None for e in edges(False).values())

@@ -6,7 +6,7 @@
   (translation, rotation) order; ``gtsam.readG2o`` reads these files. Vertices
   ``VERTEX_SE3:QUAT`` carry an initial trajectory.
 * ``edges.csv``: per-edge quality figures and status, including failed edges.
-* ``observations.csv``: keyframes' sightings of landmarks (normalised pixel and depth), for
+* ``observations.csv``: sightings of landmarks (normalised pixel and depth), for
   the pose graph's bundle adjustment.
 
 Every writer is atomic; every reader validates strictly and raises

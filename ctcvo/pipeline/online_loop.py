@@ -87,7 +87,7 @@ class OnlineTeacher:
         self.intr, self.cfg, self.colour, self.noise_model = intr, cfg, colour, noise_model
         self._pos: dict[int, int] = {}
         self.orb = make_orb(cfg)
-        self.window = EdgeWindow(intr, cfg)
+        self.window = EdgeWindow(intr, cfg, sightings=colour is None)  # as teacher generate's
         self.ids: list[int] = []
         self.times: list[float] = []
         self.chained: list[np.ndarray] = []

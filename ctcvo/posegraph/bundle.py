@@ -1,10 +1,11 @@
-"""Bundle adjustment: keyframes' landmark sightings solved jointly with the pose graph's edges.
+"""Bundle adjustment: landmark sightings solved jointly with the pose graph's edges.
 
-The teacher's ``observations.csv`` (docs/formats.md) holds, for the keyframes of a sensor
-whose colour is registered to its depth (TUM RGB-D), every sighting of a landmark (a feature
-track through the keyframe and loop edges' inlier matches): the normalised image point
-``(x, y)`` and the depth ``z`` there. An edge is one pairwise estimate; a landmark seen from
-five keyframes ties all five together, as ORB-SLAM3's local bundle adjustment does.
+The teacher's ``observations.csv`` (docs/formats.md) holds, for a sensor whose colour is
+registered to its depth (TUM RGB-D), every sighting of a landmark (a feature track through
+the keyframe and loop edges' inlier matches, or through the window's gap-1 edges'): the
+normalised image point ``(x, y)`` and the depth ``z`` there. An edge is one pairwise estimate;
+a landmark seen from five frames ties all five together, as ORB-SLAM3's local bundle
+adjustment ties its keyframes and its tracking ties each frame to the local map.
 
 Each sighting is ORB-SLAM3's RGB-D factor: a stereo measurement ``(x, x - b / z, y)`` of a
 virtual stereo camera of baseline ``b`` (:data:`VIRTUAL_BASELINE_M`), ``sigma`` on each
@@ -14,7 +15,8 @@ starts from the pose graph's solution, with the edges it kept at the scales it c
 each landmark at its first sighting's back-projection.
 
 Record ``keyframes`` (validation; ATE / 1 s / gap-1 RPE, mm): on fr3/teddy the teacher graph
-goes from 4.9 / 7.3 / 2.64 to 4.5 / 6.8 / 2.60. With a separate colour camera it does not
+goes from 4.9 / 7.3 / 2.64 to 4.5 / 6.8 / 2.60 with the keyframes' tracks (the window's
+add more: :mod:`teacher.observations`). With a separate colour camera it does not
 help everywhere (variant "bundle, any colour camera": redkitchen 0:450's 1 s RPE 21.7 ->
 23.7, synthetic/lab's ATE 6.6 -> 7.2, redkitchen 350:450 and office level or better), so the
 teacher writes no sightings there (:mod:`teacher.observations`). The virtual baseline and the

@@ -256,7 +256,7 @@ def solve(frame_ids: NDArray[np.int64], edges: Sequence[Edge], initial: NDArray[
             data (or deliberately set): they keep scale 1 in the per-source calibration.
         label: which graph this is, at the start of its log lines (a run that solves two
             graphs, such as ``posegraph optimize``'s fused and teacher-only ones).
-        observations: (K, 6) keyframes' landmark sightings (``observations.csv``), solved
+        observations: (K, 6) landmark sightings (``observations.csv``), solved
             jointly with the final graph (:mod:`posegraph.bundle`; batch LM only).
 
     Steps: validate; first (robust) solve; with ``cfg.calibrate``, estimate one covariance

@@ -196,7 +196,7 @@ class OnlineGraph:
         updates give the ISAM2 estimate (kept in ``isam2_poses``); with ``polish`` the
         batch solve of ``posegraph optimize`` (:func:`posegraph.graph.solve`, LM, its
         covariance calibration and outlier pass from scratch, the bundle adjustment of the
-        keyframes' landmark ``observations`` when given) then runs on the same edges,
+        landmark ``observations`` when given) then runs on the same edges,
         warm-started from it.
 
         Why the polish: with the robust kernel ISAM2's Gauss-Newton steps stop at a higher

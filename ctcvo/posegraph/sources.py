@@ -56,7 +56,7 @@ class Source:
     a camera that never moves), ``reference`` (what the error was measured against),
     ``pairs`` and ``from`` (the file)."""
     observations: NDArray[np.float64] | None = None
-    """The folder's ``observations.csv`` (keyframes' landmark sightings, the teacher's on a
+    """The folder's ``observations.csv`` (landmark sightings, the teacher's on a
     registered-colour sensor) for the bundle adjustment (:mod:`posegraph.bundle`)."""
 
 

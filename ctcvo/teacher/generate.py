@@ -54,7 +54,7 @@ from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb
 from ctcvo.teacher.keyframes import depth_points, estimate_works, keyframe_works, merge_keyframe_edges
 from ctcvo.teacher.loops import thumbnail
 from ctcvo.teacher.maps import PhotoMaps
-from ctcvo.teacher.observations import sightings
+from ctcvo.teacher.observations import merged, sightings
 from ctcvo.teacher.record import EdgeEstimate, count_by_kind
 from ctcvo.teacher.timing import rolling_shutter_for
 from ctcvo.teacher.window import EdgeWindow
@@ -117,15 +117,16 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True, stric
     frames = seq.without([f["frame"] for f in skipped]) if bad else seq
     poses, bridges = chain_trajectory(frames.ids(), edges)
     kinds: dict[tuple[int, int], str] = {}
-    seen = None
+    registered = colour_camera_for(frames.sensor, cfg) is None  # sightings: see teacher.observations
+    seen = sightings([e for e in edges if e.inlier_points is not None], frames.intrinsics) if registered else None
     if cfg.keyframes and len(frames) >= 2:
         found = _keyframe_pass(frames, cfg, poses, looks)
-        if colour_camera_for(frames.sensor, cfg) is None:  # registered colour: see teacher.observations
-            seen = sightings([e for e, _ in found], frames.intrinsics)
-        for e, _ in found:
-            e.inlier_pairs = e.inlier_points = None  # keeps results small
+        if registered:
+            seen = merged(sightings([e for e, _ in found], frames.intrinsics), seen)
         kinds = merge_keyframe_edges(edges, found)
         edges.sort(key=lambda e: (e.i, e.j))
+    for e in edges:
+        e.inlier_pairs = e.inlier_points = None  # keeps results small
     return TeacherRun(edges, poses, bridges, time.perf_counter() - t0, kinds, frames, skipped, seen)
 
 
@@ -284,7 +285,7 @@ def _run_chunk(seq: Sequence, cfg: TeacherConfig, k0: int, k1: int,
     prev_keys = keys_of(k0 - 1) if k0 > 0 else None  # None also when that frame cannot be read
     window = EdgeWindow(intr, cfg, prev_keys, until=k1 - k0,
                         prev_photo=lambda: _photo_before(seq, k0, cfg, orb, colour, keys_of),
-                        prev_moments=lambda: _moments_before(seq, k0, keys_of))
+                        prev_moments=lambda: _moments_before(seq, k0, keys_of), sightings=colour is None)
     # OpenMP's thread count is per calling thread: limit this one and the helper
     with openmp_threads(cfg.threads), \
             ThreadPoolExecutor(1, initializer=threadpool_limits, initargs=(cfg.threads,)) as pool:

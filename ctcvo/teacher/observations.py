@@ -1,16 +1,30 @@
-"""Keyframes' landmark sightings (``observations.csv``) for the pose graph's bundle adjustment.
+"""Landmark sightings (``observations.csv``) for the pose graph's bundle adjustment.
 
-The keyframe and loop edges (:mod:`teacher.keyframes`) match keypoints between keyframes;
-their inlier matches, chained across edges, are feature tracks: landmarks seen from several
-keyframes. Each sighting is written with the point and depth the edge's estimate used
-(moved to the keyframe's middle-row moment by the rolling shutter correction), as a
-normalised image point, for :mod:`posegraph.bundle` to solve jointly with the edges.
+Edges match keypoints between frames; their inlier matches, chained across edges, are
+feature tracks: landmarks seen from several frames. Two sets of tracks, one per feature set:
+
+* the keyframe and loop edges' (:mod:`teacher.keyframes`): landmarks seen from keyframes
+  seconds apart, on the keyframes' own features;
+* the window's gap-1 edges' (:mod:`teacher.window`): landmarks followed frame by frame, on
+  every frame's features, as ORB-SLAM3 tracks each frame against its local map. A gap-1 edge
+  keeps its points only between frames whose images are both new (no repeat of one stream).
+
+Each sighting is written with the point and depth the edge's estimate used (moved to the
+frame's middle-row moment by the rolling shutter correction), as a normalised image point,
+for :mod:`posegraph.bundle` to solve jointly with the edges. On fr3/teddy 0:200 (validation)
+the window's tracks took the teacher graph from 4.45 / 6.84 / 2.60 to 4.18 / 6.48 / 2.35 mm
+(ATE / 1 s / gap-1 RPE) over the keyframes' alone; the window's tracks alone gave 4.55 /
+6.90 / 2.41, and adding the longer window edges' matches merged more tracks into conflicts
+and dropped them (4.21 / 6.57 / 2.38).
 
 Written only where the colour camera is the depth camera (TUM RGB-D: registered colour):
 there a keypoint's pixel is a pinhole projection of the depth camera the poses belong to.
 With a separate colour camera (7-Scenes, the synthetic rooms) it passes through an
 approximate colour model (:class:`data.sensor.ColourCamera`), and the bundle adjustment lost
-on some such validation ranges (:mod:`posegraph.bundle`).
+on some such validation ranges (:mod:`posegraph.bundle`); the window's tracks lost on every
+one (scratch, ATE / 1 s / gap-1 mm: synthetic/lab 0:300 6.6 / 4.4 / 1.27 -> 7.1 / 4.9 / 2.71,
+redkitchen 0:450 24.0 / 21.7 / 3.71 -> 23.9 / 23.9 / 4.16, 350:450 13.5 / 22.6 / 4.44 -> 13.6
+/ 22.8 / 4.92).
 """
 
 from __future__ import annotations
@@ -46,9 +60,23 @@ def attach_points(e: EdgeEstimate, fi: FrameFeatures, fj: FrameFeatures, intr: I
     return e
 
 
+def merged(*tables: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Observation tables of different feature sets as one: each table's landmarks renumbered
+    after the ones before it, rows sorted by landmark, then frame."""
+    out, base = [], 0
+    for t in tables:
+        t = np.asarray(t, dtype=np.float64).reshape(-1, 6).copy()
+        t[:, 0] += base
+        base = int(t[:, 0].max()) + 1 if len(t) else base
+        out.append(t)
+    table = np.concatenate(out) if out else np.zeros((0, 6))
+    return table[np.lexsort((table[:, 1], table[:, 0]))]
+
+
 def sightings(edges: list[EdgeEstimate], intr: Intrinsics) -> NDArray[np.float64]:
     """The observation table (:data:`data.formats.OBSERVATION_COLUMNS`) of the good edges'
-    ``inlier_points``: one landmark per connected set of matched keypoints, left out where it
+    ``inlier_points``, edges over one feature set (keypoint indices name the same keypoint in
+    every edge): one landmark per connected set of matched keypoints, left out where it
     holds two keypoints of one frame (a wrong match) or fewer than two sightings with depth."""
     keys, pts = [], []
     for e in edges:

@@ -48,6 +48,7 @@ from ctcvo.data.sequence import Intrinsics
 from ctcvo.teacher.config import TeacherConfig
 from ctcvo.teacher.features import FrameFeatures, beside_colour_repeat, stale_stream
 from ctcvo.teacher.maps import PhotoMaps
+from ctcvo.teacher.observations import attach_points
 from ctcvo.teacher.odometry import estimate_edge
 from ctcvo.teacher.record import EdgeEstimate
 
@@ -76,14 +77,16 @@ class EdgeWindow:
     start would hold them (see the module's docstring; called only when the first frame
     repeats that frame's depth). ``prev_moments``: with ``prev_keys``, returns the moments
     (colour, depth; seconds) that the frame before the first one shows (:meth:`_moments_of`; called
-    only when the first frame repeats an image of that frame).
+    only when the first frame repeats an image of that frame). ``sightings``: good gap-1
+    edges between two frames of new images keep their inlier pairs and points
+    (:func:`teacher.observations.attach_points`), the feature tracks of ``observations.csv``.
     """
 
     def __init__(self, intr: Intrinsics, cfg: TeacherConfig, prev_keys: tuple[bytes, bytes] | None = None,
                  until: int | None = None,
                  prev_photo: Callable[[], tuple[PhotoMaps | None, bool]] | None = None,
-                 prev_moments: Callable[[], tuple[float, float]] | None = None) -> None:
-        self.intr, self.cfg, self.until = intr, cfg, until
+                 prev_moments: Callable[[], tuple[float, float]] | None = None, sightings: bool = False) -> None:
+        self.intr, self.cfg, self.until, self.sightings = intr, cfg, until, sightings
         self.prev_keys = prev_keys
         self._prev_photo = prev_photo or (lambda: (None, False))
         self.entries: deque[_Entry] = deque()
@@ -173,6 +176,8 @@ class EdgeWindow:
             step = e.T_i_j if e.ok else (cv if cv is not None else np.eye(4))
             if e.ok and fresh and fresh_prev and dt > 0:  # for the rolling shutter correction
                 fk.velocity_in = prev.feats.velocity_out = geo.se3_log(e.T_i_j) / dt
+                if self.sightings:  # at those velocities
+                    attach_points(e, prev.feats, fk, intr, cfg)
             if e.ok:
                 self.v_prev, self.dt_prev = e.T_i_j, dt
                 if not (self._depth_repeat or prev_depth_repeat):
@@ -271,7 +276,8 @@ class EdgeWindow:
                 tracks = np.stack([tracks, w.link[tracks]], axis=1)
                 edges.append(estimate_edge(w.frame_id, frame_id, w.feats, fk, intr, cfg, timestamp - w.timestamp,
                                            w.T_k_cur.copy(), tracks, span=timestamp - w.since))
-            e.inlier_pairs = None  # only needed for the tracks above
+            if e.inlier_points is None:
+                e.inlier_pairs = None  # only needed for the tracks above
         self.entries.append(_Entry(pos, int(frame_id), timestamp, fk, np.arange(len(fk.uv)), np.eye(4),
                                    min(self._moments)))
         while self.entries and pos - self.entries[0].pos >= cfg.gaps:
