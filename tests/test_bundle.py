@@ -21,7 +21,7 @@ from ctcvo.posegraph.config import ONLINE
 from ctcvo.posegraph.graph import solve
 from ctcvo.teacher.config import TINY
 from ctcvo.teacher.generate import run_sequence, write_outputs
-from ctcvo.teacher.observations import SIGHTING_SIGMA_PX, sightings
+from ctcvo.teacher.observations import SIGHTING_SIGMA_PX, longest_tracks, sightings
 from ctcvo.teacher.record import EdgeEstimate
 
 INTR = Intrinsics(500.0, 500.0, 320.0, 240.0, 640, 480)
@@ -166,3 +166,17 @@ def test_the_window_keeps_points_of_gap1_edges_between_new_images_only():
         assert e.ok and e.inlier_points.shape == (len(e.inlier_pairs), 6) and np.all(e.inlier_points[:, 2] > 0)
     assert all(e.inlier_pairs is None for ij, e in got.items() if ij not in with_points)
     assert all(e.inlier_points is None for e in edges(False).values())
+
+
+def test_longest_tracks_keeps_each_frames_most_sighted_landmarks_whole():
+    # landmark: frames; frame 2 sees 0 (3 sightings), 1 (4), 2 (2) and 3 (3)
+    tracks = {0: [1, 2, 3], 1: [2, 3, 4, 5], 2: [2, 3], 3: [0, 1, 2], 4: [7, 8]}
+    table = np.array([[lm, f, 0.0, 0.0, 1.0, 0.002] for lm, fs in tracks.items() for f in fs])
+    kept = longest_tracks(table, 2)
+    got = {int(lm): sorted(int(f) for f in kept[kept[:, 0] == lm, 1]) for lm in np.unique(kept[:, 0])}
+    # frame 2 keeps 1 and 0 (the tie with 3 goes to the lower id), frame 0 keeps 3, frame 7 keeps 4;
+    # landmark 2 is no frame's two longest
+    assert got == {0: [1, 2, 3], 1: [2, 3, 4, 5], 3: [0, 1, 2], 4: [7, 8]}
+    one = longest_tracks(table, 1)  # frame 1 keeps 0 (its tie with 3), frame 0 keeps 3, frame 2 keeps 1
+    assert sorted(set(one[:, 0].astype(int))) == [0, 1, 3, 4]
+    assert longest_tracks(table[:0], 5).shape == (0, 6)

@@ -15,7 +15,7 @@ from ctcvo.data.runs import frames_id
 from ctcvo.pipeline.online_loop import Estimator
 from ctcvo.teacher.generate import _edge_rows as edge_rows  # edges.csv's rows, as teacher generate writes them
 from ctcvo.teacher.generate import chain_trajectory
-from ctcvo.teacher.observations import merged, sightings
+from ctcvo.teacher.observations import merged, sightings, window_sightings
 from ctcvo.teacher.record import count_by_kind
 
 TRAJECTORY = "trajectory.tum"
@@ -46,7 +46,8 @@ def write_outputs(out: Path, name: str, est: Estimator, teacher_cfg, seconds: fl
     if teacher.colour is None:
         kept = set(ids.tolist())
         inside = [e for e in t_edges if e.i in kept and e.j in kept]
-        seen = sightings([e for e in inside if (e.i, e.j) not in est.kinds and e.inlier_points is not None], teacher.intr)
+        seen = window_sightings([e for e in inside if (e.i, e.j) not in est.kinds and e.inlier_points is not None],
+                                teacher.intr)
         if est.keyframes is not None:
             seen = merged(sightings([e for e in inside if (e.i, e.j) in est.kinds], teacher.intr), seen)
     final = graph.final(observations=seen)[:n]  # the graph may hold a frame an interrupt cut short

@@ -54,7 +54,7 @@ from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb
 from ctcvo.teacher.keyframes import depth_points, estimate_works, keyframe_works, merge_keyframe_edges
 from ctcvo.teacher.loops import thumbnail
 from ctcvo.teacher.maps import PhotoMaps
-from ctcvo.teacher.observations import merged, sightings
+from ctcvo.teacher.observations import merged, sightings, window_sightings
 from ctcvo.teacher.record import EdgeEstimate, count_by_kind
 from ctcvo.teacher.timing import rolling_shutter_for
 from ctcvo.teacher.window import EdgeWindow
@@ -118,7 +118,7 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True, stric
     poses, bridges = chain_trajectory(frames.ids(), edges)
     kinds: dict[tuple[int, int], str] = {}
     registered = colour_camera_for(frames.sensor, cfg) is None  # sightings: see teacher.observations
-    seen = sightings([e for e in edges if e.inlier_points is not None], frames.intrinsics) if registered else None
+    seen = window_sightings([e for e in edges if e.inlier_points is not None], frames.intrinsics) if registered else None
     if cfg.keyframes and len(frames) >= 2:
         found = _keyframe_pass(frames, cfg, poses, looks)
         if registered:

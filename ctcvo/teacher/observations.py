@@ -6,16 +6,18 @@ feature tracks: landmarks seen from several frames. Two sets of tracks, one per 
 * the keyframe and loop edges' (:mod:`teacher.keyframes`): landmarks seen from keyframes
   seconds apart, on the keyframes' own features;
 * the window's gap-1 edges' (:mod:`teacher.window`): landmarks followed frame by frame, on
-  every frame's features, as ORB-SLAM3 tracks each frame against its local map. A gap-1 edge
-  keeps its points only between frames whose images are both new (no repeat of one stream).
+  every frame's features, as ORB-SLAM3 tracks each frame against its local map; each frame's
+  :data:`WINDOW_TRACKS_PER_FRAME` longest. A gap-1 edge keeps its points only between frames
+  whose images are both new (no repeat of one stream).
 
 Each sighting is written with the point and depth the edge's estimate used (moved to the
 frame's middle-row moment by the rolling shutter correction), as a normalised image point,
 for :mod:`posegraph.bundle` to solve jointly with the edges. On fr3/teddy 0:200 (validation)
-the window's tracks took the teacher graph from 4.45 / 6.84 / 2.60 to 4.18 / 6.48 / 2.35 mm
-(ATE / 1 s / gap-1 RPE) over the keyframes' alone; the window's tracks alone gave 4.55 /
-6.90 / 2.41, and adding the longer window edges' matches merged more tracks into conflicts
-and dropped them (4.21 / 6.57 / 2.38).
+the window's tracks took the teacher graph from 4.45 / 6.84 / 2.60 to 4.25 / 6.55 / 2.39 mm
+(ATE / 1 s / gap-1 RPE) over the keyframes' alone (every track, uncapped: 4.18 / 6.48 / 2.35;
+:data:`WINDOW_TRACKS_PER_FRAME`). Uncapped, the window's tracks alone gave 4.55 / 6.90 /
+2.41, and adding the longer window edges' matches merged more tracks into conflicts and
+dropped them (4.21 / 6.57 / 2.38).
 
 Written only where the colour camera is the depth camera (TUM RGB-D: registered colour):
 there a keypoint's pixel is a pinhole projection of the depth camera the poses belong to.
@@ -42,6 +44,14 @@ from ctcvo.teacher.timing import middle_row_keypoints
 #: a sighting's standard deviation (px) in x and y: ORB-SLAM3's at the finest ORB level
 #: (1 px times 1.2 per level; the level is not kept); never varied
 SIGHTING_SIGMA_PX = 1.0
+#: a frame's window tracks: its sightings of the landmarks followed longest (most sightings)
+#: are kept, the landmark with all its sightings, up to this many per frame. fr3/teddy 0:200
+#: (validation; ATE / 1 s / gap-1 RPE mm, bundle seconds): 40 4.27 / 6.60 / 2.41, 0.31 s; 60
+#: 4.25 / 6.55 / 2.39, 0.42 s; 80 4.24 / 6.53 / 2.37; every track 4.18 / 6.48 / 2.35, 0.54 s
+#: (the keyframes' alone 4.44 / 6.85 / 2.60, 0.17 s). A frame's every track made the bundle
+#: adjustment the batch command's largest cost after the teacher (fr1/xyz: 2.0 s, not 0.7); the
+#: same cap over the keyframes' landmarks as well lost more (100: 4.41 / 6.65 / 2.37)
+WINDOW_TRACKS_PER_FRAME = 60
 #: keypoint indices below this per frame (features are at most a few thousand)
 _KEY_BASE = 1 << 20
 
@@ -58,6 +68,27 @@ def attach_points(e: EdgeEstimate, fi: FrameFeatures, fj: FrameFeatures, intr: I
     p, q = e.inlier_pairs[:, 0], e.inlier_pairs[:, 1]
     e.inlier_points = np.column_stack([uv_i[p], z_i[p], uv_j[q], z_j[q]]).astype(np.float64)
     return e
+
+
+def window_sightings(edges: list[EdgeEstimate], intr: Intrinsics) -> NDArray[np.float64]:
+    """The :func:`sightings` of the window's gap-1 edges, each frame's
+    :data:`WINDOW_TRACKS_PER_FRAME` longest tracks (:func:`longest_tracks`)."""
+    return longest_tracks(sightings(edges, intr), WINDOW_TRACKS_PER_FRAME)
+
+
+def longest_tracks(table: NDArray[np.float64], per_frame: int) -> NDArray[np.float64]:
+    """The rows of the landmarks that are among the ``per_frame`` most sighted of one of their
+    frames (ties: the lower landmark id), every sighting of such a landmark kept."""
+    if not len(table):
+        return table
+    lm, inv, counts = np.unique(table[:, 0], return_inverse=True, return_counts=True)
+    order = np.lexsort((lm[inv], -counts[inv], table[:, 1]))  # by frame, longest first
+    frame = table[order, 1]
+    start = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]])
+    rank = np.arange(len(order)) - np.repeat(start, np.diff(np.r_[start, len(order)]))
+    keep = np.zeros(len(lm), bool)
+    keep[inv[order[rank < per_frame]]] = True
+    return table[keep[inv]]
 
 
 def merged(*tables: NDArray[np.float64]) -> NDArray[np.float64]:
