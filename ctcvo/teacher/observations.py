@@ -127,9 +127,10 @@ def sightings(edges: list[EdgeEstimate], intr: Intrinsics) -> NDArray[np.float64
     frame = nodes // _KEY_BASE
     has_depth = where[:, 2] > 0
     # one keypoint per frame and landmark: a set holding two of one frame is a wrong match
-    uniq = np.unique(np.column_stack([label, frame]), axis=0)
+    span = int(frame.max()) + 1
+    pair = np.unique(label.astype(np.int64) * span + frame)  # the (label, frame) pairs, as one key
     per_label = np.bincount(label, minlength=label.max() + 1)
-    clean = per_label == np.bincount(uniq[:, 0], minlength=label.max() + 1)
+    clean = per_label == np.bincount(pair // span, minlength=label.max() + 1)
     seen = np.bincount(label[has_depth], minlength=label.max() + 1)
     keep = has_depth & clean[label] & (seen[label] >= 2)
     landmark = np.unique(label[keep], return_inverse=True)[1]
