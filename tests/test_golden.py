@@ -8,8 +8,7 @@ code before the redesign. The numbers are compared at a tight tolerance, never b
 library versions OpenCV's and Open3D's SIMD paths differ in the 9th digit of a pose.
 fr3/teddy's file was written again at teacher version 8 (no point-to-plane step on TUM's gap-1
 edges, ctcvo/teacher/odometry.py step 4): its gap-1 edges, and through their chained
-predictions and velocities the longer ones, changed on purpose; and at teacher version 15 (nor
-on TUM's longer window edges): the longer edges changed, the gap-1 ones did not.
+predictions and velocities the longer ones, changed on purpose.
 """
 
 from __future__ import annotations

@@ -88,9 +88,9 @@ STAGE_VERSIONS: dict[str, int] = {
     # repeated, synthetic KEYFRAME_SCALES 4 (every keyframe edge changes); 12: kinect-v1
     # KEYFRAME_SCALES 0.25 (real recordings' keyframe edges in edges.g2o); 13: TUM keyframes on 3x the
     # ORB features (REGISTERED_FEATURE_FACTOR: TUM keyframe edges change), observations.csv beside a
-    # registered colour camera; 14: observations.csv adds the window's gap-1 feature tracks; 15: no
-    # point-to-plane step on TUM's longer window edges (their labels change)
-    "teacher": 15,
+    # registered colour camera; 14: observations.csv adds the window's gap-1 feature tracks; 15 (for
+    # one commit) dropped the point-to-plane step on TUM's longer window edges; 16: the step back
+    "teacher": 16,
     # posegraph 2: the bundle adjustment of a teacher folder's observations.csv
     "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 2, "posegraph-calibrate": 1, "online": 1,
 }

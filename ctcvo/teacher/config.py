@@ -26,7 +26,7 @@ class TeacherConfig:
     """Refine the PnP-RANSAC pose with the robust two-way Newton solve (reprojection both ways
     and a 3-D depth term); False keeps OpenCV's least-squares pose on the RANSAC inliers."""
     dense: bool = True
-    """Refine each good edge with a dense depth alignment (not a window edge of a registered
+    """Refine each good edge with a dense depth alignment (not a gap-1 edge of a registered
     colour camera without photometric maps, TUM RGB-D: :mod:`teacher.odometry`, step 4), and
     run the dense fallbacks when no sparse estimate passes."""
     dense_method: str = "auto"

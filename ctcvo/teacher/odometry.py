@@ -7,21 +7,19 @@
    depth alone (:func:`teacher.fallbacks.rgbd_edge`, ``depth_only``);
 3. no keypoint estimate: the dense fallbacks (:mod:`teacher.fallbacks`);
 4. a good one: the dense step (:func:`teacher.dense.dense_refine`), and where its depth stage
-   disagrees with the keypoints, the rgbd fallback in their place. Not on a window edge (gap-1,
-   or longer from the feature tracks) whose dense step would be the depth alone (no
-   photometric maps) and whose colour is registered to the depth (TUM RGB-D): between
-   consecutive frames the point-to-plane alignment is pulled towards the identity, while the
-   keypoints measure the same moments. On TUM fr3/teddy (motion capture, validation) the step
-   took about 14 % of the yaw off every gap-1 edge (the keypoint estimate 3 %, the ground
-   truth's own noise); without it the teacher pose graph's ATE falls from 8.0 to 6.8 mm. On
-   the longer window edges, with the feature tracks bundle-adjusted (:mod:`teacher.observations`),
-   teddy's teacher graph went from 4.26 / 6.55 / 2.39 to 4.34 / 6.25 / 2.68 mm (ATE / 1 s /
-   gap-1 RPE) and the teacher ran 19 % faster (8.5 -> 6.9 s, one process); keeping the step
-   on gaps 2 (4.28 / 6.24 / 2.57) or 2-3 (4.24 / 6.30 / 2.49) ranges between the two. The
-   keyframe edges keep it. Where a separate colour camera is exposed at other moments than
-   the depth (7-Scenes, whose ground truth follows the depth) the step measures the depth's
-   moments and stays: without it redkitchen 0:450's gap-1 RPE rose 3.68 -> 3.88 mm
-   (``python -m bench.dense_gap1``, record dense-gap1).
+   disagrees with the keypoints, the rgbd fallback in their place. Not on a gap-1 edge whose
+   dense step would be the depth alone (no photometric maps) and whose colour is registered
+   to the depth (TUM RGB-D): between consecutive frames the point-to-plane alignment is
+   pulled towards the identity, while the keypoints measure the same moments. On TUM
+   fr3/teddy (motion capture, validation) the step took about 14 % of the yaw off every gap-1
+   edge (the keypoint estimate 3 %, the ground truth's own noise); without it the teacher pose
+   graph's ATE falls from 8.0 to 6.8 mm. The longer window edges keep the step: without it,
+   with their feature tracks bundle-adjusted (:mod:`teacher.observations`), teddy's teacher
+   graph went from 4.26 / 6.55 / 2.39 to 4.34 / 6.25 / 2.68 mm (ATE / 1 s / gap-1 RPE), worse
+   in two figures of three, for a teacher 19 % faster. Where a separate colour camera is
+   exposed at other moments than the depth (7-Scenes, whose ground truth follows the depth)
+   the step measures the depth's moments and stays: without it redkitchen 0:450's gap-1 RPE
+   rose 3.68 -> 3.88 mm (``python -m bench.dense_gap1``, record dense-gap1).
 
 Conventions (docs/conventions.md): ``T_i_j`` maps frame-j camera coordinates into frame i;
 the covariance is in the project tangent order (v, w), right perturbation at ``T_i_j``.
@@ -105,8 +103,8 @@ def _estimate_edge(i: int, j: int, fi: FrameFeatures, fj: FrameFeatures, intr: I
     if not best.ok:
         return _dense_fallbacks(i, j, fi, fj, intr, cfg, dt, span, T0, alt, best,
                                 chained=tracks is not None and T_pred is not None)
-    if (gap1 or tracks is not None) and fi.registered and fj.registered and not _has_photo(fi, fj):
-        return best  # no point-to-plane step on a window edge (the module's docstring, step 4)
+    if gap1 and fi.registered and fj.registered and not _has_photo(fi, fj):
+        return best  # no point-to-plane step over one frame (the module's docstring, step 4)
     _dense_step(best, fi, fj, cfg, dt, rolling, hybrid=tracks is None)
     if T_pred is not None and dense_disagrees(best.diag.dense) and _has_photo(fi, fj):
         # the depth, started at the keypoints' estimate, moved too far from it: the
