@@ -117,7 +117,8 @@ def test_the_teacher_writes_sightings_for_registered_colour_only(registered_run,
     assert set(window[:, 1].astype(int)) - kf  # into the frames between keyframes
     rows = {tuple(r) for r in t[:, 1:].tolist()}
     assert all(tuple(r) in rows for r in window[:, 1:].tolist())  # the run's table holds them
-    from_keyframes = [r for r in t[:, 1:].tolist() if tuple(r) not in {tuple(w) for w in window[:, 1:].tolist()}]
+    in_window = {tuple(w) for w in window[:, 1:].tolist()}
+    from_keyframes = [r for r in t[:, 1:].tolist() if tuple(r) not in in_window]
     assert from_keyframes and {int(r[0]) for r in from_keyframes} <= kf  # and the keyframes' own
     assert all(e.inlier_points is None for e in run.edges)  # not kept in the results
     write_outputs(seq, run, cfg, tmp_path / "t", {})

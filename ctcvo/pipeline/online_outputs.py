@@ -15,7 +15,7 @@ from ctcvo.data.runs import frames_id
 from ctcvo.pipeline.online_loop import Estimator
 from ctcvo.teacher.generate import _edge_rows as edge_rows  # edges.csv's rows, as teacher generate writes them
 from ctcvo.teacher.generate import chain_trajectory
-from ctcvo.teacher.observations import merged, sightings, window_sightings
+from ctcvo.teacher.observations import run_sightings
 from ctcvo.teacher.record import count_by_kind
 
 TRAJECTORY = "trajectory.tum"
@@ -46,10 +46,9 @@ def write_outputs(out: Path, name: str, est: Estimator, teacher_cfg, seconds: fl
     if teacher.colour is None:
         kept = set(ids.tolist())
         inside = [e for e in t_edges if e.i in kept and e.j in kept]
-        seen = window_sightings([e for e in inside if (e.i, e.j) not in est.kinds and e.inlier_points is not None],
-                                teacher.intr)
-        if est.keyframes is not None:
-            seen = merged(sightings([e for e in inside if (e.i, e.j) in est.kinds], teacher.intr), seen)
+        seen = run_sightings([e for e in inside if (e.i, e.j) in est.kinds],
+                             [e for e in inside if (e.i, e.j) not in est.kinds and e.inlier_points is not None],
+                             teacher.intr)
     final = graph.final(observations=seen)[:n]  # the graph may hold a frame an interrupt cut short
     write_tum(out / FINAL_TRAJECTORY, Trajectory(times, final))
     scale = {(e.i, e.j): teacher.cov_scale(e, est.kinds.get((e.i, e.j), "window")) for e in t_edges}

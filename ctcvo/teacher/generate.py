@@ -54,7 +54,7 @@ from ctcvo.teacher.features import FrameFeatures, extract, image_keys, make_orb
 from ctcvo.teacher.keyframes import depth_points, estimate_works, keyframe_works, merge_keyframe_edges
 from ctcvo.teacher.loops import thumbnail
 from ctcvo.teacher.maps import PhotoMaps
-from ctcvo.teacher.observations import merged, sightings, window_sightings
+from ctcvo.teacher.observations import run_sightings
 from ctcvo.teacher.record import EdgeEstimate, count_by_kind
 from ctcvo.teacher.timing import rolling_shutter_for
 from ctcvo.teacher.window import EdgeWindow
@@ -117,12 +117,12 @@ def run_sequence(seq: Sequence, cfg: TeacherConfig, progress: bool = True, stric
     frames = seq.without([f["frame"] for f in skipped]) if bad else seq
     poses, bridges = chain_trajectory(frames.ids(), edges)
     kinds: dict[tuple[int, int], str] = {}
-    registered = colour_camera_for(frames.sensor, cfg) is None  # sightings: see teacher.observations
-    seen = window_sightings([e for e in edges if e.inlier_points is not None], frames.intrinsics) if registered else None
-    if cfg.keyframes and len(frames) >= 2:
-        found = _keyframe_pass(frames, cfg, poses, looks)
-        if registered:
-            seen = merged(sightings([e for e, _ in found], frames.intrinsics), seen)
+    window = [e for e in edges if e.inlier_points is not None]  # before the keyframe edges join
+    found = _keyframe_pass(frames, cfg, poses, looks) if cfg.keyframes and len(frames) >= 2 else []
+    seen = None
+    if colour_camera_for(frames.sensor, cfg) is None:  # registered colour: see teacher.observations
+        seen = run_sightings([e for e, _ in found], window, frames.intrinsics)
+    if found:
         kinds = merge_keyframe_edges(edges, found)
         edges.sort(key=lambda e: (e.i, e.j))
     for e in edges:

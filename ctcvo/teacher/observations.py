@@ -70,6 +70,14 @@ def attach_points(e: EdgeEstimate, fi: FrameFeatures, fj: FrameFeatures, intr: I
     return e
 
 
+def run_sightings(keyframe_edges: list[EdgeEstimate], window_edges: list[EdgeEstimate],
+                  intr: Intrinsics) -> NDArray[np.float64]:
+    """``observations.csv``'s table of a run (``teacher generate``'s and online's alike): the
+    keyframe and loop edges' tracks, then the window's gap-1 edges' (:func:`window_sightings`),
+    :func:`merged`."""
+    return merged(sightings(keyframe_edges, intr), window_sightings(window_edges, intr))
+
+
 def window_sightings(edges: list[EdgeEstimate], intr: Intrinsics) -> NDArray[np.float64]:
     """The :func:`sightings` of the window's gap-1 edges, each frame's
     :data:`WINDOW_TRACKS_PER_FRAME` longest tracks (:func:`longest_tracks`)."""
