@@ -18,6 +18,8 @@ lives here; docs/conventions.md states the conventions in words. Summary:
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
@@ -172,7 +174,7 @@ def _V_coeffs(theta: float) -> tuple[float, float]:
     if theta < _SMALL_ANGLE:
         t2 = theta * theta
         return 0.5 - t2 / 24.0, 1.0 / 6.0 - t2 / 120.0
-    return (1.0 - np.cos(theta)) / theta**2, (theta - np.sin(theta)) / theta**3
+    return (1.0 - math.cos(theta)) / theta**2, (theta - math.sin(theta)) / theta**3
 
 
 def _cross(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -181,18 +183,27 @@ def _cross(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64
 
 
 def se3_exp(xi: ArrayLike) -> Mat4:
-    """Exponential map of ``xi = (v, w)`` (project order) to a 4x4 transform."""
-    xi = np.asarray(xi, dtype=np.float64).reshape(6)
-    v, w = xi[:3], xi[3:]
-    theta = float(np.linalg.norm(w))
-    W = hat(w)
-    W2 = W @ W
-    # Rodrigues: R = I + a W + b W^2 with a = sin(t)/t, b = (1 - cos t)/t^2 (series near 0)
-    a = 1.0 - theta * theta / 6.0 if theta < _SMALL_ANGLE else np.sin(theta) / theta
+    """Exponential map of ``xi = (v, w)`` (project order) to a 4x4 transform.
+
+    Written out in scalars: the teacher takes ~60 of these per edge, and NumPy's per-call
+    overhead on 3x3 blocks was most of their cost (16 -> 4 us a call)."""
+    v0, v1, v2, x, y, z = np.asarray(xi, dtype=np.float64).reshape(6).tolist()
+    theta = math.sqrt(x * x + y * y + z * z)
+    # Rodrigues: R = I + a W + b W^2 with a = sin(t)/t, b = (1 - cos t)/t^2 (series near 0);
+    # V = I + b W + c W^2; W = hat(w), W^2 = w w^T - theta^2 I
+    a = 1.0 - theta * theta / 6.0 if theta < _SMALL_ANGLE else math.sin(theta) / theta
     b, c = _V_coeffs(theta)
-    R = np.eye(3) + a * W + b * W2
-    V = np.eye(3) + b * W + c * W2
-    return make_T(R, V @ v)
+    xx, yy, zz, xy, xz, yz = -(y * y + z * z), -(x * x + z * z), -(x * x + y * y), x * y, x * z, y * z
+    r = (1.0 + b * xx, -a * z + b * xy, a * y + b * xz,
+         a * z + b * xy, 1.0 + b * yy, -a * x + b * yz,
+         -a * y + b * xz, a * x + b * yz, 1.0 + b * zz)
+    m = (1.0 + c * xx, -b * z + c * xy, b * y + c * xz,
+         b * z + c * xy, 1.0 + c * yy, -b * x + c * yz,
+         -b * y + c * xz, b * x + c * yz, 1.0 + c * zz)
+    return np.array([[r[0], r[1], r[2], m[0] * v0 + m[1] * v1 + m[2] * v2],
+                     [r[3], r[4], r[5], m[3] * v0 + m[4] * v1 + m[5] * v2],
+                     [r[6], r[7], r[8], m[6] * v0 + m[7] * v1 + m[8] * v2],
+                     [0.0, 0.0, 0.0, 1.0]])
 
 
 def se3_log(T: ArrayLike) -> NDArray[np.float64]:
@@ -204,6 +215,10 @@ def se3_log(T: ArrayLike) -> NDArray[np.float64]:
     on, where the skew part vanishes, it comes from scipy, which is accurate near pi.
     """
     T = np.asarray(T, dtype=np.float64)
+    if T.shape == (4, 4):
+        out = _se3_log_one(T)
+        if out is not None:
+            return out
     Ts = T.reshape(-1, 4, 4)
     R, t = Ts[:, :3, :3], Ts[:, :3, 3]
     s = 0.5 * (R[:, _SKEW_A, _SKEW_B] - R[:, _SKEW_B, _SKEW_A])  # sin(theta) * axis
@@ -222,6 +237,29 @@ def se3_log(T: ArrayLike) -> NDArray[np.float64]:
     wt = _cross(w, t)
     v = t - 0.5 * wt + d[:, None] * _cross(w, wt)
     return np.concatenate([v, w], axis=1).reshape(T.shape[:-2] + (6,))
+
+
+def _se3_log_one(T: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """:func:`se3_log` of one transform, the same formulas in scalars (the batch code's NumPy
+    overhead was most of a single call's cost: 43 -> 8 us); None from 150 degrees on (scipy's
+    branch)."""
+    (r00, r01, r02, t0), (r10, r11, r12, t1), (r20, r21, r22, t2) = T[:3].tolist()
+    sx, sy, sz = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)
+    c = 0.5 * (r00 + r11 + r22 - 1.0)
+    if c <= _COS_LOG_FAST:
+        return None
+    sin_t = math.sqrt(sx * sx + sy * sy + sz * sz)
+    k = math.atan2(sin_t, c) / sin_t if sin_t > 1e-12 else 1.0
+    wx, wy, wz = sx * k, sy * k, sz * k
+    theta = math.sqrt(wx * wx + wy * wy + wz * wz)
+    if theta < _SMALL_ANGLE:
+        d = 1.0 / 12.0 + theta * theta / 720.0
+    else:
+        half = 0.5 * theta
+        d = (1.0 - half / math.tan(half)) / (4.0 * half * half)
+    ax, ay, az = wy * t2 - wz * t1, wz * t0 - wx * t2, wx * t1 - wy * t0  # w x t
+    bx, by, bz = wy * az - wz * ay, wz * ax - wx * az, wx * ay - wy * ax  # w x (w x t)
+    return np.array([t0 - 0.5 * ax + d * bx, t1 - 0.5 * ay + d * by, t2 - 0.5 * az + d * bz, wx, wy, wz])
 
 
 def adjoint(T: ArrayLike) -> NDArray[np.float64]:
