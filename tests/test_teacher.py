@@ -1096,18 +1096,33 @@ def test_dense_method_auto_follows_the_sensor(office_clean, tmp_path):
 
 # ---------------------------------------------------------------------------- fast paths
 
-def test_stable_argsort_is_numpys_stable_order():
-    """Guided matching's sort (:func:`teacher.matching._stable_argsort`): NumPy's stable
-    order, ties kept in input order, on keys with many ties; keys too large for the
-    position bits take NumPy's stable sort itself."""
-    from ctcvo.teacher.matching import _stable_argsort
+def _sorted_best_two(qi, cj, d):
+    """:func:`teacher.matching._best_two` written plainly: a stable sort by (i, distance)."""
+    o = np.argsort((qi << 9) | d, kind="stable")
+    qs, cs, ds = qi[o], cj[o], d[o]
+    first = np.flatnonzero(np.r_[True, qs[1:] != qs[:-1]])
+    has2 = np.r_[first[1:], len(qs)] - first >= 2
+    return qs[first], cs[first], ds[first], np.where(has2, ds[np.minimum(first + 1, len(ds) - 1)], 256)
+
+
+def test_best_candidates_are_a_stable_sorts():
+    """Guided matching's ranking of candidate pairs (:func:`teacher.matching._best_two`,
+    ``_best_of``) picks what a stable sort by (index, distance) picks, ties to the first
+    candidate, on candidates with many ties, one-candidate groups and distances up to 256."""
+    from ctcvo.teacher.matching import _best_of, _best_two
 
     rng = np.random.default_rng(3)
-    for n in (0, 1, 7, 9100):
-        key = (rng.integers(0, 400, n) << 9) | rng.integers(0, 40, n)  # (index, distance), many ties
-        np.testing.assert_array_equal(_stable_argsort(key), np.argsort(key, kind="stable"))
-    big = np.array([1 << 60, 5, 1 << 60, 5, 0], np.int64)
-    np.testing.assert_array_equal(_stable_argsort(big), [4, 1, 3, 0, 2])
+    for m, n, dmax in ((1, 5, 40), (7, 5, 3), (9100, 400, 40), (5000, 3000, 257)):
+        qi, cj = rng.integers(0, n, m), rng.integers(0, n, m)
+        d = rng.integers(0, dmax, m)
+        for got, want in zip(_best_two(qi, cj, d, n), _sorted_best_two(qi, cj, d)):
+            np.testing.assert_array_equal(got, want)
+        o2 = np.argsort((cj << 9) | d, kind="stable")
+        first2 = np.flatnonzero(np.r_[True, cj[o2][1:] != cj[o2][:-1]])
+        back = np.full(n, -1)
+        back[cj[o2][first2]] = qi[o2][first2]
+        js = np.unique(cj)
+        np.testing.assert_array_equal(_best_of(cj, qi, d, n, js), back[js])
 
 
 def _reference_point_to_plane_covariance(T, di, dj, stride):
