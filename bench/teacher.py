@@ -10,7 +10,9 @@ graph``: what ``posegraph optimize`` makes of the teacher's edges.g2o) and of ea
 the teacher also its constant-velocity bridges, failed gap-1 edges and the paths that made
 its gap-1 edges (teacher/odometry.py's fallback chain), and every row's ratios to Open3D.
 With ``--orbslam3-vocabulary`` ORB-SLAM3 runs ``--orbslam3-runs`` times per scene: median and
-min-max of each figure, and the frames it lost (bench/orbslam3_peer.py).
+min-max of each figure, and the frames it lost (bench/orbslam3_peer.py). Its runs alternate
+with the teacher's (teacher, ORB-SLAM3, teacher, ...), so that both meet the machine in the
+same state.
 
     .venv/bin/python -m bench.teacher          # every synthetic preset, stress scenes included,
                                                # redkitchen and TUM fr1/xyz images; teacher + Open3D
@@ -29,6 +31,7 @@ import os
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 
 if __name__ == "__main__":  # as `teacher generate` does: its worker imports while this process does
@@ -41,7 +44,7 @@ import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
 from bench import orbslam3_peer, record, tables  # noqa: E402
-from bench.orbslam3_peer import metrics, one_second, orbslam3_row  # noqa: E402
+from bench.orbslam3_peer import metrics, one_second  # noqa: E402
 from ctcvo.data import geometry as geo  # noqa: E402
 from ctcvo.data.chain import chain_steps  # noqa: E402
 from ctcvo.data.formats import Edge, Trajectory  # noqa: E402
@@ -131,14 +134,19 @@ def _timing(seconds: list[float], same: bool) -> dict:
             "same_poses_every_run": same}
 
 
-def teacher_rows(seq, runs: int = 3) -> list[dict]:
+def teacher_rows(seq, runs: int = 3, between: Callable[[], object] | None = None) -> list[dict]:
     """The teacher's chained gap-1 trajectory, and the pose graph of all its good edges
     (:func:`ctcvo.posegraph.graph.solve`, the default config, as ``posegraph optimize`` solves
     its edges.g2o, calibrated covariances included), its time added to the teacher's.
     Timed over ``runs`` runs like the ORB-SLAM3 peer: the median time (the first run is the
     cold one); the figures are the first run's, and ``same_poses_every_run`` says whether
-    the later runs gave the same poses."""
-    done = [_teacher_run(seq) for _ in range(runs)]
+    the later runs gave the same poses. ``between`` runs after each teacher run (a peer's
+    run, so that both are timed in the same spells of a shared machine)."""
+    done = []
+    for _ in range(runs):
+        done.append(_teacher_run(seq))
+        if between is not None:
+            between()
     run, graph, solve_s = done[0]
     same = all(np.array_equal(r.poses, run.poses) and np.array_equal(g, graph) for r, g, _ in done[1:])
     pos = {int(f): p for p, f in enumerate(seq.ids())}
@@ -173,7 +181,18 @@ def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frame
                 teacher_runs: int = 3) -> list[dict]:
     seq = _open_sequence(spec, frames, synthetic_frames, camera)
     gt = Trajectory(seq.times(), seq.groundtruth())
-    rows = teacher_rows(seq, teacher_runs)
+    # ORB-SLAM3's runs alternate with the teacher's: a shared machine's speed drifts by 10-20 %
+    # over minutes (fr1/xyz, ORB-SLAM3 alone: 34-39 fps), and the fps ratio is the target
+    orb_runs: list[dict] = []
+    orb_tries = 0
+
+    def orb_run() -> None:
+        nonlocal orb_tries
+        if orbslam3_vocabulary is not None and orb_tries < orbslam3_runs:
+            orb_tries += 1
+            orb_runs.extend(orbslam3_peer.each_run(seq, orbslam3_vocabulary, 1, orbslam3_peer.run_figures))
+
+    rows = teacher_rows(seq, teacher_runs, between=orb_run)
     # The single-process peers run with OpenCV and OpenMP on every core, whatever
     # OMP_NUM_THREADS says (it limits only the teacher here).
     with threadpool_limits(os.cpu_count() or 1, user_api="openmp"):
@@ -193,7 +212,9 @@ def bench_scene(spec: str, frames: str | None, peers: list[str], synthetic_frame
                     "gap1_failures": r["fails"], **extra, **rep})
         print(f"{spec}: {out[-1]}", file=sys.stderr, flush=True)
     if orbslam3_vocabulary is not None:
-        out.append({"scene": spec, "frames": len(seq), **orbslam3_row(seq, orbslam3_vocabulary, orbslam3_runs)})
+        while orb_tries < orbslam3_runs:  # more ORB-SLAM3 runs than the teacher's
+            orb_run()
+        out.append({"scene": spec, "frames": len(seq), "method": orbslam3_peer.METHOD, **orbslam3_peer.aggregate(orb_runs)})
     base = next((r for r in out if r["method"].startswith("Open3D")), None)
     if base is not None:
         for r in out:
