@@ -97,7 +97,8 @@ def figures(seq, edges, poses, kinds: dict, observations=None) -> dict:
     pos = {int(k): p for p, k in enumerate(seq.ids())}
     ok = [e for e in edges if e.ok]
     kind = [kinds.get((e.i, e.j), "window") for e in ok]
-    good = [Edge(e.i, e.j, e.T_i_j, e.cov * covariance_model.gap_scale(seq.sensor.noise_model, pos[e.j] - pos[e.i], kind=k))
+    good = [Edge(e.i, e.j, e.T_i_j, e.cov * covariance_model.gap_scale(seq.sensor.noise_model, pos[e.j] - pos[e.i], kind=k,
+                                                                          mixed=e.diag.mixed_moments))
             for e, k in zip(ok, kind)]
     kf = [g for g, k in zip(good, kind) if k == "keyframe"]
     nees = mahalanobis2(groundtruth_residuals(kf, seq.groundtruth(), seq.ids()), np.array([g.cov for g in kf]))

@@ -52,8 +52,7 @@ from ctcvo.data.scenes import open_scene  # noqa: E402
 from ctcvo.data.undistort import read_camera, with_camera  # noqa: E402
 from ctcvo.posegraph.graph import solve  # noqa: E402
 from ctcvo.teacher.config import TeacherConfig  # noqa: E402
-from ctcvo.teacher.covariance_model import gap_scale  # noqa: E402
-from ctcvo.teacher.generate import run_sequence  # noqa: E402
+from ctcvo.teacher.generate import cov_scales, run_sequence  # noqa: E402
 
 SYNTHETIC = ["synthetic/office", "synthetic/lab", "synthetic/kitchen", "synthetic/stress-lowfreq",
              "synthetic/stress-repetitive", "synthetic/stress-far", "synthetic/stress-fast", "synthetic/stress-blur",
@@ -119,11 +118,9 @@ def _teacher_run(seq) -> tuple:
     cv2.setNumThreads(1)
     run = run_sequence(seq, cfg, progress=False)
     cv2.setNumThreads(os.cpu_count() or 1)
-    pos = {int(f): p for p, f in enumerate(seq.ids())}
     t0 = time.perf_counter()
-    edges = [Edge(e.i, e.j, e.T_i_j, e.cov * gap_scale(seq.sensor.noise_model, pos[e.j] - pos[e.i], cfg.covariance,
-                                                       run.kinds.get((e.i, e.j), "window")))
-             for e in run.edges if e.ok]  # the covariances of edges.g2o
+    scale = cov_scales(seq, run, cfg)
+    edges = [Edge(e.i, e.j, e.T_i_j, e.cov * scale[e.i, e.j]) for e in run.edges if e.ok]  # as edges.g2o holds them
     graph = solve(seq.ids(), edges, run.poses, observations=run.observations).poses
     return run, graph, time.perf_counter() - t0
 

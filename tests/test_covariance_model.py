@@ -60,8 +60,9 @@ def test_generate_writes_raw_covariances_times_the_gap_scale(tmp_path: Path) -> 
     assert cal.keys() == raw.keys()
     rows = {(int(r["i"]), int(r["j"])): r for r in read_edges_csv(tmp_path / "cal" / "edges.csv")}
     assert any(r["kind"] == "keyframe" for r in rows.values())  # both kinds' scales are checked
+    assert any(r["mixed_moments"] for r in rows.values())  # and the mixed moments' factor
     for (i, j), cov in cal.items():
-        s = gap_scale("synthetic", j - i, kind=rows[i, j]["kind"])
+        s = gap_scale("synthetic", j - i, kind=rows[i, j]["kind"], mixed=bool(rows[i, j]["mixed_moments"]))
         assert rows[i, j]["cov_scale"] == pytest.approx(s)
         np.testing.assert_allclose(cov, raw[i, j] * s, rtol=1e-9, atol=0)
     rep = json.loads((tmp_path / "cal" / "report.json").read_text())["covariance"]

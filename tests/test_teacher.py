@@ -1005,6 +1005,30 @@ def test_window_gives_a_depth_repeat_the_colour_of_its_depth(office_clean):
         assert np.array_equal(got.depth.numpy(), _features(seq, 5, cfg).dense.photo.depth.numpy(), equal_nan=True)
 
 
+def test_longer_edges_beside_a_frame_of_two_moments_are_marked(office_clean):
+    """``diag.mixed_moments``: the longer window edges into or out of a frame whose colour and
+    depth show different moments (a depth repeat with a new colour, a colour repeat with a
+    new depth, a whole repeat of either), and no other edge; their covariance is scaled by
+    the noise model's ``MIXED_MOMENTS_SCALES`` (synthetic: > 1, kinect-v1: 1)."""
+    from ctcvo.teacher.covariance_model import MIXED_MOMENTS_SCALES, gap_scale
+    from ctcvo.teacher.window import EdgeWindow
+
+    seq = office_clean
+    cfg = dataclasses.replace(TeacherConfig(), gaps=3)
+    feats = {2: _features(seq, 2, cfg), 3: _features(seq, 3, cfg, depth=seq.depth(2)), 4: _features(seq, 4, cfg),
+             5: _features(seq, 5, cfg, rgb=seq.rgb(4)), 6: _features(seq, 6, cfg, rgb=seq.rgb(4), depth=seq.depth(5)),
+             7: _features(seq, 7, cfg), 8: _features(seq, 8, cfg)}
+    w, edges = EdgeWindow(seq.intrinsics, cfg), []
+    for k, f in feats.items():
+        edges += w.add(k, k / 30, f)
+    mixed = {3, 5, 6}
+    assert len(edges) == 6 + 5 + 4
+    for e in edges:
+        assert e.diag.mixed_moments == (e.j - e.i > 1 and bool({e.i, e.j} & mixed)), (e.i, e.j)
+    assert MIXED_MOMENTS_SCALES["synthetic"] > 1 and MIXED_MOMENTS_SCALES["kinect-v1"] == 1
+    assert gap_scale("synthetic", 2, mixed=True) == gap_scale("synthetic", 2) * MIXED_MOMENTS_SCALES["synthetic"]
+
+
 def test_constant_velocity_spans_a_dropped_frame(office_clean, monkeypatch):
     """The gap-1 prediction is the last good gap-1 motion over the time between the frames:
     unchanged under timestamp jitter, scaled along its twist over a dropped frame."""

@@ -295,10 +295,11 @@ def _pose_from_vals(vals: NDArray[np.float64], where: str) -> NDArray[np.float64
 # ----------------------------------------------------------------------------------
 EDGE_CSV_COLUMNS = [
     "i", "j", "t_i", "t_j", "status", "matches", "inliers", "inlier_ratio", "rmse_px",
-    "trans_m", "rot_deg", "dense_fitness", "dense_shift_m", "path", "kind", "cov_scale",
+    "trans_m", "rot_deg", "dense_fitness", "dense_shift_m", "path", "kind", "cov_scale", "mixed_moments",
 ]
-#: edges.csv columns read as strings (every other column but the integer ones is a float)
+#: edges.csv columns read as strings, and as integers (every other one is a float)
 EDGE_CSV_STRINGS = ("status", "path", "kind")
+EDGE_CSV_INTS = ("i", "j", "matches", "inliers", "mixed_moments")
 
 
 def write_edges_csv(path: Path, rows: Iterable[dict]) -> None:
@@ -328,7 +329,7 @@ def read_edges_csv(path: Path) -> list[dict]:
             raise FormatError(f"{path}: header must contain i, j and status")
         for lineno, r in enumerate(reader, 2):
             try:
-                row = {k: (v if k in EDGE_CSV_STRINGS else (int(v) if k in ("i", "j", "matches", "inliers") else float(v)))
+                row = {k: (v if k in EDGE_CSV_STRINGS else (int(v) if k in EDGE_CSV_INTS else float(v)))
                        for k, v in r.items() if v != ""}
             except (TypeError, ValueError):
                 raise FormatError(f"{path}:{lineno}: malformed row") from None

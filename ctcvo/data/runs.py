@@ -89,8 +89,10 @@ STAGE_VERSIONS: dict[str, int] = {
     # KEYFRAME_SCALES 0.25 (real recordings' keyframe edges in edges.g2o); 13: TUM keyframes on 3x the
     # ORB features (REGISTERED_FEATURE_FACTOR: TUM keyframe edges change), observations.csv beside a
     # registered colour camera; 14: observations.csv adds the window's gap-1 feature tracks; 15 (for
-    # one commit) dropped the point-to-plane step on TUM's longer window edges; 16: the step back
-    "teacher": 16,
+    # one commit) dropped the point-to-plane step on TUM's longer window edges; 16: the step back;
+    # 17: synthetic scenes' longer window edges beside a frame whose colour and depth show
+    # different moments get MIXED_MOMENTS_SCALES (their edges.g2o)
+    "teacher": 17,
     # posegraph 2: the bundle adjustment of a teacher folder's observations.csv
     "learner": 1, "predict": 1, "calibrate": 1, "posegraph": 2, "posegraph-calibrate": 1, "online": 1,
 }

@@ -144,7 +144,8 @@ class OnlineTeacher:
     def cov_scale(self, e, kind: str = "window") -> float:
         """The factor of the covariance of estimate ``e`` (``EdgeEstimate``) of edges.csv
         ``kind``: its gap's scale, the gap counted in frames taken."""
-        return gap_scale(self.noise_model, self._pos[e.j] - self._pos[e.i], self.cfg.covariance, kind)
+        return gap_scale(self.noise_model, self._pos[e.j] - self._pos[e.i], self.cfg.covariance, kind,
+                         e.diag.mixed_moments)
 
 
 def teacher_edges(estimates: list, teacher: OnlineTeacher, kinds: dict[tuple[int, int], str] | None = None) -> list[Edge]:

@@ -399,7 +399,7 @@ def _edge_rows(edges: list[EdgeEstimate], ts: dict[int, float], kinds: dict[tupl
         "matches": e.matches, "inliers": e.inliers, "inlier_ratio": float(e.inlier_ratio),
         "rmse_px": float(e.rmse_px), "trans_m": float(e.diag.trans_m), "rot_deg": float(e.diag.rot_deg),
         **_dense_cells(e), "path": e.diag.path, "kind": kinds.get((e.i, e.j), "window"),
-        "cov_scale": scale.get((e.i, e.j), 1.0),
+        "cov_scale": scale.get((e.i, e.j), 1.0), "mixed_moments": int(e.diag.mixed_moments),
     } for e in edges]
 
 
@@ -502,6 +502,13 @@ def _gap(seq: Sequence, e: EdgeEstimate) -> int:
     return int(np.searchsorted(ids, e.j) - np.searchsorted(ids, e.i))
 
 
+def cov_scales(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict[tuple[int, int], float]:
+    """Each edge's covariance factor in edges.g2o (edges.csv's ``cov_scale``:
+    :func:`teacher.covariance_model.gap_scale`), by (i, j)."""
+    return {(e.i, e.j): gap_scale(seq.sensor.noise_model, _gap(seq, e), cfg.covariance, run.kinds.get((e.i, e.j), "window"),
+                                  e.diag.mixed_moments) for e in run.edges}
+
+
 def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path, extra: dict,
                   fingerprint: Fingerprint | None = None) -> dict:
     """Write every output file atomically; then ``fingerprint.json``, and ``report.json``
@@ -510,8 +517,7 @@ def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path,
     frames = run.frames or seq  # a skipped frame has no pose (teacher.skips)
     ids, times = frames.ids(), frames.times()
     ts = {int(f): float(t) for f, t in zip(ids, times)}
-    scale = {(e.i, e.j): gap_scale(seq.sensor.noise_model, _gap(seq, e), cfg.covariance, run.kinds.get((e.i, e.j), "window"))
-             for e in run.edges}
+    scale = cov_scales(seq, run, cfg)
     good = [Edge(e.i, e.j, e.T_i_j, e.cov * scale[e.i, e.j]) for e in run.edges if e.ok]
     write_g2o(out / "edges.g2o", good, {int(f): T for f, T in zip(ids, run.poses)})
     write_edges_csv(out / "edges.csv", _edge_rows(run.edges, ts, run.kinds, scale))

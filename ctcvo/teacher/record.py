@@ -50,6 +50,11 @@ class EdgeDiagnostics:
     conditioning: float | None = None
     error: str | None = None
     dense: DenseOutcome | None = None
+    mixed_moments: bool = False
+    """A longer window edge into or out of a frame whose colour and depth show different
+    moments (one stream's image repeats an earlier frame's): its keypoints belong to one
+    moment, its depth and the ground truth to the other (the covariance model's
+    ``MIXED_MOMENTS_SCALES``)."""
 
 
 @dataclass

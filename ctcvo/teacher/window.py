@@ -62,6 +62,7 @@ class _Entry:
     link: NDArray[np.int64]  # keypoint of this frame -> keypoint in the newest frame (-1: lost)
     T_k_cur: NDArray[np.float64]  # chained gap-1 motion from this frame to the newest
     since: float  # the earliest moment its images show (s; before its timestamp when one repeats)
+    mixed: bool  # its colour and depth show different moments (its longer edges' ``diag.mixed_moments``)
 
 
 class EdgeWindow:
@@ -268,18 +269,21 @@ class EdgeWindow:
         self._pending = None
         cfg, intr = self.cfg, self.intr
         edges: list[EdgeEstimate] = []
+        mixed = self._moments[0] != self._moments[1]
         if e is not None:
             for w in list(self.entries)[:-1]:  # gaps >= 2
                 if not self._starts_inside(w.pos):
                     continue
                 tracks = np.flatnonzero(w.link >= 0)
                 tracks = np.stack([tracks, w.link[tracks]], axis=1)
-                edges.append(estimate_edge(w.frame_id, frame_id, w.feats, fk, intr, cfg, timestamp - w.timestamp,
-                                           w.T_k_cur.copy(), tracks, span=timestamp - w.since))
+                x = estimate_edge(w.frame_id, frame_id, w.feats, fk, intr, cfg, timestamp - w.timestamp,
+                                  w.T_k_cur.copy(), tracks, span=timestamp - w.since)
+                x.diag.mixed_moments = w.mixed or mixed
+                edges.append(x)
             if e.inlier_points is None:
                 e.inlier_pairs = None  # only needed for the tracks above
         self.entries.append(_Entry(pos, int(frame_id), timestamp, fk, np.arange(len(fk.uv)), np.eye(4),
-                                   min(self._moments)))
+                                   min(self._moments), mixed))
         while self.entries and pos - self.entries[0].pos >= cfg.gaps:
             self.entries.popleft()
         for x in edges:
