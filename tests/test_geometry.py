@@ -96,6 +96,22 @@ def test_log_of_equal_poses_is_zero() -> None:
     np.testing.assert_array_equal(geo.se3_exp(np.zeros(6)), np.eye(4))
 
 
+def test_one_transforms_log_is_the_batchs_and_non_finite_input_gives_nan() -> None:
+    """se3_log of one transform (written in scalars) agrees with the batch code on each of a
+    batch, 150 degrees and beyond included; a non-finite twist or transform gives NaN, not an
+    error."""
+    rng = np.random.default_rng(RNG_SEED)
+    Ts = np.stack([geo.se3_exp(_random_xi(rng, a)) for a in (0.0, 1e-6, 1e-3, 0.5, 2.0, 2.7, 3.1) for _ in range(3)])
+    batch = geo.se3_log(Ts)
+    for T, want in zip(Ts, batch):
+        np.testing.assert_allclose(geo.se3_log(T), want, rtol=0, atol=1e-13)
+    for bad in (np.inf, np.nan):
+        assert np.isnan(geo.se3_exp([0, 0, 0, bad, 0, 0])[:3]).all()
+        T = np.eye(4)
+        T[0, 3] = T[1, 1] = bad
+        assert np.isnan(geo.se3_log(T)).any()
+
+
 def test_small_angle_series_continuity() -> None:
     """The series branch (< 1e-4 rad) and the closed form agree across the switch."""
     rng = np.random.default_rng(RNG_SEED)

@@ -189,6 +189,8 @@ def se3_exp(xi: ArrayLike) -> Mat4:
     overhead on 3x3 blocks was most of their cost (16 -> 4 us a call)."""
     v0, v1, v2, x, y, z = np.asarray(xi, dtype=np.float64).reshape(6).tolist()
     theta = math.sqrt(x * x + y * y + z * z)
+    if math.isinf(theta):  # NaN throughout, as NumPy's sin gives (math.sin refuses infinity)
+        theta = math.nan
     # Rodrigues: R = I + a W + b W^2 with a = sin(t)/t, b = (1 - cos t)/t^2 (series near 0);
     # V = I + b W + c W^2; W = hat(w), W^2 = w w^T - theta^2 I
     a = 1.0 - theta * theta / 6.0 if theta < _SMALL_ANGLE else math.sin(theta) / theta
