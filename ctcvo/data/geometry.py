@@ -186,7 +186,7 @@ def se3_exp(xi: ArrayLike) -> Mat4:
     """Exponential map of ``xi = (v, w)`` (project order) to a 4x4 transform.
 
     Written out in scalars: the teacher takes ~60 of these per edge, and NumPy's per-call
-    overhead on 3x3 blocks was most of their cost (16 -> 4 us a call)."""
+    overhead on 3x3 blocks was most of their cost (16 -> 5 us a call)."""
     v0, v1, v2, x, y, z = np.asarray(xi, dtype=np.float64).reshape(6).tolist()
     theta = math.sqrt(x * x + y * y + z * z)
     if math.isinf(theta):  # NaN throughout, as NumPy's sin gives (math.sin refuses infinity)
@@ -243,7 +243,7 @@ def se3_log(T: ArrayLike) -> NDArray[np.float64]:
 
 def _se3_log_one(T: NDArray[np.float64]) -> NDArray[np.float64] | None:
     """:func:`se3_log` of one transform, the same formulas in scalars (the batch code's NumPy
-    overhead was most of a single call's cost: 43 -> 8 us); None from 150 degrees on (scipy's
+    overhead was most of a single call's cost: 43 -> 2 us); None from 150 degrees on (scipy's
     branch)."""
     (r00, r01, r02, t0), (r10, r11, r12, t1), (r20, r21, r22, t2) = T[:3].tolist()
     sx, sy, sz = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)
