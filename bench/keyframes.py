@@ -41,7 +41,7 @@ from ctcvo.data.undistort import with_camera
 from ctcvo.posegraph.graph import solve
 from ctcvo.teacher import covariance_model, keyframes, loops
 from ctcvo.teacher.config import DEFAULT, colour_camera_for
-from ctcvo.teacher.generate import features_of, run_sequence
+from ctcvo.teacher.generate import cov_scales, features_of, run_sequence
 from ctcvo.teacher.observations import merged, sightings
 
 VALIDATION = [f"{record.REDKITCHEN}:0:450", f"{record.REDKITCHEN}:350:450", f"{record.TUM_TEDDY}:0:200",
@@ -94,12 +94,10 @@ def figures(seq, edges, poses, kinds: dict, observations=None) -> dict:
     """Graph ATE and RPE of a run's good edges (calibrated covariances; with ``observations``,
     the bundle adjustment), the edges by kind and the keyframe edges' median NEES over
     chi-square(6)'s median (1: consistent)."""
-    pos = {int(k): p for p, k in enumerate(seq.ids())}
     ok = [e for e in edges if e.ok]
     kind = [kinds.get((e.i, e.j), "window") for e in ok]
-    good = [Edge(e.i, e.j, e.T_i_j, e.cov * covariance_model.gap_scale(seq.sensor.noise_model, pos[e.j] - pos[e.i], kind=k,
-                                                                          mixed=e.diag.mixed_moments))
-            for e, k in zip(ok, kind)]
+    scale = cov_scales(seq, ok, kinds)
+    good = [Edge(e.i, e.j, e.T_i_j, e.cov * scale[e.i, e.j]) for e in ok]
     kf = [g for g, k in zip(good, kind) if k == "keyframe"]
     nees = mahalanobis2(groundtruth_residuals(kf, seq.groundtruth(), seq.ids()), np.array([g.cov for g in kf]))
     gt = Trajectory(seq.times(), seq.groundtruth())

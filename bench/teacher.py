@@ -119,7 +119,7 @@ def _teacher_run(seq) -> tuple:
     run = run_sequence(seq, cfg, progress=False)
     cv2.setNumThreads(os.cpu_count() or 1)
     t0 = time.perf_counter()
-    scale = cov_scales(seq, run, cfg)
+    scale = cov_scales(seq, run.edges, run.kinds, cfg.covariance)
     edges = [Edge(e.i, e.j, e.T_i_j, e.cov * scale[e.i, e.j]) for e in run.edges if e.ok]  # as edges.g2o holds them
     graph = solve(seq.ids(), edges, run.poses, observations=run.observations).poses
     return run, graph, time.perf_counter() - t0

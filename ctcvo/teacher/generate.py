@@ -502,11 +502,12 @@ def _gap(seq: Sequence, e: EdgeEstimate) -> int:
     return int(np.searchsorted(ids, e.j) - np.searchsorted(ids, e.i))
 
 
-def cov_scales(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict[tuple[int, int], float]:
+def cov_scales(seq: Sequence, edges: list[EdgeEstimate], kinds: dict[tuple[int, int], str],
+               covariance: str = "calibrated") -> dict[tuple[int, int], float]:
     """Each edge's covariance factor in edges.g2o (edges.csv's ``cov_scale``:
-    :func:`teacher.covariance_model.gap_scale`), by (i, j)."""
-    return {(e.i, e.j): gap_scale(seq.sensor.noise_model, _gap(seq, e), cfg.covariance, run.kinds.get((e.i, e.j), "window"),
-                                  e.diag.mixed_moments) for e in run.edges}
+    :func:`teacher.covariance_model.gap_scale`; ``kinds`` as ``TeacherRun.kinds``), by (i, j)."""
+    return {(e.i, e.j): gap_scale(seq.sensor.noise_model, _gap(seq, e), covariance, kinds.get((e.i, e.j), "window"),
+                                  e.diag.mixed_moments) for e in edges}
 
 
 def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path, extra: dict,
@@ -517,7 +518,7 @@ def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path,
     frames = run.frames or seq  # a skipped frame has no pose (teacher.skips)
     ids, times = frames.ids(), frames.times()
     ts = {int(f): float(t) for f, t in zip(ids, times)}
-    scale = cov_scales(seq, run, cfg)
+    scale = cov_scales(seq, run.edges, run.kinds, cfg.covariance)
     good = [Edge(e.i, e.j, e.T_i_j, e.cov * scale[e.i, e.j]) for e in run.edges if e.ok]
     write_g2o(out / "edges.g2o", good, {int(f): T for f, T in zip(ids, run.poses)})
     write_edges_csv(out / "edges.csv", _edge_rows(run.edges, ts, run.kinds, scale))
