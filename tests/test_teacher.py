@@ -1149,6 +1149,22 @@ def test_best_candidates_are_a_stable_sorts():
         np.testing.assert_array_equal(_best_of(cj, qi, d, n, js), back[js])
 
 
+def test_hamming_counts_every_differing_bit():
+    """Guided matching's descriptor distance (:func:`teacher.matching._hamming`) is the count of
+    differing bits, 0 to 256: against a bit-by-bit count of random, equal and complementary
+    32-byte descriptors (256 overflows the per-word uint8 counts if they were added as such)."""
+    from ctcvo.teacher.matching import _hamming
+
+    rng = np.random.default_rng(5)
+    a = rng.integers(0, 256, (500, 32), dtype=np.uint8)
+    b = rng.integers(0, 256, (500, 32), dtype=np.uint8)
+    b[0], b[1] = a[0], ~a[1]
+    want = np.unpackbits(a ^ b, axis=1).sum(axis=1)
+    got = _hamming(a.view(np.uint64).copy(), b.view(np.uint64))
+    np.testing.assert_array_equal(got, want)
+    assert got.dtype == np.int64 and got[0] == 0 and got[1] == 256
+
+
 def _reference_point_to_plane_covariance(T, di, dj, stride):
     """:func:`teacher.covariance.point_to_plane_covariance` written plainly (its docstring's
     recipe): j's points moved into i, projected and rounded to i's pixel, paired with i's

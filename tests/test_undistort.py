@@ -53,6 +53,21 @@ def test_depth_is_never_blended_and_past_the_border_is_invalid() -> None:
     assert out[0, 0] == 0.0 and out[FR1.height // 2, FR1.width // 2] == 3.0
 
 
+@pytest.mark.parametrize("coeffs", [TUM_DISTORTION["fr1"], TUM_DISTORTION["fr2"], (0.4, 0.2, 0.003, -0.002, 0.05)])
+def test_depth_takes_the_pixels_opencvs_nearest_remap_takes(coeffs: tuple[float, ...]) -> None:
+    """The depth's gather (:meth:`Undistortion.depth`) equals ``cv2.remap``'s nearest-pixel
+    interpolation bit for bit, 0 past the border included, for the fr1 / fr2 lenses and a
+    strong pincushion one whose corners look past the raw image."""
+    und = Undistortion(FR1, coeffs)
+    depth = np.random.default_rng(2).uniform(0.3, 6.0, (FR1.height, FR1.width)).astype(np.float32)
+    want = cv2.remap(depth, *und._maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    got = und.depth(depth)
+    assert got.dtype == np.float32 and got.shape == depth.shape
+    np.testing.assert_array_equal(got, want)
+    if coeffs[0] > 0.3:
+        assert (got == 0).sum() > 1000  # the strong lens's corners are past the border
+
+
 def test_no_distortion_is_none_and_bad_coefficients_are_errors() -> None:
     assert undistortion(FR1, ()) is None
     assert undistortion(FR1, (0.0, 0.0, 0.0, 0.0, 0.0)) is None

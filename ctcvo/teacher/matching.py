@@ -45,9 +45,7 @@ def match(fi: FrameFeatures, fj: FrameFeatures,
     if len(near) == 0:
         return np.zeros((0, 2), np.int64)
     qi, cj = src[near["i"]], near["j"].astype(np.int64)
-    x = np.take(fi.desc64, qi, axis=0)  # np.take: 4 times faster than fancy indexing here
-    x ^= np.take(fj.desc64, cj, axis=0)
-    d = np.add.reduce(np.bitwise_count(x), axis=1, dtype=np.int64)
+    d = _hamming(np.take(fi.desc64, qi, axis=0), np.take(fj.desc64, cj, axis=0))  # np.take: 4x fancy indexing
     # pairs at _IRRELEVANT_HAMMING or more change no result (see there): most candidates are
     # unrelated keypoints (~128 bits apart), so the search below sees a fraction of them
     near_enough = d < _IRRELEVANT_HAMMING
@@ -58,6 +56,18 @@ def match(fi: FrameFeatures, fj: FrameFeatures,
     ok = (best_d <= MAX_HAMMING) & (best_d < RATIO * second)
     ok &= _best_of(cj, qi, d, len(fj.desc), best_j) == best_i  # mutual: i is its j's best
     return np.stack([best_i[ok], best_j[ok]], axis=1)
+
+
+def _hamming(a: NDArray[np.uint64], b: NDArray[np.uint64]) -> NDArray[np.int64]:
+    """The bits (0-256) in which rows of the (M, 4) uint64 descriptor views ``a`` and ``b``
+    differ (``a`` is overwritten): the words' counts added column by column, 3 times faster
+    than a sum along the rows (guided matching's ~9,000 candidates)."""
+    a ^= b
+    count = np.bitwise_count(a)
+    d = count[:, 0].astype(np.int64)
+    for w in range(1, count.shape[1]):
+        d += count[:, w]
+    return d
 
 
 def _first_min(group: NDArray[np.int64], key: NDArray[np.int64], n: int) -> NDArray[np.int64]:
@@ -118,7 +128,7 @@ def match_wide(fi: FrameFeatures, fj: FrameFeatures,
     if len(near) == 0:
         return np.zeros((0, 2), np.int64)
     qi, cj = src[near["i"]], near["j"].astype(np.int64)
-    d = np.bitwise_count(fi.desc64[qi] ^ fj.desc64[cj]).sum(axis=1, dtype=np.int64)
+    d = _hamming(np.take(fi.desc64, qi, axis=0), np.take(fj.desc64, cj, axis=0))
     best_i, best_j, best_d, _ = _best_two(qi, cj, d, len(fi.desc))
     ok = (best_d <= MAX_HAMMING) & (_best_of(cj, qi, d, len(fj.desc), best_j) == best_i)
     return np.stack([best_i[ok], best_j[ok]], axis=1)
