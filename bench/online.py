@@ -26,6 +26,15 @@ For each scene, on the same frames:
         --keyframes both --name online-low-latency
     OMP_NUM_THREADS=1 .venv/bin/python -m bench.online --frames 0:150 --keyframes both --name online-keyframes
 
+The ``online-learner`` record's checkpoint (its fps do not depend on the weights: the demo
+preset's network after 6 steps), trained first:
+
+    .venv/bin/python -m ctcvo learner fit --scene ../shared/data/7scenes/redkitchen/seq-sample --frames 0:150 \
+        --variant lstm-gt --preset demo --steps 6 --pretrain-steps 3 --eval-every 2 --warmup-steps 0 \
+        --no-calibration --out runs/bench/online-learner-checkpoint
+    OMP_NUM_THREADS=1 .venv/bin/python -m bench.online --scenes ../shared/data/7scenes/redkitchen/seq-sample \
+        --frames 0:150 --checkpoint runs/bench/online-learner-checkpoint/checkpoint.pt --name online-learner
+
 ``--keyframes`` sets the online teacher's keyframe pass (``TeacherConfig.keyframes``, a helper
 thread in ``ctcvo online``); ``both`` gives a row with it and one without, one after the other.
 
