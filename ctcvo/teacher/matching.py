@@ -61,7 +61,7 @@ def match(fi: FrameFeatures, fj: FrameFeatures,
 def _hamming(a: NDArray[np.uint64], b: NDArray[np.uint64]) -> NDArray[np.int64]:
     """The bits (0-256) in which rows of the (M, 4) uint64 descriptor views ``a`` and ``b``
     differ (``a`` is overwritten): the words' counts added column by column, 3 times faster
-    than a sum along the rows (guided matching's ~9,000 candidates)."""
+    than a sum along the rows (0.069 -> 0.023 ms for 3,000 candidates, fr1/xyz)."""
     a ^= b
     count = np.bitwise_count(a)
     d = count[:, 0].astype(np.int64)
