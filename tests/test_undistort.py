@@ -66,6 +66,8 @@ def test_depth_takes_the_pixels_opencvs_nearest_remap_takes(coeffs: tuple[float,
     np.testing.assert_array_equal(got, want)
     if coeffs[0] > 0.3:
         assert (got == 0).sum() > 1000  # the strong lens's corners are past the border
+    with pytest.raises(DataError, match="depth image is"):
+        und.depth(depth[:-1])
 
 
 def test_no_distortion_is_none_and_bad_coefficients_are_errors() -> None:

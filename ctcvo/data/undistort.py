@@ -63,7 +63,9 @@ class Undistortion:
     def depth(self, depth: NDArray[np.float32]) -> NDArray[np.float32]:
         """(H, W) raw depth, metres -> undistorted (nearest pixel; 0 past the edge): the
         pixels ``cv2.remap`` would take (:func:`_nearest_sources`), gathered 2.5 times faster."""
-        h, w = depth.shape
+        h, w = self.intrinsics.height, self.intrinsics.width
+        if depth.shape != (h, w):
+            raise DataError(f"depth image is {depth.shape[::-1]} pixels, the camera's {(w, h)}")
         padded = np.empty(h * w + 1, depth.dtype)
         padded[:-1] = depth.reshape(-1)
         padded[-1] = 0  # what the border gives
