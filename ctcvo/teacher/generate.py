@@ -506,8 +506,10 @@ def cov_scales(seq: Sequence, edges: list[EdgeEstimate], kinds: dict[tuple[int, 
                covariance: str = "calibrated") -> dict[tuple[int, int], float]:
     """Each edge's covariance factor in edges.g2o (edges.csv's ``cov_scale``:
     :func:`teacher.covariance_model.gap_scale`; ``kinds`` as ``TeacherRun.kinds``), by (i, j)."""
-    return {(e.i, e.j): gap_scale(seq.sensor.noise_model, _gap(seq, e), covariance, kinds.get((e.i, e.j), "window"),
-                                  e.diag.mixed_moments) for e in edges}
+    ids = seq.ids()  # each edge's gap in positions, as _gap counts it, for all edges at once
+    gaps = (np.searchsorted(ids, [e.j for e in edges]) - np.searchsorted(ids, [e.i for e in edges])).tolist()
+    return {(e.i, e.j): gap_scale(seq.sensor.noise_model, g, covariance, kinds.get((e.i, e.j), "window"),
+                                  e.diag.mixed_moments) for e, g in zip(edges, gaps)}
 
 
 def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path, extra: dict,
