@@ -243,6 +243,22 @@ def dense_gap1_table(records: dict[str, dict]) -> list[str]:
     return markdown(["range"] + variants, rows) + ["", provenance(recs)]
 
 
+def depth_bias_table(records: dict[str, dict]) -> list[str]:
+    """bench.depth_bias: per synthetic room, the chain's and the teacher graph's ATE and the
+    graph's 1 s RPE (mm), as rendered -> with the true depth bias pattern removed."""
+    recs = select(records, "depth-bias")
+    if not recs:
+        return missing("python -m bench.depth_bias --camera CAM.json")
+    split = {"lab": "validation", "office": "training", "kitchen": "test"}
+    rec, rows = next(iter(recs.values())), []
+    for room, r in rec["figures"]["rooms"].items():
+        a, b = r["as rendered"], r["bias removed"]
+        rows.append([f"{room} ({split.get(room, 'training')})", f"{mm(a['chain_ate_m'])} -> {mm(b['chain_ate_m'])}",
+                     f"{mm(a['ate_m'])} -> {mm(b['ate_m'])}", f"{mm(a['rpe_1s_m'])} -> {mm(b['rpe_1s_m'])}"])
+    head = [f"room, frames {rec['config']['frames']}", "chain ATE mm", "teacher graph ATE mm", "graph 1 s RPE mm"]
+    return markdown(head, rows) + ["", provenance(recs)]
+
+
 def drift_table(records: dict[str, dict]) -> list[str]:
     """bench.drift: per validation range and method, the translation / rotation RPE at each
     time scale and the rotation's scale at 1 s."""
@@ -467,7 +483,7 @@ def results_table(records: dict[str, dict]) -> list[str]:
 TABLES: dict[str, Callable[[dict[str, dict]], list[str]]] = {
     "teacher": teacher_table, "online": online_table, "online-validation": online_validation_table,
     "posegraph": posegraph_table, "keyframes": keyframes_table, "dense-gap1": dense_gap1_table,
-    "drift": drift_table,
+    "depth-bias": depth_bias_table, "drift": drift_table,
     "learner": learner_table, "teacher-covariance": covariance_table,
     "render": render_table, "synthetic-realism": realism_table, "ablation": ablation_table,
     "teacher-noise": noise_table, "orbslam3-covariance": orbslam3_covariance_table, "demo": demo_table,
