@@ -54,7 +54,7 @@ class DebiasedSequence(SevenScenesSequence):
 
 
 def debiased(seq: SevenScenesSequence, room: str) -> SevenScenesSequence:
-    """``seq`` (rendered room ``room``, not undistorted yet) with its true bias pattern removed."""
+    """``seq`` (rendered room ``room``, not undistorted yet) with its true bias pattern removed, in place."""
     cfg = resolve_preset(room)
     bias = depth_bias_field(cfg.sensor, (cfg.height, cfg.width), cfg.seed)
     if bias is None:
