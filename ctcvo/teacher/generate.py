@@ -433,7 +433,8 @@ def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
     """``report.json`` content (keys documented in docs/formats.md)."""
     n = len(seq)
     status = Counter(e.status for e in run.edges)
-    gap1_failed = [e for e in run.edges if not e.ok and _gap(seq, e) == 1]
+    gap1 = [e for e, g in zip(run.edges, _gaps(seq, run.edges)) if g == 1]
+    gap1_failed = [e for e in gap1 if not e.ok]
     rep: dict = {
         "sequence": seq.name,
         "frames": n,
@@ -447,8 +448,7 @@ def build_report(seq: Sequence, run: TeacherRun, cfg: TeacherConfig) -> dict:
         "bridges": run.bridges,
         "constant_velocity_bridges": sum(1 for b in run.bridges if b["method"] == "constant velocity"),
         "edge_paths": dict(sorted(Counter(e.diag.path for e in run.edges).items())),
-        "gap1_edge_paths": dict(sorted(Counter(e.diag.path for e in run.edges
-                                               if _gap(seq, e) == 1).items())),
+        "gap1_edge_paths": dict(sorted(Counter(e.diag.path for e in gap1).items())),
         "dense_method": dense_method_for(seq.sensor, cfg) if cfg.dense else "none",
         "fps": n / run.seconds if run.seconds > 0 else float("nan"),
         "seconds": run.seconds,
@@ -497,19 +497,19 @@ def _pooled(by_gap: dict[str, dict[str, float]]) -> dict[str, float]:
             "rot_rmse_deg": float(np.sqrt(np.sum(n * r ** 2) / n.sum()))}
 
 
-def _gap(seq: Sequence, e: EdgeEstimate) -> int:
+def _gaps(seq: Sequence, edges: list[EdgeEstimate]) -> list[int]:
+    """Each edge's gap in positions of ``seq`` (frames apart in the sequence read, not in ids),
+    for all edges at once: the frame ids read once and searched twice."""
     ids = seq.ids()
-    return int(np.searchsorted(ids, e.j) - np.searchsorted(ids, e.i))
+    return (np.searchsorted(ids, [e.j for e in edges]) - np.searchsorted(ids, [e.i for e in edges])).tolist()
 
 
 def cov_scales(seq: Sequence, edges: list[EdgeEstimate], kinds: dict[tuple[int, int], str],
                covariance: str = "calibrated") -> dict[tuple[int, int], float]:
     """Each edge's covariance factor in edges.g2o (edges.csv's ``cov_scale``:
     :func:`teacher.covariance_model.gap_scale`; ``kinds`` as ``TeacherRun.kinds``), by (i, j)."""
-    ids = seq.ids()  # each edge's gap in positions, as _gap counts it, for all edges at once
-    gaps = (np.searchsorted(ids, [e.j for e in edges]) - np.searchsorted(ids, [e.i for e in edges])).tolist()
     return {(e.i, e.j): gap_scale(seq.sensor.noise_model, g, covariance, kinds.get((e.i, e.j), "window"),
-                                  e.diag.mixed_moments) for e, g in zip(edges, gaps)}
+                                  e.diag.mixed_moments) for e, g in zip(edges, _gaps(seq, edges))}
 
 
 def write_outputs(seq: Sequence, run: TeacherRun, cfg: TeacherConfig, out: Path, extra: dict,
