@@ -647,6 +647,10 @@ def test_cli_wrong_checkpoint_file(fixture_seq, tmp_path, capsys) -> None:
     torch.save({"not": "a checkpoint"}, bad)
     assert cli.main(["predict", "--checkpoint", str(bad), "--scene", str(seq)]) == 1
     assert "is not a learner checkpoint" in capsys.readouterr().err
+    bad.write_bytes(b"not a pickle at all\n" * 10)  # a corrupt file: one line, no traceback
+    assert cli.main(["predict", "--checkpoint", str(bad), "--scene", str(seq)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "is not a readable learner checkpoint" in err and err.count("\n") == 1
 
 
 # ----------------------------------------------------------------------------------

@@ -13,7 +13,7 @@ import sys
 import textwrap
 from collections.abc import Callable
 
-from ctcvo.data.errors import VOError
+from ctcvo.data.errors import VOError, one_line
 from ctcvo.data.io import setup_logging
 
 
@@ -66,7 +66,7 @@ def run(args: argparse.Namespace, body: Callable[[argparse.Namespace], int | Non
     try:
         return body(args) or 0
     except VOError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {one_line(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(f"error: {interrupted}", file=sys.stderr)

@@ -10,6 +10,11 @@ class VOError(Exception):
     """
 
 
+def one_line(exc: BaseException) -> str:
+    """``exc``'s message on one line (a wrapped library message may span several)."""
+    return " ".join(str(exc).split())
+
+
 class DataError(VOError):
     """A dataset file or folder is missing, corrupt or malformed."""
 

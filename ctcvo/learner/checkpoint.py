@@ -39,7 +39,9 @@ def load_checkpoint(path: Path) -> dict:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - corrupt pickles raise many types
-        raise DataError(f"cannot read checkpoint {path}: {exc}") from None
+        # torch's own text runs to many lines and advises weights_only=False, which would run
+        # whatever the file holds: its type is all the message keeps
+        raise DataError(f"{path} is not a readable learner checkpoint ({type(exc).__name__})") from None
     if not isinstance(state, dict) or "model" not in state or "format" not in state:
         raise DataError(f"{path} is not a learner checkpoint")
     if state["format"] != CHECKPOINT_FORMAT:

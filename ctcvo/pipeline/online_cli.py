@@ -10,7 +10,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ctcvo.data.cli import HelpFormatter
-from ctcvo.data.errors import ConfigError, VOError
+from ctcvo.data.errors import ConfigError, VOError, one_line
 from ctcvo.data.io import setup_logging
 from ctcvo.data.scenes import add_topic_options, scene_with_topics
 from ctcvo.learner.config import PredictConfig
@@ -99,7 +99,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                      checkpoint=args.checkpoint, predict_cfg=pcfg if args.checkpoint else None, cfg=ocfg,
                      device=args.device, overwrite=args.overwrite, camera=args.camera)
     except VOError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {one_line(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:  # outside the frame loop (opening, writing)
         print("error: interrupted", file=sys.stderr)
