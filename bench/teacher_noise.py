@@ -57,7 +57,7 @@ import numpy as np
 
 from bench import record
 from ctcvo.data import geometry as geo
-from ctcvo.data.errors import VOError
+from ctcvo.data.errors import VOError, one_line
 from ctcvo.data.formats import Edge, Trajectory, read_edges_csv, read_g2o, read_tum, write_edges_csv, write_g2o, write_tum
 from ctcvo.data.io import ensure_dir, git_revision, write_json, write_text
 from ctcvo.data.metrics import BASELINES, baseline_reports, se3_l2_errors, trajectory_report
@@ -376,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
             print(tables(res))
             rec.finish({k: res[k] for k in ("ranges", "baselines", "teachers", "learners", "crossover")})
     except VOError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {one_line(exc)}", file=sys.stderr)
         return 1
     return 0
 
