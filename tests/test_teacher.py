@@ -757,7 +757,8 @@ def test_stress_presets_render_their_stress():
 def test_information_fusion_weighs_by_covariance(office_clean):
     """Information fusion: a sparse estimate with a huge covariance gives way to
     the dense alignment (as ``blend = 1`` would), one with a tiny covariance stays put,
-    and one in between lands in between."""
+    and one in between lands in between; the edge keeps the sparse covariance (the one
+    edges.g2o documents and the per-gap scales were fitted to), not the fused one."""
     from ctcvo.teacher.dense import dense_refine
     from ctcvo.teacher.maps import dense_maps
 
@@ -778,6 +779,7 @@ def test_information_fusion_weighs_by_covariance(office_clean):
         res = EdgeEstimate(2, 4, "ok", T_i_j=T0.copy(), cov=cov)
         dense_refine(res, *maps, cfg)
         moved[name] = geo.se3_log(geo.inv_T(T0) @ res.T_i_j)
+        np.testing.assert_array_equal(res.cov, cov)
     assert np.linalg.norm(full) > 4e-3
     np.testing.assert_allclose(moved["huge"], full, atol=1e-6)
     assert np.linalg.norm(moved["tiny"]) < 1e-5

@@ -131,7 +131,10 @@ def dense_refine(res: EdgeEstimate, di: DenseMaps, dj: DenseMaps, cfg: TeacherCo
     (a sliding or diverging alignment, e.g. on one plane). ``res.diag.dense`` records
     the outcome.
     The two estimates are weighed by their information (the sparse refinement's covariance
-    and the point-to-plane one times ``DENSE_COV_SCALE``); without a covariance the pose moves
+    and the point-to-plane one times ``DENSE_COV_SCALE``); the pose moves, ``res.cov`` stays
+    the sparse refinement's (the fused one is only the hybrid stage's prior: the per-gap
+    scales of :mod:`teacher.covariance_model` are fitted to the sparse one, and the fused one,
+    refitted, weighed the pose graph worse on the validation ranges); without a covariance the pose moves
     ``DENSE_BLEND`` of the way; ``blend`` overrides both (1 for a frame whose colour and depth
     were taken at different times, see ``cfg.dense_on_stale``).
 
