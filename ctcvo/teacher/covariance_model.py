@@ -1,9 +1,9 @@
 """Per-gap scales that make the teacher's covariances match its real errors.
 
-The covariance the estimator computes (the keypoint refinement's, :mod:`teacher.sparse`, which
-the dense step leaves as it is; a dense fallback's point-to-plane one, :mod:`teacher.covariance`) treats
-every pixel's error as independent, so it is far too small: on
-real Kinect v1 recordings the median NEES/6 of the raw covariances against ground truth is
+The covariance the estimator computes (the keypoint refinement's, :mod:`teacher.sparse`,
+which the dense step leaves as it is; a dense fallback's point-to-plane one,
+:mod:`teacher.covariance`) treats every pixel's error as independent, so it is far too small:
+on real Kinect v1 recordings the median NEES/6 of the raw covariances against ground truth is
 about 50-200, so a solver that takes ``edges.g2o`` as it is trusts the edges 50-200x too
 much. ``edges.g2o`` therefore carries the raw covariance times a scale per frame gap and
 sensor noise model (:attr:`data.sensor.Sensor.noise_model`), fitted against ground truth
