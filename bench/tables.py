@@ -375,16 +375,27 @@ def ablation_table(records: dict[str, dict]) -> list[str]:
 
 
 def noise_table(records: dict[str, dict]) -> list[str]:
+    """Each learner beside its teacher's own labels and, in the header, zero motion and constant
+    velocity: se(3) L2 mean on the held-out range and on the training range itself (transductive)."""
     recs = select(records, "teacher-noise")
     if not recs:
         return missing("python -m bench.teacher_noise run ... (its docstring)")
     rows = []
     for rec in recs.values():
         f = rec["figures"]
-        for key, x in f["learners"].items():
-            t = f["teachers"][x["teacher"]]["held-out"]["se3_l2_mean"]
-            rows.append([key, num(t, 5), num(x["held-out"]["se3_l2_mean"], 5), num(x["held-out"]["vs_teacher"], 2)])
-    head = ["teacher / variant", "teacher se(3) L2 (held out)", "learner se(3) L2", "learner / teacher"]
+        names = [n for n in ("held-out", "transductive") if n in f["ranges"]]
+        head = ["record", "teacher's labels", "learner"]  # the baselines are the record's (one record in practice)
+        for n in names:
+            b = f["baselines"][n]
+            head.append(f"{n} {f['ranges'][n]}: se(3) L2 (zero motion {num(b['zero motion']['se3_l2_mean'], 5)}, "
+                        f"constant velocity {num(b['constant velocity']['se3_l2_mean'], 5)})")
+            head.append("x teacher")
+        for x in f["learners"].values():
+            t = f["teachers"][x["teacher"]]
+            row = [rec["name"], f"{x['teacher']} ({' / '.join(num(t[n]['se3_l2_mean'], 5) for n in names)})", x["variant"]]
+            for n in names:
+                row += [num(x[n]["se3_l2_mean"], 5), num(x[n]["vs_teacher"], 2)] if n in x else ["-", "-"]
+            rows.append(row)
     return markdown(head, rows) + ["", provenance(recs)]
 
 

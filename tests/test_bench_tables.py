@@ -94,3 +94,22 @@ def test_online_validation_table_puts_each_setting_in_its_column():
     assert row.split(" | ")[1:] == ["11.0 / 10.0 / - / 12.0", "11.0 / 10.0 / - / 12.0", "140 / 30 / - / 20",
                                     "70 / 15 / - / 10 |"]
     assert "`val-a`" in lines[-1] and "`val-b`" in lines[-1]
+
+
+def test_noise_table_puts_each_learner_beside_its_teacher_and_the_baselines():
+    def err(x):
+        return {"se3_l2_mean": x}
+
+    fig = {"ranges": {"held-out": "450:600", "transductive": "0:450"},
+           "baselines": {n: {"zero motion": err(0.013), "constant velocity": err(0.011)} for n in ("held-out", "transductive")},
+           "teachers": {"noisy52": {"held-out": err(0.005), "transductive": err(0.0052)}},
+           "learners": {"noisy52/ctc": {"teacher": "noisy52", "variant": "ctc",
+                                        "held-out": {**err(0.008), "vs_teacher": 1.6},
+                                        "transductive": {**err(0.0039), "vs_teacher": 0.75}}}}
+    rec = {"teacher-noise": {"name": "teacher-noise", "revision": "abc1234", "date_utc": "2026-01-01T00:00:00Z",
+                             "machine": {"cpu_count": 2, "load_average_start": [1.0], "load_average_end": [2.0]},
+                             "figures": fig}}
+    lines = tables.noise_table(rec)
+    assert "held-out 450:600: se(3) L2 (zero motion 0.01300, constant velocity 0.01100)" in lines[0]
+    assert "transductive 0:450: se(3) L2 (zero motion 0.01300, constant velocity 0.01100)" in lines[0]
+    assert lines[2] == "| teacher-noise | noisy52 (0.00500 / 0.00520) | ctc | 0.00800 | 1.60 | 0.00390 | 0.75 |"
