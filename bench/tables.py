@@ -374,28 +374,32 @@ def ablation_table(records: dict[str, dict]) -> list[str]:
     return markdown(head, rows) + ["", provenance(recs)]
 
 
+def _noise_cell(r: dict, names: list[str], ratio: bool) -> str:
+    """se(3) L2 mean of a teacher-noise row on each range of ``names`` (with ``ratio``: its ratio to its teacher)."""
+    return " / ".join("-" if n not in r else num(r[n]["se3_l2_mean"], 5) +
+                      (f" ({num(r[n]['vs_teacher'], 2)}x)" if ratio else "") for n in names)
+
+
 def noise_table(records: dict[str, dict]) -> list[str]:
-    """Each learner beside its teacher's own labels and, in the header, zero motion and constant
-    velocity: se(3) L2 mean on the held-out range and on the training range itself (transductive)."""
+    """One row per teacher: its own labels' se(3) L2 mean, then each learner trained on them (its
+    ratio to the teacher), on the held-out range / on the training range itself (transductive);
+    the header gives zero motion's and constant velocity's on the same frames."""
     recs = select(records, "teacher-noise")
     if not recs:
         return missing("python -m bench.teacher_noise run ... (its docstring)")
-    rows = []
+    rows, head = [], []
     for rec in recs.values():
         f = rec["figures"]
         names = [n for n in ("held-out", "transductive") if n in f["ranges"]]
-        head = ["record", "teacher's labels", "learner"]  # the baselines are the record's (one record in practice)
-        for n in names:
-            b = f["baselines"][n]
-            head.append(f"{n} {f['ranges'][n]}: se(3) L2 (zero motion {num(b['zero motion']['se3_l2_mean'], 5)}, "
-                        f"constant velocity {num(b['constant velocity']['se3_l2_mean'], 5)})")
-            head.append("x teacher")
-        for x in f["learners"].values():
-            t = f["teachers"][x["teacher"]]
-            row = [rec["name"], f"{x['teacher']} ({' / '.join(num(t[n]['se3_l2_mean'], 5) for n in names)})", x["variant"]]
-            for n in names:
-                row += [num(x[n]["se3_l2_mean"], 5), num(x[n]["vs_teacher"], 2)] if n in x else ["-", "-"]
-            rows.append(row)
+        variants = list(dict.fromkeys(x["variant"] for x in f["learners"].values()))
+        base = ", ".join(b + " " + " / ".join(num(f["baselines"][n][b]["se3_l2_mean"], 5) for n in names)
+                         for b in ("zero motion", "constant velocity"))
+        frames = " / ".join(n + " " + f["ranges"][n] for n in names)
+        head = ["record", f"teacher's labels, {frames} ({base})"] + variants
+        for tname, t in f["teachers"].items():
+            by = {x["variant"]: x for x in f["learners"].values() if x["teacher"] == tname}
+            rows.append([rec["name"], f"{tname}: {_noise_cell(t, names, False)}"] +
+                        [_noise_cell(by[v], names, True) if v in by else "-" for v in variants])
     return markdown(head, rows) + ["", provenance(recs)]
 
 
