@@ -375,7 +375,8 @@ def ablation_table(records: dict[str, dict]) -> list[str]:
 
 
 def _noise_cell(r: dict, names: list[str], ratio: bool) -> str:
-    """se(3) L2 mean of a teacher-noise row on each range of ``names`` (with ``ratio``: its ratio to its teacher)."""
+    """se(3) L2 mean of a teacher-noise row on each range of ``names`` ("-" where it has none; with
+    ``ratio``, also its ratio to its teacher)."""
     return " / ".join("-" if n not in r else num(r[n]["se3_l2_mean"], 5) +
                       (f" ({num(r[n]['vs_teacher'], 2)}x)" if ratio else "") for n in names)
 
@@ -383,24 +384,24 @@ def _noise_cell(r: dict, names: list[str], ratio: bool) -> str:
 def noise_table(records: dict[str, dict]) -> list[str]:
     """One row per teacher: its own labels' se(3) L2 mean, then each learner trained on them (its
     ratio to the teacher), on the held-out range / on the training range itself (transductive);
-    the header gives zero motion's and constant velocity's on the same frames."""
+    under the table each record's ranges and zero motion's and constant velocity's errors there."""
     recs = select(records, "teacher-noise")
     if not recs:
         return missing("python -m bench.teacher_noise run ... (its docstring)")
-    rows, head = [], []
+    names = ["held-out", "transductive"]
+    variants = list(dict.fromkeys(x["variant"] for r in recs.values() for x in r["figures"]["learners"].values()))
+    rows, notes = [], []
     for rec in recs.values():
         f = rec["figures"]
-        names = [n for n in ("held-out", "transductive") if n in f["ranges"]]
-        variants = list(dict.fromkeys(x["variant"] for x in f["learners"].values()))
-        base = ", ".join(b + " " + " / ".join(num(f["baselines"][n][b]["se3_l2_mean"], 5) for n in names)
-                         for b in ("zero motion", "constant velocity"))
-        frames = " / ".join(n + " " + f["ranges"][n] for n in names)
-        head = ["record", f"teacher's labels, {frames} ({base})"] + variants
         for tname, t in f["teachers"].items():
             by = {x["variant"]: x for x in f["learners"].values() if x["teacher"] == tname}
             rows.append([rec["name"], f"{tname}: {_noise_cell(t, names, False)}"] +
                         [_noise_cell(by[v], names, True) if v in by else "-" for v in variants])
-    return markdown(head, rows) + ["", provenance(recs)]
+        base = ", ".join(b + " " + " / ".join(num(f["baselines"][n][b]["se3_l2_mean"], 5) for n in names)
+                         for b in ("zero motion", "constant velocity"))
+        notes.append(f"`{rec['name']}` ({' / '.join(n + ' ' + f['ranges'][n] for n in names)}): {base}.")
+    head = ["record", "teacher's labels: held-out / transductive se(3) L2"] + variants
+    return markdown(head, rows) + ["", " ".join(notes), provenance(recs)]
 
 
 def orbslam3_covariance_table(records: dict[str, dict]) -> list[str]:

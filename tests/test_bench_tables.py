@@ -110,6 +110,7 @@ def test_noise_table_puts_each_learner_beside_its_teacher_and_the_baselines():
                              "machine": {"cpu_count": 2, "load_average_start": [1.0], "load_average_end": [2.0]},
                              "figures": fig}}
     lines = tables.noise_table(rec)
-    assert lines[0] == ("| record | teacher's labels, held-out 450:600 / transductive 0:450 (zero motion 0.01300 / 0.01300, "
-                        "constant velocity 0.01100 / 0.01100) | ctc |")
+    assert lines[0] == "| record | teacher's labels: held-out / transductive se(3) L2 | ctc |"
     assert lines[2] == "| teacher-noise | noisy52: 0.00500 / 0.00520 | 0.00800 (1.60x) / 0.00390 (0.75x) |"
+    assert lines[4] == ("`teacher-noise` (held-out 450:600 / transductive 0:450): zero motion 0.01300 / 0.01300, "
+                        "constant velocity 0.01100 / 0.01100.")
