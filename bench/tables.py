@@ -18,6 +18,7 @@ from pathlib import Path
 
 from bench import record
 from ctcvo.data.io import write_text
+from ctcvo.data.metrics import BASELINES
 
 DOCUMENTS = (record.REPO / "bench" / "README.md", record.REPO / "README.md")
 BLOCK = re.compile(r"(<!-- table: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /table -->)", re.S)
@@ -398,7 +399,7 @@ def noise_table(records: dict[str, dict]) -> list[str]:
             rows.append([rec["name"], f"{tname}: {_noise_cell(t, names, False)}"] +
                         [_noise_cell(by[v], names, True) if v in by else "-" for v in variants])
         base = ", ".join(b + " " + " / ".join(num(f["baselines"][n][b]["se3_l2_mean"], 5) for n in names)
-                         for b in ("zero motion", "constant velocity"))
+                         for b in BASELINES)
         notes.append(f"`{rec['name']}` ({' / '.join(n + ' ' + f['ranges'][n] for n in names)}): {base}.")
     head = ["record", "teacher's labels: held-out / transductive se(3) L2"] + variants
     return markdown(head, rows) + ["", " ".join(notes), provenance(recs)]
